@@ -1,0 +1,352 @@
+//! Triangle meshes: OBJ (triangles, quads and larger polygons, fan-triangulated) and PLY (ASCII
+//! and binary) loading, validation, re-centring on the bounding-box centre, and seeded,
+//! area-weighted surface sampling with normals.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::Path;
+
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::error::{ReprError, Result};
+
+/// An indexed triangle mesh, in metres.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mesh {
+    /// Vertex positions.
+    pub vertices: Vec<Vec3>,
+    /// Triangles as vertex indices, counter-clockwise seen from outside.
+    pub faces: Vec<[u32; 3]>,
+}
+
+/// Points on a surface with the outward normals of the faces they lie on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SurfaceSamples {
+    /// Sample positions.
+    pub points: Vec<Vec3>,
+    /// Unit outward normals, one per point.
+    pub normals: Vec<Vec3>,
+}
+
+impl Mesh {
+    /// Builds a mesh and validates it: at least one face, finite vertices, indices in range.
+    /// `source_name` (a path or a description) goes into the error messages.
+    pub fn new(vertices: Vec<Vec3>, faces: Vec<[u32; 3]>, source_name: &str) -> Result<Self> {
+        if faces.is_empty() {
+            return Err(ReprError::EmptyMesh { source_name: source_name.into() });
+        }
+        if let Some(index) = vertices.iter().position(|v| !v.is_finite()) {
+            return Err(ReprError::NonFinite {
+                source_name: source_name.into(),
+                what: "vertex".into(),
+                index,
+            });
+        }
+        let count = vertices.len();
+        if let Some((face, bad)) = faces
+            .iter()
+            .enumerate()
+            .find_map(|(f, tri)| tri.iter().find(|&&i| i as usize >= count).map(|&i| (f, i)))
+        {
+            return Err(ReprError::format(
+                source_name,
+                format!("face {face}"),
+                format!("vertex indices below {count}"),
+                bad,
+            ));
+        }
+        Ok(Self { vertices, faces })
+    }
+
+    /// Loads an `.obj` or `.ply` file by its extension.
+    pub fn load(path: &Path) -> Result<Self> {
+        let extension = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+        match extension.as_deref() {
+            Some("obj") => Self::load_obj(path),
+            Some("ply") => Self::load_ply(path),
+            _ => Err(ReprError::format(
+                path.display(),
+                "file extension",
+                "`.obj` or `.ply`",
+                format!("{:?}", path.extension().unwrap_or_default()),
+            )),
+        }
+    }
+
+    /// Loads a Wavefront OBJ file; every object and group goes into one mesh, polygons are
+    /// fan-triangulated, materials, normals and texture coordinates are ignored.
+    pub fn load_obj(path: &Path) -> Result<Self> {
+        let file =
+            File::open(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        let options = tobj::LoadOptions {
+            triangulate: true,
+            single_index: false,
+            ignore_points: true,
+            ignore_lines: true,
+            ..Default::default()
+        };
+        let (models, _materials) = tobj::load_obj_buf(&mut BufReader::new(file), &options, |_| {
+            // Materials are not used; a missing .mtl file must not fail the load.
+            Ok((Vec::new(), Default::default()))
+        })
+        .map_err(|error| {
+            ReprError::format(path.display(), "OBJ content", "a valid OBJ file", error)
+        })?;
+        let mut vertices = Vec::new();
+        let mut faces = Vec::new();
+        for model in &models {
+            let base = u32::try_from(vertices.len()).map_err(|_| {
+                ReprError::format(path.display(), "vertex count", "fewer than 2^32", vertices.len())
+            })?;
+            let mesh = &model.mesh;
+            vertices.extend(mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
+            faces.extend(
+                mesh.indices.chunks_exact(3).map(|t| [t[0] + base, t[1] + base, t[2] + base]),
+            );
+        }
+        Self::new(vertices, faces, &path.display().to_string())
+    }
+
+    /// Loads a PLY file (ASCII, binary little- or big-endian): `x, y, z` of the `vertex`
+    /// element and the `vertex_indices` (or `vertex_index`) lists of the `face` element;
+    /// polygons are fan-triangulated.
+    pub fn load_ply(path: &Path) -> Result<Self> {
+        use ply_rs_bw::parser::Parser;
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        let name = path.display().to_string();
+        let file =
+            File::open(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        let ply = Parser::<DefaultElement>::new()
+            .read_ply(&mut BufReader::new(file))
+            .map_err(|error| ReprError::format(&name, "PLY content", "a valid PLY file", error))?;
+        let vertex_elements = ply
+            .payload
+            .get("vertex")
+            .ok_or_else(|| ReprError::format(&name, "elements", "a `vertex` element", "none"))?;
+        let mut vertices = Vec::with_capacity(vertex_elements.len());
+        for (index, element) in vertex_elements.iter().enumerate() {
+            let coordinate = |key: &str| -> Result<f32> {
+                element.get(key).and_then(Property::to_f32_lossy).ok_or_else(|| {
+                    ReprError::format(
+                        &name,
+                        format!("vertex {index}"),
+                        format!("a numeric `{key}`"),
+                        "none",
+                    )
+                })
+            };
+            vertices.push(Vec3::new(coordinate("x")?, coordinate("y")?, coordinate("z")?));
+        }
+        let face_elements = ply.payload.get("face").map(Vec::as_slice).unwrap_or_default();
+        let mut faces = Vec::with_capacity(face_elements.len());
+        for (index, element) in face_elements.iter().enumerate() {
+            let polygon = ["vertex_indices", "vertex_index"]
+                .iter()
+                .find_map(|key| element.get(*key))
+                .and_then(Property::to_u32_list)
+                .ok_or_else(|| {
+                    ReprError::format(
+                        &name,
+                        format!("face {index}"),
+                        "a `vertex_indices` list",
+                        "none",
+                    )
+                })?;
+            fan_triangulate(&polygon, &mut faces);
+        }
+        Self::new(vertices, faces, &name)
+    }
+
+    /// The axis-aligned bounding box `(min, max)`.
+    pub fn bounding_box(&self) -> (Vec3, Vec3) {
+        self.vertices
+            .iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), v| (lo.min(*v), hi.max(*v)))
+    }
+
+    /// Moves the mesh so that its bounding-box centre is the origin (the object frame of
+    /// REFERENCE section 1) and returns the old centre, so that a pose given for the original
+    /// frame can be corrected: `p_centred = p_original + R c`.
+    pub fn recenter(&mut self) -> Vec3 {
+        let (lo, hi) = self.bounding_box();
+        let centre = (lo + hi) * 0.5;
+        for v in &mut self.vertices {
+            *v -= centre;
+        }
+        centre
+    }
+
+    /// The (unnormalised) normal of a face: the cross product of two edges, length twice the
+    /// area.
+    pub fn face_area_normal(&self, face: usize) -> Vec3 {
+        let [a, b, c] = self.faces[face].map(|i| self.vertices[i as usize]);
+        (b - a).cross(c - a)
+    }
+
+    /// Total surface area.
+    pub fn surface_area(&self) -> f32 {
+        (0..self.faces.len()).map(|f| self.face_area_normal(f).length() * 0.5).sum()
+    }
+
+    /// `count` points sampled uniformly over the surface (faces chosen with probability
+    /// proportional to their area, points uniform inside the triangle), with their faces'
+    /// normals. The same seed gives the same samples.
+    pub fn sample_surface(&self, count: usize, seed: u64) -> Result<SurfaceSamples> {
+        let mut cumulative = Vec::with_capacity(self.faces.len());
+        let mut total = 0.0f64;
+        for f in 0..self.faces.len() {
+            total += f64::from(self.face_area_normal(f).length());
+            cumulative.push(total);
+        }
+        if total <= 0.0 {
+            return Err(ReprError::EmptyMesh { source_name: "surface sampling".into() });
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut points = Vec::with_capacity(count);
+        let mut normals = Vec::with_capacity(count);
+        for _ in 0..count {
+            let target = rng.random::<f64>() * total;
+            let face = cumulative.partition_point(|&c| c <= target).min(self.faces.len() - 1);
+            let [a, b, c] = self.faces[face].map(|i| self.vertices[i as usize]);
+            // Uniform in the triangle: reflect the unit square's upper half.
+            let (mut u, mut v): (f32, f32) = (rng.random(), rng.random());
+            if u + v > 1.0 {
+                (u, v) = (1.0 - u, 1.0 - v);
+            }
+            points.push(a + (b - a) * u + (c - a) * v);
+            normals.push(self.face_area_normal(face).normalize_or_zero());
+        }
+        Ok(SurfaceSamples { points, normals })
+    }
+}
+
+/// Splits a polygon into a fan of triangles around its first vertex.
+fn fan_triangulate(polygon: &[u32], faces: &mut Vec<[u32; 3]>) {
+    for k in 1..polygon.len().saturating_sub(1) {
+        faces.push([polygon[0], polygon[k], polygon[k + 1]]);
+    }
+}
+
+/// A unit cube `[-h, h]^3` with outward-facing triangles (tests, examples and the catalogue).
+pub fn box_mesh(half_extents: Vec3) -> Mesh {
+    let h = half_extents;
+    let vertices = (0..8)
+        .map(|i| {
+            Vec3::new(
+                if i & 1 == 0 { -h.x } else { h.x },
+                if i & 2 == 0 { -h.y } else { h.y },
+                if i & 4 == 0 { -h.z } else { h.z },
+            )
+        })
+        .collect();
+    // Quads counter-clockwise seen from outside.
+    let quads =
+        [[0, 4, 6, 2], [1, 3, 7, 5], [0, 1, 5, 4], [2, 6, 7, 3], [0, 2, 3, 1], [4, 5, 7, 6]];
+    let mut faces = Vec::new();
+    for quad in quads {
+        fan_triangulate(&quad, &mut faces);
+    }
+    Mesh { vertices, faces }
+}
+
+/// A UV sphere with `rings` latitude bands and `segments` longitude bands, outward triangles.
+pub fn uv_sphere(radius: f32, rings: u32, segments: u32) -> Mesh {
+    let rings = rings.max(2);
+    let segments = segments.max(3);
+    let mut vertices = vec![Vec3::new(0.0, radius, 0.0)];
+    for r in 1..rings {
+        let polar = std::f32::consts::PI * r as f32 / rings as f32;
+        for s in 0..segments {
+            let azimuth = std::f32::consts::TAU * s as f32 / segments as f32;
+            vertices.push(
+                Vec3::new(polar.sin() * azimuth.cos(), polar.cos(), polar.sin() * azimuth.sin())
+                    * radius,
+            );
+        }
+    }
+    vertices.push(Vec3::new(0.0, -radius, 0.0));
+    let bottom = vertices.len() as u32 - 1;
+    let ring_start = |r: u32| 1 + (r - 1) * segments;
+    let mut faces = Vec::new();
+    for s in 0..segments {
+        let next = (s + 1) % segments;
+        faces.push([0, ring_start(1) + next, ring_start(1) + s]);
+        let last = ring_start(rings - 1);
+        faces.push([bottom, last + s, last + next]);
+    }
+    for r in 1..rings - 1 {
+        for s in 0..segments {
+            let next = (s + 1) % segments;
+            let (a, b) = (ring_start(r) + s, ring_start(r) + next);
+            let (c, d) = (ring_start(r + 1) + s, ring_start(r + 1) + next);
+            faces.push([a, b, d]);
+            faces.push([a, d, c]);
+        }
+    }
+    Mesh { vertices, faces }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_meshes_are_refused() {
+        let v = vec![Vec3::ZERO, Vec3::X, Vec3::Y];
+        assert!(matches!(Mesh::new(v.clone(), vec![], "m"), Err(ReprError::EmptyMesh { .. })));
+        assert!(Mesh::new(v.clone(), vec![[0, 1, 3]], "m").is_err());
+        let mut nan = v;
+        nan[1].y = f32::NAN;
+        let error = Mesh::new(nan, vec![[0, 1, 2]], "cup.obj").unwrap_err();
+        assert!(error.to_string().contains("cup.obj"), "{error}");
+    }
+
+    #[test]
+    fn primitives_are_closed_and_outward() {
+        for mesh in [box_mesh(Vec3::new(0.1, 0.2, 0.3)), uv_sphere(0.5, 16, 24)] {
+            // Signed volume by the divergence theorem is positive for outward faces.
+            let volume: f32 = mesh
+                .faces
+                .iter()
+                .map(|f| {
+                    let [a, b, c] = f.map(|i| mesh.vertices[i as usize]);
+                    a.dot(b.cross(c)) / 6.0
+                })
+                .sum();
+            assert!(volume > 0.0);
+        }
+        let cube = box_mesh(Vec3::splat(0.5));
+        assert!((cube.surface_area() - 6.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn sampling_is_seeded_and_on_the_surface() {
+        let cube = box_mesh(Vec3::splat(0.5));
+        let a = cube.sample_surface(500, 7).unwrap();
+        assert_eq!(a, cube.sample_surface(500, 7).unwrap());
+        assert_ne!(a, cube.sample_surface(500, 8).unwrap());
+        for (p, n) in a.points.iter().zip(&a.normals) {
+            // On the face whose normal it carries.
+            assert!((p.dot(*n) - 0.5).abs() < 1e-5, "{p:?} {n:?}");
+        }
+        // Area weighting: a flat box gets most samples on its large faces.
+        let flat = box_mesh(Vec3::new(0.5, 0.01, 0.5));
+        let samples = flat.sample_surface(2000, 1).unwrap();
+        let top_bottom = samples.normals.iter().filter(|n| n.y.abs() > 0.5).count();
+        assert!(top_bottom > 1800, "{top_bottom}");
+    }
+
+    #[test]
+    fn recenter_moves_the_box_centre_to_the_origin() {
+        let mut mesh = box_mesh(Vec3::splat(0.1));
+        for v in &mut mesh.vertices {
+            *v += Vec3::new(1.0, 2.0, 3.0);
+        }
+        let centre = mesh.recenter();
+        assert!(centre.abs_diff_eq(Vec3::new(1.0, 2.0, 3.0), 1e-6));
+        let (lo, hi) = mesh.bounding_box();
+        assert!((lo + hi).abs_diff_eq(Vec3::ZERO, 1e-6));
+    }
+}

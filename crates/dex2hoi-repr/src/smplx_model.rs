@@ -1,0 +1,239 @@
+//! Reading the arrays of a user-supplied SMPL-X model file (`.npz`, as the SMPL-X website ships
+//! `SMPLX_NEUTRAL.npz`). Only plain numeric arrays are read; other entries are left alone.
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+use crate::error::{ReprError, Result};
+use crate::skeleton::SMPLX55_PARENTS;
+
+/// A numeric array read from an `.npz` entry, in C order, converted to `f64`.
+#[derive(Debug, Clone)]
+pub struct NpzArray {
+    /// Row-major values.
+    pub values: Vec<f64>,
+    /// The shape.
+    pub shape: Vec<usize>,
+}
+
+/// Reads one numeric array from an open archive; Fortran-ordered arrays are transposed into C
+/// order. Object (pickled) arrays, strings and records are refused with the key's name.
+pub fn read_npz_array(
+    archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+    path: &Path,
+    key: &str,
+    expected: &str,
+) -> Result<NpzArray> {
+    let io_error = |source| ReprError::Io { path: path.to_path_buf(), source };
+    let file = archive.by_name(key).map_err(io_error)?.ok_or_else(|| ReprError::MissingKey {
+        path: path.to_path_buf(),
+        key: key.into(),
+        expected: expected.into(),
+    })?;
+    let shape: Vec<usize> = file.shape().iter().map(|&d| d as usize).collect();
+    let order = file.order();
+    let type_string = match file.dtype() {
+        npyz::DType::Plain(type_str) => type_str.to_string(),
+        other => other.descr(),
+    };
+    let kind = type_string.trim_start_matches(['<', '>', '|', '=']);
+    let source_name = format!("{}[{key}]", path.display());
+    let values: Vec<f64> = match kind {
+        "f4" => file.into_vec::<f32>().map_err(io_error)?.into_iter().map(f64::from).collect(),
+        "f8" => file.into_vec::<f64>().map_err(io_error)?,
+        "i4" => file.into_vec::<i32>().map_err(io_error)?.into_iter().map(f64::from).collect(),
+        "i8" => file.into_vec::<i64>().map_err(io_error)?.into_iter().map(|v| v as f64).collect(),
+        "u4" => file.into_vec::<u32>().map_err(io_error)?.into_iter().map(f64::from).collect(),
+        "u8" => file.into_vec::<u64>().map_err(io_error)?.into_iter().map(|v| v as f64).collect(),
+        _ => {
+            return Err(ReprError::format(
+                source_name,
+                "array type",
+                "a numeric array (f4, f8, i4, i8, u4, u8)",
+                type_string,
+            ));
+        }
+    };
+    let count: usize = shape.iter().product();
+    if values.len() != count {
+        return Err(ReprError::format(
+            source_name,
+            "element count",
+            format!("{count} values for shape {shape:?}"),
+            values.len(),
+        ));
+    }
+    let values = match order {
+        npyz::Order::C => values,
+        npyz::Order::Fortran => fortran_to_c(&values, &shape),
+    };
+    Ok(NpzArray { values, shape })
+}
+
+/// Reorders column-major values into row-major order.
+fn fortran_to_c(values: &[f64], shape: &[usize]) -> Vec<f64> {
+    let count = values.len();
+    let mut out = vec![0.0; count];
+    let mut index = vec![0usize; shape.len()];
+    for c_position in 0..count {
+        // Column-major position of the multi-index.
+        let mut f_position = 0;
+        let mut stride = 1;
+        for (axis, &i) in index.iter().enumerate() {
+            f_position += i * stride;
+            stride *= shape[axis];
+        }
+        out[c_position] = values[f_position];
+        for axis in (0..shape.len()).rev() {
+            index[axis] += 1;
+            if index[axis] < shape[axis] {
+                break;
+            }
+            index[axis] = 0;
+        }
+    }
+    out
+}
+
+/// The arrays of an SMPL-X model file that rest joints need.
+#[derive(Debug, Clone)]
+pub struct SmplxModel {
+    path: PathBuf,
+    /// Template vertices `(V, 3)`.
+    pub v_template: NpzArray,
+    /// Shape blend shapes `(V, 3, S)`.
+    pub shapedirs: NpzArray,
+    /// Joint regressor `(55, V)`.
+    pub j_regressor: NpzArray,
+}
+
+impl SmplxModel {
+    /// Opens the file and checks the keys and shapes of `v_template`, `shapedirs`,
+    /// `J_regressor` and `kintree_table` (whose parent row must be the SMPL-X tree).
+    pub fn load(path: &Path) -> Result<Self> {
+        let mut archive = npyz::npz::NpzArchive::open(path)
+            .map_err(|source| ReprError::Io { path: path.to_path_buf(), source })?;
+        let name = path.display().to_string();
+        let shape_error = |key: &str, expected: String, got: &[usize]| ReprError::Shape {
+            source_name: name.clone(),
+            key: key.into(),
+            expected,
+            got: got.to_vec(),
+        };
+        let v_template =
+            read_npz_array(&mut archive, path, "v_template", "template vertices (V, 3)")?;
+        if v_template.shape.len() != 2 || v_template.shape[1] != 3 || v_template.shape[0] == 0 {
+            return Err(shape_error("v_template", "(V, 3)".into(), &v_template.shape));
+        }
+        let vertex_count = v_template.shape[0];
+        let shapedirs =
+            read_npz_array(&mut archive, path, "shapedirs", "shape blend shapes (V, 3, S)")?;
+        if shapedirs.shape.len() != 3 || shapedirs.shape[..2] != [vertex_count, 3] {
+            return Err(shape_error(
+                "shapedirs",
+                format!("({vertex_count}, 3, S)"),
+                &shapedirs.shape,
+            ));
+        }
+        let j_regressor =
+            read_npz_array(&mut archive, path, "J_regressor", "joint regressor (55, V)")?;
+        if j_regressor.shape != [55, vertex_count] {
+            return Err(shape_error(
+                "J_regressor",
+                format!("(55, {vertex_count})"),
+                &j_regressor.shape,
+            ));
+        }
+        let kintree =
+            read_npz_array(&mut archive, path, "kintree_table", "kinematic tree (2, 55)")?;
+        if kintree.shape != [2, 55] {
+            return Err(shape_error("kintree_table", "(2, 55)".into(), &kintree.shape));
+        }
+        // The root's parent is stored as -1 (int) or 2^32 - 1 (uint32).
+        let parents: Vec<i64> = kintree.values[..55]
+            .iter()
+            .map(|&p| if p < 0.0 || p >= f64::from(u32::MAX) { -1 } else { p as i64 })
+            .collect();
+        let expected: Vec<i64> = SMPLX55_PARENTS.iter().map(|&p| i64::from(p)).collect();
+        if parents != expected {
+            return Err(ReprError::format(
+                name,
+                "kintree_table parents",
+                format!("the SMPL-X tree {expected:?}"),
+                format!("{parents:?}"),
+            ));
+        }
+        for (key, array) in
+            [("v_template", &v_template), ("shapedirs", &shapedirs), ("J_regressor", &j_regressor)]
+        {
+            if let Some(index) = array.values.iter().position(|v| !v.is_finite()) {
+                return Err(ReprError::NonFinite {
+                    source_name: name.clone(),
+                    what: format!("`{key}` value"),
+                    index,
+                });
+            }
+        }
+        Ok(Self { path: path.to_path_buf(), v_template, shapedirs, j_regressor })
+    }
+
+    /// The 55 rest joints for the given shape coefficients (at most as many as `shapedirs` has).
+    pub fn rest_joints(&self, betas: &[f32]) -> Result<Vec<Vec3>> {
+        let shape_count = self.shapedirs.shape[2];
+        if betas.len() > shape_count {
+            return Err(ReprError::invalid(
+                format!("betas for {}", self.path.display()),
+                format!("at most {shape_count} shape coefficients"),
+                betas.len(),
+            ));
+        }
+        if let Some(index) = betas.iter().position(|b| !b.is_finite()) {
+            return Err(ReprError::NonFinite {
+                source_name: "betas".into(),
+                what: "beta".into(),
+                index,
+            });
+        }
+        let vertex_count = self.v_template.shape[0];
+        let mut vertices = self.v_template.values.clone();
+        for v in 0..vertex_count {
+            for axis in 0..3 {
+                let base = (v * 3 + axis) * shape_count;
+                let blend: f64 = betas
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &b)| self.shapedirs.values[base + k] * f64::from(b))
+                    .sum();
+                vertices[v * 3 + axis] += blend;
+            }
+        }
+        Ok((0..55)
+            .map(|joint| {
+                let row =
+                    &self.j_regressor.values[joint * vertex_count..(joint + 1) * vertex_count];
+                let mut sum = [0.0f64; 3];
+                for (v, &weight) in row.iter().enumerate() {
+                    if weight != 0.0 {
+                        for axis in 0..3 {
+                            sum[axis] += weight * vertices[v * 3 + axis];
+                        }
+                    }
+                }
+                Vec3::new(sum[0] as f32, sum[1] as f32, sum[2] as f32)
+            })
+            .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fortran_order_is_transposed() {
+        // numpy: np.arange(6).reshape(2, 3, order='F') stores [0..6] column-major.
+        let c = fortran_to_c(&[0.0, 1.0, 2.0, 3.0, 4.0, 5.0], &[2, 3]);
+        assert_eq!(c, vec![0.0, 2.0, 4.0, 1.0, 3.0, 5.0]);
+    }
+}

@@ -1,0 +1,95 @@
+//! Encode/decode of the hand-relative object representation (Eq. 2-4) and the mixture targets.
+
+mod common;
+
+use common::*;
+use glam::Vec3;
+use proptest::prelude::*;
+
+use dex2hoi_repr::object_repr::{
+    HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists, mixture_targets,
+    softmax3,
+};
+use dex2hoi_repr::rotation::axis_angle_to_matrix;
+
+fn vec3(range: f32) -> impl Strategy<Value = Vec3> {
+    (-range..range, -range..range, -range..range).prop_map(|(x, y, z)| Vec3::new(x, y, z))
+}
+
+fn wrist() -> impl Strategy<Value = WristPose> {
+    (vec3(1.5), vec3(3.0))
+        .prop_map(|(position, aa)| WristPose { position, rotation: axis_angle_to_matrix(aa) })
+}
+
+proptest! {
+    #[test]
+    fn decode_of_encode_is_the_pose_for_any_mixture(
+        left in wrist(), right in wrist(), position in vec3(2.0), aa in vec3(3.0),
+        logits in proptest::array::uniform3(-8.0f32..8.0)
+    ) {
+        let wrists = Wrists { left, right };
+        let object = ObjectPose { rotation: axis_angle_to_matrix(aa), position };
+        let encoded = HandRelativeObject::encode(object, wrists, logits);
+        prop_assert!(encoded.decode_position(wrists).abs_diff_eq(position, 2e-5));
+        prop_assert!(encoded.decode_rotation().abs_diff_eq(object.rotation, 1e-5));
+        // The 18 numbers round-trip exactly.
+        let back = HandRelativeObject::from_slice(&encoded.to_array()).unwrap();
+        prop_assert_eq!(back, encoded);
+        let weights = encoded.mixture_weights();
+        prop_assert!((weights.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn offsets_are_positions_in_the_wrist_frame(left in wrist(), right in wrist(), position in vec3(2.0)) {
+        let wrists = Wrists { left, right };
+        let object = ObjectPose { rotation: glam::Mat3::IDENTITY, position };
+        let e = HandRelativeObject::encode(object, wrists, [0.0; 3]);
+        prop_assert!((e.left_offset.length() - position.distance(left.position)).abs() < 1e-4);
+        prop_assert!((left.position + left.rotation * e.left_offset).abs_diff_eq(position, 2e-5));
+        prop_assert!((right.position + right.rotation * e.right_offset).abs_diff_eq(position, 2e-5));
+    }
+}
+
+#[test]
+fn a_wrong_length_is_an_error() {
+    assert!(HandRelativeObject::from_slice(&[0.0; 17]).is_err());
+}
+
+#[test]
+fn mixture_targets_follow_the_rule() {
+    let config = MixtureTargetConfig { smoothing_radius: 0, ..Default::default() };
+    let near = 0.01;
+    let far = 0.2;
+    let targets =
+        mixture_targets(&[near, far, near, far, -0.01], &[far, near, near, far, f32::NAN], &config)
+            .unwrap();
+    let expected =
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]];
+    for (logits, want) in targets.iter().zip(expected) {
+        let weights = softmax3(*logits);
+        assert_close(&weights, &want, 2.1e-3, "weights");
+        assert!(logits.iter().all(|l| l.is_finite()));
+        assert!(logits.iter().sum::<f32>().abs() < 1e-5, "centred");
+    }
+}
+
+#[test]
+fn mixture_targets_are_smoothed_over_time() {
+    let config = MixtureTargetConfig::default(); // radius 2
+    let mut left = vec![0.0f32; 10];
+    left[5..].fill(1.0); // the left hand lets go at frame 5...
+    let mut right = vec![1.0f32; 10];
+    right[5..].fill(0.0); // ...as the right hand takes the object
+    let targets = mixture_targets(&left, &right, &config).unwrap();
+    let left_weight: Vec<f32> = targets.iter().map(|l| softmax3(*l)[0]).collect();
+    assert!(left_weight[0] > 0.99 && left_weight[9] < 0.01);
+    // A ramp over the 5-frame window around the hand-over, monotone.
+    assert!((left_weight[4] - 0.6).abs() < 0.01, "{left_weight:?}");
+    assert!((left_weight[5] - 0.4).abs() < 0.01, "{left_weight:?}");
+    assert!(left_weight.windows(2).all(|w| w[1] <= w[0] + 1e-6));
+    // Softmax of the stored logits gives the smoothed weights back and they sum to one.
+    for l in &targets {
+        assert!((softmax3(*l).iter().sum::<f32>() - 1.0).abs() < 1e-6);
+    }
+    assert!(mixture_targets(&[0.0], &[0.0, 1.0], &config).is_err());
+}
