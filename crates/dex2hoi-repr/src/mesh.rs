@@ -85,7 +85,6 @@ impl Mesh {
             single_index: false,
             ignore_points: true,
             ignore_lines: true,
-            ..Default::default()
         };
         let (models, _materials) = tobj::load_obj_buf(&mut BufReader::new(file), &options, |_| {
             // Materials are not used; a missing .mtl file must not fail the load.
@@ -111,15 +110,20 @@ impl Mesh {
 
     /// Loads a PLY file (ASCII, binary little- or big-endian): `x, y, z` of the `vertex`
     /// element and the `vertex_indices` (or `vertex_index`) lists of the `face` element;
-    /// polygons are fan-triangulated.
+    /// polygons are fan-triangulated. Header lines that start with no PLY keyword (some
+    /// exporters write free text there, as Blender 2.47 did) are read as comments, as assimp
+    /// reads them.
     pub fn load_ply(path: &Path) -> Result<Self> {
         use ply_rs_bw::parser::Parser;
         use ply_rs_bw::ply::{DefaultElement, Property};
         let name = path.display().to_string();
-        let file =
-            File::open(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        let bytes =
+            std::fs::read(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        let bytes = tolerant_ply_header(&bytes).ok_or_else(|| {
+            ReprError::format(&name, "PLY header", "a header ending in `end_header`", "none")
+        })?;
         let ply = Parser::<DefaultElement>::new()
-            .read_ply(&mut BufReader::new(file))
+            .read_ply(&mut bytes.as_slice())
             .map_err(|error| ReprError::format(&name, "PLY content", "a valid PLY file", error))?;
         let vertex_elements = ply
             .payload
@@ -219,6 +223,30 @@ impl Mesh {
             normals.push(self.face_area_normal(face).normalize_or_zero());
         }
         Ok(SurfaceSamples { points, normals })
+    }
+}
+
+/// The PLY file with every header line that starts with no PLY keyword turned into a comment;
+/// `None` when there is no `end_header` line.
+fn tolerant_ply_header(bytes: &[u8]) -> Option<Vec<u8>> {
+    const KEYWORDS: [&str; 7] =
+        ["ply", "format", "comment", "element", "property", "obj_info", "end_header"];
+    let mut out = Vec::with_capacity(bytes.len() + 64);
+    let mut rest = bytes;
+    loop {
+        let end = rest.iter().position(|&b| b == b'\n')?;
+        let line = &rest[..=end];
+        rest = &rest[end + 1..];
+        let text = String::from_utf8_lossy(line);
+        let first = text.split_whitespace().next().unwrap_or("");
+        if !first.is_empty() && !KEYWORDS.contains(&first) {
+            out.extend_from_slice(b"comment ");
+        }
+        out.extend_from_slice(line);
+        if first == "end_header" {
+            out.extend_from_slice(rest);
+            return Some(out);
+        }
     }
 }
 

@@ -192,7 +192,8 @@ pub fn mixture_targets(
         ));
     }
     let floor = config.probability_floor;
-    if !(floor > 0.0 && floor < 1.0 / 3.0) || !config.contact_distance.is_finite() {
+    let floor_ok = floor > 0.0 && floor < 1.0 / 3.0;
+    if !floor_ok || !config.contact_distance.is_finite() {
         return Err(ReprError::invalid(
             "mixture target config",
             "a probability floor in (0, 1/3) and a finite contact distance",

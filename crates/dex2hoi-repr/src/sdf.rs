@@ -79,7 +79,12 @@ impl MeshQuery {
             let [a, b, c] = tri.map(|i| vertices[i as usize]);
             let normal = (b - a).cross(c - a);
             let length = normal.length();
-            if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] || !(length > 1e-20) {
+            if tri[0] == tri[1]
+                || tri[1] == tri[2]
+                || tri[0] == tri[2]
+                || length.is_nan()
+                || length <= 1e-20
+            {
                 continue;
             }
             triangles.push(tri);

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Installs everything dex2hoi's build and tests need on a fresh Debian machine with a Rust
+# toolchain and Python 3: the rustfmt and clippy components, and the real meshes the tests read
+# (pybullet's OBJ files from PyPI, assimp's PLY files from Debian). Safe to run again.
+set -euo pipefail
+
+say() { printf '==> %s\n' "$*"; }
+as_root() { if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi; }
+
+if command -v rustup >/dev/null 2>&1; then
+  say "rustfmt and clippy"
+  rustup component add rustfmt clippy >/dev/null
+fi
+
+if [ ! -f /usr/share/assimp/models/PLY/Wuson.ply ]; then
+  say "assimp test models (Debian assimp-testmodels)"
+  as_root apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq assimp-testmodels >/dev/null
+fi
+
+python=${PYTHON:-python3}
+if ! "$python" -c "import pybullet_data" >/dev/null 2>&1; then
+  say "pybullet data files (PyPI pybullet)"
+  "$python" -m pip install --quiet --disable-pip-version-check pybullet
+fi
+
+say "set-up done"

@@ -1,0 +1,215 @@
+//! Tidy checks that keep the workspace honest, run as ordinary tests: lints opted into,
+//! dependencies pinned once, the crate layering of `docs/ARCHITECTURE.md`, no stubs, docs present.
+
+use std::path::{Path, PathBuf};
+
+use dex2hoi_tests::workspace_root;
+
+/// The allowed `dex2hoi-*` dependencies of each crate (docs/ARCHITECTURE.md, "Invariants").
+const LAYERING: [(&str, &[&str]); 8] = [
+    ("dex2hoi-repr", &[]),
+    ("dex2hoi-data", &["dex2hoi-repr"]),
+    ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"]),
+    ("dex2hoi-diffusion", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model"]),
+    ("dex2hoi-train", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
+    ("dex2hoi-eval", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
+    ("dex2hoi-export", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
+    (
+        "dex2hoi-cli",
+        &[
+            "dex2hoi-repr",
+            "dex2hoi-data",
+            "dex2hoi-model",
+            "dex2hoi-diffusion",
+            "dex2hoi-train",
+            "dex2hoi-eval",
+            "dex2hoi-export",
+        ],
+    ),
+];
+
+/// Crates allowed to use `anyhow` (binaries); libraries have their own error enum.
+const ANYHOW_ALLOWED: [&str; 3] = ["dex2hoi-cli", "xtask", "dex2hoi-tests"];
+
+struct Member {
+    dir: PathBuf,
+    manifest: toml::Table,
+}
+
+impl Member {
+    fn name(&self) -> &str {
+        self.manifest["package"]["name"].as_str().expect("package.name")
+    }
+
+    fn dependency_tables(&self) -> impl Iterator<Item = (&str, &toml::Table)> {
+        ["dependencies", "dev-dependencies", "build-dependencies"]
+            .into_iter()
+            .filter_map(|k| self.manifest.get(k).and_then(|t| t.as_table()).map(|t| (k, t)))
+    }
+}
+
+fn members() -> Vec<Member> {
+    let root = workspace_root();
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(root.join("crates"))
+        .expect("crates/")
+        .map(|e| e.expect("entry").path())
+        .filter(|p| p.join("Cargo.toml").is_file())
+        .collect();
+    dirs.sort();
+    dirs.push(root.join("xtask"));
+    dirs.push(root.join("tests"));
+    dirs.into_iter()
+        .map(|dir| {
+            let text = std::fs::read_to_string(dir.join("Cargo.toml")).expect("manifest");
+            Member { manifest: text.parse().expect("valid TOML"), dir }
+        })
+        .collect()
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).expect("readable dir") {
+        let path = entry.expect("entry").path();
+        if path.is_dir() {
+            if path.file_name().is_some_and(|n| n != "target") {
+                rust_files(&path, out);
+            }
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+#[test]
+fn every_member_opts_into_workspace_lints_and_dependencies() {
+    for member in members() {
+        let name = member.name().to_string();
+        let lints = member.manifest.get("lints").and_then(|l| l.get("workspace"));
+        assert_eq!(
+            lints.and_then(|v| v.as_bool()),
+            Some(true),
+            "{name}: add `[lints] workspace = true`"
+        );
+        for (section, table) in member.dependency_tables() {
+            for (dep, spec) in table {
+                let pinned_once = spec.get("workspace").and_then(|v| v.as_bool()) == Some(true);
+                assert!(pinned_once, "{name}: [{section}] {dep} must be `{dep}.workspace = true`");
+            }
+        }
+    }
+}
+
+#[test]
+fn crate_folders_are_named_like_their_crates() {
+    for member in members() {
+        if member.dir.parent().is_some_and(|p| p.ends_with("crates")) {
+            let folder = member.dir.file_name().unwrap().to_string_lossy().into_owned();
+            assert_eq!(folder, member.name(), "crates/{folder} holds {}", member.name());
+        }
+    }
+}
+
+#[test]
+fn crate_dependencies_follow_the_layering() {
+    for member in members() {
+        let name = member.name();
+        if name == "xtask" || name == "dex2hoi-tests" {
+            // xtask drives cargo only; the tests crate may use every crate.
+            if name == "xtask" {
+                for (_, table) in member.dependency_tables() {
+                    assert!(
+                        table.keys().all(|k| !k.starts_with("dex2hoi")),
+                        "xtask must not depend on project crates"
+                    );
+                }
+            }
+            continue;
+        }
+        let allowed = LAYERING
+            .iter()
+            .find(|(crate_name, _)| *crate_name == name)
+            .unwrap_or_else(|| {
+                panic!("{name} is not in the layering table of tidy.rs and ARCHITECTURE.md")
+            })
+            .1;
+        for (section, table) in member.dependency_tables() {
+            for dep in table.keys().filter(|k| k.starts_with("dex2hoi")) {
+                assert!(
+                    allowed.contains(&dep.as_str()),
+                    "{name} may not depend on {dep} ([{section}])"
+                );
+            }
+            if !ANYHOW_ALLOWED.contains(&name) && section == "dependencies" {
+                assert!(
+                    !table.contains_key("anyhow"),
+                    "{name} is a library: use its thiserror enum, not anyhow"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn architecture_doc_names_every_crate() {
+    let doc = std::fs::read_to_string(workspace_root().join("docs/ARCHITECTURE.md"))
+        .expect("docs/ARCHITECTURE.md");
+    assert!(doc.contains("Architecture Invariant"), "ARCHITECTURE.md states its invariants");
+    for member in members() {
+        let name = member.name();
+        if name != "dex2hoi-tests" && name != "xtask" {
+            assert!(
+                doc.contains(&format!("crates/{name}")),
+                "docs/ARCHITECTURE.md must describe crates/{name}"
+            );
+        }
+    }
+}
+
+#[test]
+fn no_stubs_or_ignored_tests() {
+    let root = workspace_root();
+    let mut files = Vec::new();
+    for dir in ["crates", "xtask", "tests"] {
+        rust_files(&root.join(dir), &mut files);
+    }
+    // Built from pieces so that this file does not match itself.
+    let forbidden =
+        [concat!("todo", "!("), concat!("unimplemented", "!("), concat!("#[", "ignore")];
+    for file in files {
+        let text = std::fs::read_to_string(&file).expect("readable source");
+        for pattern in forbidden {
+            assert!(!text.contains(pattern), "{}: contains `{pattern}`", file.display());
+        }
+    }
+}
+
+#[test]
+fn crate_roots_have_module_docs() {
+    for member in members() {
+        for root_file in ["src/lib.rs", "src/main.rs"] {
+            let path = member.dir.join(root_file);
+            if let Ok(text) = std::fs::read_to_string(&path) {
+                assert!(
+                    text.starts_with("//!"),
+                    "{}: start with a `//!` module doc",
+                    path.display()
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn readme_gives_the_ci_test_command() {
+    let root = workspace_root();
+    let ci = std::fs::read_to_string(root.join(".ci/run")).expect(".ci/run");
+    let readme = std::fs::read_to_string(root.join("README.md")).expect("README.md");
+    let command = ci
+        .lines()
+        .map(str::trim)
+        .find(|l| l.starts_with("cargo "))
+        .expect(".ci/run runs a cargo command");
+    assert!(
+        readme.contains(command),
+        "README.md must give the test command `{command}` that .ci/run runs"
+    );
+}
