@@ -2,21 +2,26 @@
 //!
 //! Prints medians over repeated runs, and ratios against baselines measured in the same run:
 //! FK on one thread (baseline) against FK over frames in parallel and the batched candle FK the
-//! losses use; BVH signed-distance queries against a brute-force scan of every triangle.
+//! losses use (the custom operation and the composite fallback, forward and forward + backward); BVH signed-distance queries against a brute-force scan of every triangle.
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
-use candle_core::{Device, Tensor};
+use candle_core::{Device, Tensor, Var};
 use glam::{Mat3, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_repr::fk::{forward_kinematics, forward_kinematics_frame, tensor_forward_kinematics};
+use dex2hoi_repr::fk::{
+    forward_kinematics, forward_kinematics_frame, tensor_forward_kinematics,
+    tensor_forward_kinematics_composite,
+};
 use dex2hoi_repr::mesh::uv_sphere;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 use dex2hoi_repr::sdf::brute_force_distance;
 use dex2hoi_repr::{BpsBasis, MeshQuery, Skeleton};
+
+type FkFn = fn(&Skeleton, &Tensor, &Tensor) -> dex2hoi_repr::Result<(Tensor, Tensor)>;
 
 /// Median wall time of `runs` calls after one warm-up call.
 fn median_time(runs: usize, mut f: impl FnMut()) -> Duration {
@@ -85,11 +90,41 @@ fn main() {
     let candle = median_time(11, || {
         black_box(tensor_forward_kinematics(&skeleton, &local_t, &roots_t).unwrap());
     });
-    let candle_rate = report("FK candle, batch 64 x 64 frames (forward)", frames, "frames", candle);
+    let candle_rate =
+        report("FK candle op, batch 64 x 64 frames (forward)", frames, "frames", candle);
+    let composite = median_time(11, || {
+        black_box(tensor_forward_kinematics_composite(&skeleton, &local_t, &roots_t).unwrap());
+    });
+    let composite_rate = report("FK candle composite (forward)", frames, "frames", composite);
+    let local_var = Var::from_tensor(&local_t).unwrap();
+    let backward = |fk: FkFn| {
+        median_time(11, || {
+            let (positions, _) = fk(&skeleton, local_var.as_tensor(), &roots_t).unwrap();
+            black_box(positions.sqr().unwrap().sum_all().unwrap().backward().unwrap());
+        })
+    };
+    let op_train_rate = report(
+        "FK candle op, forward + backward",
+        frames,
+        "frames",
+        backward(tensor_forward_kinematics),
+    );
+    let composite_train_rate = report(
+        "FK candle composite, forward + backward",
+        frames,
+        "frames",
+        backward(tensor_forward_kinematics_composite),
+    );
     println!(
-        "  ratios to the one-thread baseline: parallel {:.2}x, candle {:.2}x\n",
+        "  ratios to the one-thread baseline: glam parallel {:.2}x, op {:.2}x, composite {:.2}x",
         parallel_rate / single_rate,
-        candle_rate / single_rate
+        candle_rate / single_rate,
+        composite_rate / single_rate
+    );
+    println!(
+        "  op over composite: forward {:.1}x, forward + backward {:.1}x\n",
+        candle_rate / composite_rate,
+        op_train_rate / composite_train_rate
     );
 
     // Signed distance against a 10,000-triangle mesh.

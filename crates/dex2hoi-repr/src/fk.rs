@@ -6,12 +6,14 @@
 //! The root position is the world position of the root joint (the pelvis), not a displacement
 //! from the rest pose: the identity pose with `root = rest_offsets[0]` gives the rest joints.
 
-use candle_core::{DType, Tensor};
+use std::sync::Arc;
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor};
 use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
 use crate::error::{ReprError, Result};
-use crate::rotation::tensor::{leading_dims, leading_dims_matrix, require_float, rotate};
+use crate::rotation::tensor::{leading_dims, leading_dims_matrix, require_float};
 use crate::skeleton::Skeleton;
 
 /// Global joint positions and rotations for a sequence, frame-major (`[frames * joints]`).
@@ -69,6 +71,9 @@ pub fn forward_kinematics_frame(
     }
 }
 
+/// Frames per parallel task in [`forward_kinematics`].
+const FRAMES_PER_TASK: usize = 256;
+
 /// Forward kinematics of a sequence, frames in parallel.
 ///
 /// # Shapes
@@ -90,38 +95,34 @@ pub fn forward_kinematics(
     }
     let mut positions = vec![Vec3::ZERO; frames * joints];
     let mut rotations = vec![Mat3::IDENTITY; frames * joints];
+    // One task per block of frames: a single frame is too little work to be worth a task.
+    let block = joints * FRAMES_PER_TASK;
     positions
-        .par_chunks_mut(joints)
-        .zip(rotations.par_chunks_mut(joints))
-        .zip(local_rotations.par_chunks(joints))
-        .zip(root_positions.par_iter())
-        .for_each(|(((positions, rotations), local), root)| {
-            forward_kinematics_frame(skeleton, local, *root, positions, rotations);
+        .par_chunks_mut(block)
+        .zip(rotations.par_chunks_mut(block))
+        .zip(local_rotations.par_chunks(block))
+        .zip(root_positions.par_chunks(FRAMES_PER_TASK))
+        .for_each(|(((positions, rotations), local), roots)| {
+            for (frame, root) in roots.iter().enumerate() {
+                let span = frame * joints..(frame + 1) * joints;
+                forward_kinematics_frame(
+                    skeleton,
+                    &local[span.clone()],
+                    *root,
+                    &mut positions[span.clone()],
+                    &mut rotations[span],
+                );
+            }
         });
     Ok(FkOutput { frames, joints, positions, rotations })
 }
 
-/// The rest offsets of a skeleton as a `[J, 3]` tensor.
-pub fn rest_offsets_tensor(
-    skeleton: &Skeleton,
-    dtype: DType,
-    device: &candle_core::Device,
-) -> Result<Tensor> {
-    let flat: Vec<f32> = skeleton.rest_offsets().iter().flat_map(|v| v.to_array()).collect();
-    Ok(Tensor::from_vec(flat, (skeleton.joint_count(), 3), device)?.to_dtype(dtype)?)
-}
-
-/// Batched, differentiable forward kinematics.
-///
-/// # Shapes
-/// - `local_rotations`: `[..., joints, 3, 3]`
-/// - `root_positions`: `[..., 3]`
-/// - returns `(positions [..., joints, 3], rotations [..., joints, 3, 3])`
-pub fn tensor_forward_kinematics(
+/// Checks the shapes of a tensor FK call and returns the leading dimensions (without joints).
+fn check_tensor_inputs(
     skeleton: &Skeleton,
     local_rotations: &Tensor,
     root_positions: &Tensor,
-) -> Result<(Tensor, Tensor)> {
+) -> Result<Vec<usize>> {
     let joints = skeleton.joint_count();
     let mut leading = leading_dims_matrix(local_rotations, "local rotations")?;
     require_float(local_rotations, "local rotations")?;
@@ -134,36 +135,548 @@ pub fn tensor_forward_kinematics(
         ));
     }
     leading.pop();
+    Ok(leading)
+}
+
+/// Batched, differentiable forward kinematics.
+///
+/// On the CPU with `f32` or `f64` tensors this is two candle operations (positions and
+/// rotations, see [`FkOp`]) with hand-written backward passes, frames in parallel; elsewhere it falls back to
+/// [`tensor_forward_kinematics_composite`], built from candle's own differentiable operations.
+/// Both give the same values and gradients (tested).
+///
+/// # Shapes
+/// - `local_rotations`: `[..., joints, 3, 3]`
+/// - `root_positions`: `[..., 3]`
+/// - returns `(positions [..., joints, 3], rotations [..., joints, 3, 3])`
+pub fn tensor_forward_kinematics(
+    skeleton: &Skeleton,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let leading = check_tensor_inputs(skeleton, local_rotations, root_positions)?;
+    let dtype = local_rotations.dtype();
+    let supported = matches!(dtype, DType::F32 | DType::F64);
+    if !local_rotations.device().is_cpu() || !supported {
+        return tensor_forward_kinematics_composite(skeleton, local_rotations, root_positions);
+    }
+    let joints = skeleton.joint_count();
+    let batch: usize = leading.iter().product();
+    let local = local_rotations.reshape((batch, joints, 3, 3))?.contiguous()?;
+    let root = root_positions.to_dtype(dtype)?.reshape((batch, 3))?.contiguous()?;
+    let op = FkOp::new(skeleton);
+    let positions =
+        local.apply_op2(&root, FkOutputOp { op: op.clone(), output: Output::Positions })?;
+    let rotations = local.apply_op2(&root, FkOutputOp { op, output: Output::Rotations })?;
+    let mut rotation_shape = leading.clone();
+    rotation_shape.extend([joints, 3, 3]);
+    let mut position_shape = leading;
+    position_shape.extend([joints, 3]);
+    Ok((positions.reshape(position_shape)?, rotations.reshape(rotation_shape)?))
+}
+
+/// Forward kinematics from candle's own differentiable operations, on any device: one group
+/// of operations per depth level of the tree, in a component-major layout.
+///
+/// # Shapes
+/// - `local_rotations`: `[..., joints, 3, 3]`
+/// - `root_positions`: `[..., 3]`
+/// - returns `(positions [..., joints, 3], rotations [..., joints, 3, 3])`
+pub fn tensor_forward_kinematics_composite(
+    skeleton: &Skeleton,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let joints = skeleton.joint_count();
+    let leading = check_tensor_inputs(skeleton, local_rotations, root_positions)?;
     let batch: usize = leading.iter().product();
     let dtype = local_rotations.dtype();
     let device = local_rotations.device();
-    // Joint-major so that each joint's rotations are one contiguous block.
-    let local = local_rotations.reshape((batch, joints, 3, 3))?.transpose(0, 1)?.contiguous()?;
-    let root = root_positions.reshape((batch, 3))?.to_dtype(dtype)?;
-    let offsets = rest_offsets_tensor(skeleton, dtype, device)?;
-    let mut rotations: Vec<Tensor> = Vec::with_capacity(joints);
-    let mut positions: Vec<Tensor> = Vec::with_capacity(joints);
-    for (joint, parent) in skeleton.parents().iter().enumerate() {
-        let local_rotation = local.get(joint)?;
-        match parent {
-            None => {
-                rotations.push(local_rotation);
-                positions.push(root.clone());
-            }
-            Some(p) => {
-                let parent_rotation = &rotations[*p];
-                let offset = offsets.get(joint)?.reshape((1, 3))?;
-                let position = (&positions[*p] + rotate(parent_rotation, &offset)?)?;
-                rotations.push(parent_rotation.matmul(&local_rotation)?);
-                positions.push(position);
-            }
+    // Component-major layout, `[9, joints, batch]` and `[3, joints, batch]`: each matrix entry
+    // of a group of joints is one contiguous run, so the 3x3 products below are plain
+    // same-shape multiplies and adds (a batched matmul of many tiny matrices pays a call per
+    // matrix; broadcasts pay strided indexing).
+    let local = local_rotations.reshape((batch, joints, 9))?.permute((2, 1, 0))?.contiguous()?;
+    let root =
+        root_positions.to_dtype(dtype)?.reshape((batch, 3))?.t()?.contiguous()?.unsqueeze(1)?;
+    // Joints of one depth only depend on shallower joints: one batch of operations per depth
+    // level (11 for SMPL-X) instead of one per joint.
+    let levels = skeleton.depth_levels();
+    let index = |ids: &[usize]| -> Result<Tensor> {
+        let ids: Vec<u32> = ids.iter().map(|&j| j as u32).collect();
+        let count = ids.len();
+        Ok(Tensor::from_vec(ids, count, device)?)
+    };
+    // Where each joint sits inside its level, to find parents in the previous level.
+    let mut slot = vec![0usize; joints];
+    for level in &levels {
+        for (k, &joint) in level.iter().enumerate() {
+            slot[joint] = k;
         }
     }
+    let mut level_rotations: Vec<Tensor> = Vec::with_capacity(levels.len());
+    let mut level_positions: Vec<Tensor> = Vec::with_capacity(levels.len());
+    for (depth, level) in levels.iter().enumerate() {
+        let level_local = local.index_select(&index(level)?, 1)?; // [9, L, batch]
+        if depth == 0 {
+            level_rotations.push(level_local);
+            level_positions.push(root.clone());
+            continue;
+        }
+        let parent_slots: Vec<usize> =
+            level.iter().map(|&j| skeleton.parents()[j].map_or(0, |p| slot[p])).collect();
+        let parent_slots = index(&parent_slots)?;
+        let parent_rotation = level_rotations[depth - 1].index_select(&parent_slots, 1)?;
+        let parent_position = level_positions[depth - 1].index_select(&parent_slots, 1)?;
+        let offset_values: Vec<f32> = (0..3)
+            .flat_map(|axis| level.iter().map(move |&j| skeleton.rest_offsets()[j][axis]))
+            .flat_map(|v| std::iter::repeat_n(v, batch))
+            .collect();
+        let offsets =
+            Tensor::from_vec(offset_values, (3, level.len(), batch), device)?.to_dtype(dtype)?;
+        let a = |i: usize, k: usize| parent_rotation.narrow(0, 3 * i + k, 1);
+        let b = |k: usize, j: usize| level_local.narrow(0, 3 * k + j, 1);
+        let o = |k: usize| offsets.narrow(0, k, 1);
+        let mut rotation = Vec::with_capacity(9);
+        let mut position = Vec::with_capacity(3);
+        for i in 0..3 {
+            for j in 0..3 {
+                let entry = ((a(i, 0)? * b(0, j)?)? + (a(i, 1)? * b(1, j)?)?)?;
+                rotation.push((entry + (a(i, 2)? * b(2, j)?)?)?);
+            }
+            let moved = ((a(i, 0)? * o(0)?)? + (a(i, 1)? * o(1)?)?)?;
+            let moved = (moved + (a(i, 2)? * o(2)?)?)?;
+            position.push((parent_position.narrow(0, i, 1)? + moved)?);
+        }
+        level_rotations.push(Tensor::cat(&rotation, 0)?);
+        level_positions.push(Tensor::cat(&position, 0)?);
+    }
+    // Back from level order to joint order, and to `[batch, joints, ...]`.
+    let order: Vec<usize> = levels.concat();
+    let mut inverse = vec![0usize; joints];
+    for (k, &joint) in order.iter().enumerate() {
+        inverse[joint] = k;
+    }
+    let inverse = index(&inverse)?;
+    let rotations = Tensor::cat(&level_rotations, 1)?.index_select(&inverse, 1)?;
+    let positions = Tensor::cat(&level_positions, 1)?.index_select(&inverse, 1)?;
     let mut position_shape = leading.clone();
     position_shape.extend([joints, 3]);
     let mut rotation_shape = leading;
     rotation_shape.extend([joints, 3, 3]);
-    let positions = Tensor::stack(&positions, 1)?.reshape(position_shape)?;
-    let rotations = Tensor::stack(&rotations, 1)?.reshape(rotation_shape)?;
+    let positions = positions.permute((2, 1, 0))?.contiguous()?.reshape(position_shape)?;
+    let rotations = rotations.permute((2, 1, 0))?.contiguous()?.reshape(rotation_shape)?;
     Ok((positions, rotations))
+}
+
+/// Forward kinematics on CPU slices with an analytic backward pass, behind two candle
+/// operations ([`FkOutputOp`]): one for the `[batch, joints, 3]` positions, one for the
+/// `[batch, joints, 3, 3]` global rotations. Two operations rather than one packed output, so that neither pays for
+/// slicing the other's gradient. The backward pass runs the chain rule of
+/// `G_j = G_p R_j`, `p_j = p_p + G_p o_j` from the leaves to the root:
+/// `dR_j = G_p^T dG_j`, `dG_p += dG_j R_j^T + dp_j o_j^T`, `dp_p += dp_j`; the forward pass of
+/// the frame is recomputed there, which is cheaper than keeping it.
+#[derive(Debug, Clone)]
+pub struct FkOp {
+    parents: Arc<[Option<usize>]>,
+    offsets: Arc<[[f32; 3]]>,
+}
+
+/// The float types the operation computes in, natively (no conversion copies).
+trait Real:
+    Copy
+    + Default
+    + Send
+    + Sync
+    + std::ops::Add<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::AddAssign
+{
+    fn from_f32(x: f32) -> Self;
+    fn values(storage: &CpuStorage) -> Option<&[Self]>;
+    fn into_storage(values: Vec<Self>) -> CpuStorage;
+}
+
+impl Real for f32 {
+    fn from_f32(x: f32) -> Self {
+        x
+    }
+    fn values(storage: &CpuStorage) -> Option<&[Self]> {
+        match storage {
+            CpuStorage::F32(v) => Some(v),
+            _ => None,
+        }
+    }
+    fn into_storage(values: Vec<Self>) -> CpuStorage {
+        CpuStorage::F32(values)
+    }
+}
+
+impl Real for f64 {
+    fn from_f32(x: f32) -> Self {
+        f64::from(x)
+    }
+    fn values(storage: &CpuStorage) -> Option<&[Self]> {
+        match storage {
+            CpuStorage::F64(v) => Some(v),
+            _ => None,
+        }
+    }
+    fn into_storage(values: Vec<Self>) -> CpuStorage {
+        CpuStorage::F64(values)
+    }
+}
+
+type M3<T> = [T; 9];
+
+fn mat<T: Real>(values: &[T]) -> M3<T> {
+    std::array::from_fn(|i| values[i])
+}
+
+fn mat_mul<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
+    std::array::from_fn(|k| {
+        let (r, c) = (k / 3, k % 3);
+        a[r * 3] * b[c] + a[r * 3 + 1] * b[3 + c] + a[r * 3 + 2] * b[6 + c]
+    })
+}
+
+fn mat_vec<T: Real>(a: &M3<T>, v: &[T; 3]) -> [T; 3] {
+    std::array::from_fn(|r| a[r * 3] * v[0] + a[r * 3 + 1] * v[1] + a[r * 3 + 2] * v[2])
+}
+
+fn transpose<T: Real>(a: &M3<T>) -> M3<T> {
+    std::array::from_fn(|k| a[(k % 3) * 3 + k / 3])
+}
+
+/// The contiguous values of a storage of the type `T`.
+fn storage_values<'a, T: Real>(
+    storage: &'a CpuStorage,
+    layout: &Layout,
+    what: &str,
+) -> candle_core::Result<&'a [T]> {
+    let (start, end) = layout
+        .contiguous_offsets()
+        .ok_or_else(|| candle_core::Error::Msg(format!("dex2hoi FK: {what} must be contiguous")))?;
+    T::values(storage).map(|v| &v[start..end]).ok_or_else(|| {
+        candle_core::Error::Msg(format!("dex2hoi FK: {what} must have the dtype of the rotations"))
+    })
+}
+
+/// Frames per parallel task in the FK operation.
+const OP_FRAMES_PER_TASK: usize = 64;
+
+impl FkOp {
+    /// The operation for a skeleton.
+    pub fn new(skeleton: &Skeleton) -> Self {
+        Self {
+            parents: skeleton.parents().into(),
+            offsets: skeleton.rest_offsets().iter().map(|o| o.to_array()).collect(),
+        }
+    }
+
+    fn joints(&self) -> usize {
+        self.parents.len()
+    }
+
+    fn offset<T: Real>(&self, joint: usize) -> [T; 3] {
+        self.offsets[joint].map(T::from_f32)
+    }
+
+    /// Forward pass of one frame: `local` is `joints * 9`, `out` is `joints * 12`.
+    fn forward_frame<T: Real>(&self, local: &[T], root: &[T], out: &mut [T]) {
+        for (joint, parent) in self.parents.iter().enumerate() {
+            let rotation = mat(&local[joint * 9..joint * 9 + 9]);
+            let (global, position) = match parent {
+                None => (rotation, [root[0], root[1], root[2]]),
+                Some(p) => {
+                    let parent_rotation = mat(&out[p * 12..p * 12 + 9]);
+                    let moved = mat_vec(&parent_rotation, &self.offset(joint));
+                    let parent_position = &out[p * 12 + 9..p * 12 + 12];
+                    let position = std::array::from_fn(|i| parent_position[i] + moved[i]);
+                    (mat_mul(&parent_rotation, &rotation), position)
+                }
+            };
+            out[joint * 12..joint * 12 + 9].copy_from_slice(&global);
+            out[joint * 12 + 9..joint * 12 + 12].copy_from_slice(&position);
+        }
+    }
+
+    /// Backward pass of one frame. `grad_rotations` (`joints * 9`) and `grad_positions`
+    /// (`joints * 3`) are the output gradients (either may be absent); the gradients of the local
+    /// rotations (`joints * 9`) are written to `grad_local_out`. The root's gradient is the sum
+    /// of the position gradients over joints, computed by [`SumOverJoints`].
+    fn backward_frame<T: Real>(
+        &self,
+        local: &[T],
+        root: &[T],
+        grad_rotations: Option<&[T]>,
+        grad_positions: Option<&[T]>,
+        scratch: &mut BackwardScratch<T>,
+        grad_local_out: &mut [T],
+    ) {
+        let joints = self.joints();
+        let BackwardScratch { packed, grad_global, grad_position } = scratch;
+        self.forward_frame(local, root, packed);
+        for j in 0..joints {
+            grad_global[j] =
+                grad_rotations.map_or([T::default(); 9], |g| mat(&g[j * 9..j * 9 + 9]));
+            grad_position[j] =
+                grad_positions.map_or([T::default(); 3], |g| std::array::from_fn(|i| g[j * 3 + i]));
+        }
+        for joint in (0..joints).rev() {
+            let grad_local = match self.parents[joint] {
+                None => grad_global[joint],
+                Some(p) => {
+                    let parent_rotation = mat(&packed[p * 12..p * 12 + 9]);
+                    let rotation = mat(&local[joint * 9..joint * 9 + 9]);
+                    let to_parent = mat_mul(&grad_global[joint], &transpose(&rotation));
+                    let offset = self.offset::<T>(joint);
+                    let moved = grad_position[joint];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            grad_global[p][r * 3 + c] +=
+                                to_parent[r * 3 + c] + moved[r] * offset[c];
+                        }
+                        grad_position[p][r] += moved[r];
+                    }
+                    mat_mul(&transpose(&parent_rotation), &grad_global[joint])
+                }
+            };
+            grad_local_out[joint * 9..joint * 9 + 9].copy_from_slice(&grad_local);
+        }
+    }
+
+    /// Forward pass of every frame (in parallel), keeping the positions or the rotations.
+    fn forward_all<T: Real>(
+        &self,
+        local: &[T],
+        root: &[T],
+        keep: Output,
+    ) -> candle_core::Result<Vec<T>> {
+        let joints = self.joints();
+        let batch = local.len() / (joints * 9);
+        if local.len() != batch * joints * 9 || root.len() != batch * 3 {
+            return Err(candle_core::Error::Msg(format!(
+                "dex2hoi FK: {} local values and {} root values for {joints} joints",
+                local.len(),
+                root.len()
+            )));
+        }
+        let width = keep.width();
+        let mut out = vec![T::default(); batch * joints * width];
+        out.par_chunks_mut(joints * width)
+            .zip(local.par_chunks(joints * 9))
+            .zip(root.par_chunks(3))
+            .with_min_len(OP_FRAMES_PER_TASK)
+            .for_each_init(
+                || vec![T::default(); joints * 12],
+                |packed, ((out, local), root)| {
+                    self.forward_frame(local, root, packed);
+                    for joint in 0..joints {
+                        let from = joint * 12 + if keep == Output::Positions { 9 } else { 0 };
+                        out[joint * width..(joint + 1) * width]
+                            .copy_from_slice(&packed[from..from + width]);
+                    }
+                },
+            );
+        Ok(out)
+    }
+
+    /// Backward pass of every frame (in parallel) to the `[batch, joints * 9]` gradient of the
+    /// local rotations.
+    fn backward_all<T: Real>(&self, local: &[T], root: &[T], grad: &[T], of: Output) -> Vec<T> {
+        let joints = self.joints();
+        let batch = local.len() / (joints * 9);
+        let mut grad_local = vec![T::default(); batch * joints * 9];
+        grad_local
+            .par_chunks_mut(joints * 9)
+            .zip(local.par_chunks(joints * 9))
+            .zip(root.par_chunks(3).zip(grad.par_chunks(joints * of.width())))
+            .with_min_len(OP_FRAMES_PER_TASK)
+            .for_each_init(
+                || BackwardScratch::new(joints),
+                |scratch, ((grad_local, local), (root, grad))| {
+                    let (rotations, positions) = match of {
+                        Output::Positions => (None, Some(grad)),
+                        Output::Rotations => (Some(grad), None),
+                    };
+                    self.backward_frame(local, root, rotations, positions, scratch, grad_local);
+                },
+            );
+        grad_local
+    }
+}
+
+/// Per-task buffers of the backward pass.
+struct BackwardScratch<T> {
+    packed: Vec<T>,
+    grad_global: Vec<M3<T>>,
+    grad_position: Vec<[T; 3]>,
+}
+
+impl<T: Real> BackwardScratch<T> {
+    fn new(joints: usize) -> Self {
+        Self {
+            packed: vec![T::default(); joints * 12],
+            grad_global: vec![[T::default(); 9]; joints],
+            grad_position: vec![[T::default(); 3]; joints],
+        }
+    }
+}
+
+/// Which output of forward kinematics an operation produces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Output {
+    Positions,
+    Rotations,
+}
+
+impl Output {
+    /// Numbers per joint.
+    fn width(self) -> usize {
+        match self {
+            Self::Positions => 3,
+            Self::Rotations => 9,
+        }
+    }
+}
+
+/// One output of forward kinematics as a candle operation: inputs `[batch, joints, 3, 3]`
+/// local rotations and `[batch, 3]` roots; output `[batch, joints, 3]` positions or
+/// `[batch, joints, 3, 3]` rotations (which do not depend on the roots).
+#[derive(Debug, Clone)]
+pub struct FkOutputOp {
+    op: FkOp,
+    output: Output,
+}
+
+/// Runs `$body` with `$t` bound to the storage's float type (`f32` or `f64`).
+macro_rules! with_float {
+    ($storage:expr, $t:ident => $body:expr) => {
+        match $storage {
+            CpuStorage::F64(_) => {
+                type $t = f64;
+                $t::into_storage($body)
+            }
+            _ => {
+                type $t = f32;
+                $t::into_storage($body)
+            }
+        }
+    };
+}
+
+impl CustomOp2 for FkOutputOp {
+    fn name(&self) -> &'static str {
+        match self.output {
+            Output::Positions => "dex2hoi-fk-positions",
+            Output::Rotations => "dex2hoi-fk-rotations",
+        }
+    }
+
+    fn cpu_fwd(
+        &self,
+        local_storage: &CpuStorage,
+        local_layout: &Layout,
+        root_storage: &CpuStorage,
+        root_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let joints = self.op.joints();
+        let batch = root_layout.shape().elem_count() / 3;
+        let storage = with_float!(local_storage, T => self.op.forward_all(
+            storage_values::<T>(local_storage, local_layout, "local rotations")?,
+            storage_values::<T>(root_storage, root_layout, "root positions")?,
+            self.output,
+        )?);
+        let shape = match self.output {
+            Output::Positions => Shape::from((batch, joints, 3)),
+            Output::Rotations => Shape::from((batch, joints, 3, 3)),
+        };
+        Ok((storage, shape))
+    }
+
+    fn bwd(
+        &self,
+        local: &Tensor,
+        root: &Tensor,
+        _output: &Tensor,
+        grad_output: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let grad = grad_output.contiguous()?;
+        let backward = FkBackward { op: self.op.clone(), of: self.output };
+        let grad_local = local.apply_op3_no_bwd(root, &grad, &backward)?;
+        Ok(match self.output {
+            // Every position moves with the root: its gradient is the sum over joints.
+            Output::Positions => (Some(grad_local), Some(grad.apply_op1_no_bwd(&SumOverJoints)?)),
+            Output::Rotations => (Some(grad_local), None),
+        })
+    }
+}
+
+/// `[batch, joints, 3]` to `[batch, 3]` by summing over joints (the root's gradient).
+#[derive(Debug, Clone, Copy)]
+struct SumOverJoints;
+
+impl CustomOp1 for SumOverJoints {
+    fn name(&self) -> &'static str {
+        "dex2hoi-fk-sum-over-joints"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (batch, joints, _) = layout.shape().dims3()?;
+        let summed = with_float!(storage, T => {
+            let values = storage_values::<T>(storage, layout, "position gradient")?;
+            values
+                .chunks_exact(joints * 3)
+                .flat_map(|frame| {
+                    let mut sum = [T::default(); 3];
+                    for joint in frame.chunks_exact(3) {
+                        for i in 0..3 {
+                            sum[i] += joint[i];
+                        }
+                    }
+                    sum
+                })
+                .collect::<Vec<T>>()
+        });
+        Ok((summed, Shape::from((batch, 3))))
+    }
+}
+
+/// The backward pass of an [`FkOutputOp`] as an operation of its own (not
+/// differentiable itself): inputs local rotations, roots and the output gradient; output the
+/// gradient of the local rotations, shaped like them.
+#[derive(Debug, Clone)]
+struct FkBackward {
+    op: FkOp,
+    of: Output,
+}
+
+impl CustomOp3 for FkBackward {
+    fn name(&self) -> &'static str {
+        "dex2hoi-fk-backward"
+    }
+
+    fn cpu_fwd(
+        &self,
+        local_storage: &CpuStorage,
+        local_layout: &Layout,
+        root_storage: &CpuStorage,
+        root_layout: &Layout,
+        grad_storage: &CpuStorage,
+        grad_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let shape = local_layout.shape().clone();
+        let storage = with_float!(local_storage, T => self.op.backward_all(
+            storage_values::<T>(local_storage, local_layout, "local rotations")?,
+            storage_values::<T>(root_storage, root_layout, "roots")?,
+            storage_values::<T>(grad_storage, grad_layout, "output gradient")?,
+            self.of,
+        ));
+        Ok((storage, shape))
+    }
 }

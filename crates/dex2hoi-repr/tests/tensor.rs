@@ -9,7 +9,9 @@ use glam::{Mat3, Vec3};
 use rand::Rng;
 
 use dex2hoi_repr::Skeleton;
-use dex2hoi_repr::fk::{forward_kinematics, tensor_forward_kinematics};
+use dex2hoi_repr::fk::{
+    forward_kinematics, tensor_forward_kinematics, tensor_forward_kinematics_composite,
+};
 use dex2hoi_repr::object_repr::{
     HandRelativeObject, ObjectPose, TensorWrists, WristPose, Wrists, tensor_decode_position,
     tensor_decode_rotation, tensor_mixture_weights, tensor_wrist_offset,
@@ -111,6 +113,8 @@ fn rotating_the_root_rotates_every_joint_about_the_pelvis() {
     }
 }
 
+type FkFn = fn(&Skeleton, &Tensor, &Tensor) -> dex2hoi_repr::Result<(Tensor, Tensor)>;
+
 #[test]
 fn candle_fk_equals_glam_fk() {
     for skeleton in [Skeleton::smplx(), Skeleton::mixamo()] {
@@ -120,14 +124,18 @@ fn candle_fk_equals_glam_fk() {
         let cpu = forward_kinematics(&skeleton, &local, &roots).unwrap();
         let local_t = mats_to_tensor(&local, &[2, 3, j, 3, 3]);
         let roots_t = vecs_to_tensor(&roots, &[2, 3, 3]);
-        let (positions, rotations) =
-            tensor_forward_kinematics(&skeleton, &local_t, &roots_t).unwrap();
-        assert_eq!(positions.dims(), &[2, 3, j, 3]);
-        assert_eq!(rotations.dims(), &[2, 3, j, 3, 3]);
-        let expected: Vec<f32> = cpu.positions.iter().flat_map(|v| v.to_array()).collect();
-        assert_close(&flat(&positions), &expected, 1e-5, "positions");
-        let expected: Vec<f32> = cpu.rotations.iter().flat_map(|m| mat3_values(*m)).collect();
-        assert_close(&flat(&rotations), &expected, 1e-5, "rotations");
+        for (name, fk) in [
+            ("op", tensor_forward_kinematics as FkFn),
+            ("composite", tensor_forward_kinematics_composite as FkFn),
+        ] {
+            let (positions, rotations) = fk(&skeleton, &local_t, &roots_t).unwrap();
+            assert_eq!(positions.dims(), &[2, 3, j, 3]);
+            assert_eq!(rotations.dims(), &[2, 3, j, 3, 3]);
+            let expected: Vec<f32> = cpu.positions.iter().flat_map(|v| v.to_array()).collect();
+            assert_close(&flat(&positions), &expected, 1e-5, name);
+            let expected: Vec<f32> = cpu.rotations.iter().flat_map(|m| mat3_values(*m)).collect();
+            assert_close(&flat(&rotations), &expected, 1e-5, name);
+        }
     }
 }
 
@@ -157,24 +165,28 @@ fn gradient_of_fk_through_6d() {
     let sixd = Tensor::from_vec(sixd, (2, 52, 6), &Device::Cpu).unwrap();
     let root =
         Tensor::from_vec(vec![0.1f64, 0.9, -0.2, 0.0, 1.0, 0.3], (2, 3), &Device::Cpu).unwrap();
-    let root_clone = root.clone();
-    let skeleton_clone = skeleton.clone();
-    gradient_check(
-        &sixd,
-        move |x| {
-            let rotations = rt::sixd_to_matrix(x)?;
-            let (positions, global) =
-                tensor_forward_kinematics(&skeleton_clone, &rotations, &root_clone)?;
-            Ok(Tensor::cat(&[positions.flatten_all()?, global.flatten_all()?], 0)?)
-        },
-        "FK wrt 6D",
-    );
-    let rotations = rt::sixd_to_matrix(&sixd).unwrap();
-    gradient_check(
-        &root,
-        move |r| Ok(tensor_forward_kinematics(&skeleton, &rotations, r)?.0),
-        "FK wrt root",
-    );
+    for (name, fk) in [
+        ("op", tensor_forward_kinematics as FkFn),
+        ("composite", tensor_forward_kinematics_composite as FkFn),
+    ] {
+        let (root_clone, skeleton_clone) = (root.clone(), skeleton.clone());
+        gradient_check(
+            &sixd,
+            move |x| {
+                let rotations = rt::sixd_to_matrix(x)?;
+                let (positions, global) = fk(&skeleton_clone, &rotations, &root_clone)?;
+                Ok(Tensor::cat(&[positions.flatten_all()?, global.flatten_all()?], 0)?)
+            },
+            &format!("FK ({name}) wrt 6D"),
+        );
+        let rotations = rt::sixd_to_matrix(&sixd).unwrap();
+        let skeleton_clone = skeleton.clone();
+        gradient_check(
+            &root,
+            move |r| Ok(fk(&skeleton_clone, &rotations, r)?.0),
+            &format!("FK ({name}) wrt root"),
+        );
+    }
 }
 
 fn random_wrists(rng: &mut rand_chacha::ChaCha8Rng) -> Wrists {
