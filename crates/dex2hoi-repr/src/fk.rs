@@ -297,35 +297,27 @@ trait Real:
     fn into_storage(values: Vec<Self>) -> CpuStorage;
 }
 
-impl Real for f32 {
-    fn from_f32(x: f32) -> Self {
-        x
-    }
-    fn values(storage: &CpuStorage) -> Option<&[Self]> {
-        match storage {
-            CpuStorage::F32(v) => Some(v),
-            _ => None,
+macro_rules! impl_real {
+    ($t:ty, $variant:ident) => {
+        impl Real for $t {
+            fn from_f32(x: f32) -> Self {
+                <$t>::from(x)
+            }
+            fn values(storage: &CpuStorage) -> Option<&[Self]> {
+                match storage {
+                    CpuStorage::$variant(v) => Some(v),
+                    _ => None,
+                }
+            }
+            fn into_storage(values: Vec<Self>) -> CpuStorage {
+                CpuStorage::$variant(values)
+            }
         }
-    }
-    fn into_storage(values: Vec<Self>) -> CpuStorage {
-        CpuStorage::F32(values)
-    }
+    };
 }
 
-impl Real for f64 {
-    fn from_f32(x: f32) -> Self {
-        f64::from(x)
-    }
-    fn values(storage: &CpuStorage) -> Option<&[Self]> {
-        match storage {
-            CpuStorage::F64(v) => Some(v),
-            _ => None,
-        }
-    }
-    fn into_storage(values: Vec<Self>) -> CpuStorage {
-        CpuStorage::F64(values)
-    }
-}
+impl_real!(f32, F32);
+impl_real!(f64, F64);
 
 type M3<T> = [T; 9];
 

@@ -17,6 +17,8 @@ use glam::{Mat3, Vec3};
 use crate::error::{ReprError, Result};
 use crate::rotation::tensor::{leading_dims, leading_dims_matrix, rotate, rotate_inverse};
 use crate::rotation::{matrix_to_sixd, sixd_to_matrix, tensor as rot_tensor};
+use crate::sdf::MeshQuery;
+use crate::skeleton::JointGroups;
 
 /// Numbers per object and frame.
 pub const OBJECT_FEATURE_SIZE: usize = 18;
@@ -175,6 +177,35 @@ impl Default for MixtureTargetConfig {
     fn default() -> Self {
         Self { contact_distance: 0.03, smoothing_radius: 2, probability_floor: 1e-3 }
     }
+}
+
+/// The nearest signed distance from world points (a hand's joints) to an object's surface: the
+/// points are moved into the object frame, `R^T (p - t)`, and queried against the mesh.
+/// `f32::INFINITY` when there are no points.
+pub fn nearest_signed_distance(
+    object_mesh: &MeshQuery,
+    object: ObjectPose,
+    points: impl IntoIterator<Item = Vec3>,
+) -> f32 {
+    let to_object = object.rotation.transpose();
+    points
+        .into_iter()
+        .map(|p| object_mesh.signed_distance(to_object * (p - object.position)))
+        .fold(f32::INFINITY, f32::min)
+}
+
+/// The nearest signed distance of each hand (wrist and finger joints, from the skeleton's
+/// groups) to an object at one frame: `(left, right)`, the input of [`mixture_targets`].
+pub fn hand_distances(
+    object_mesh: &MeshQuery,
+    object: ObjectPose,
+    joint_positions: &[Vec3],
+    groups: &JointGroups,
+) -> (f32, f32) {
+    let hand = |joints: &[usize]| {
+        nearest_signed_distance(object_mesh, object, joints.iter().map(|&j| joint_positions[j]))
+    };
+    (hand(&groups.left_hand), hand(&groups.right_hand))
 }
 
 /// Ground-truth mixture logits per frame from the nearest signed distance of each hand to the

@@ -93,3 +93,27 @@ fn mixture_targets_are_smoothed_over_time() {
     }
     assert!(mixture_targets(&[0.0], &[0.0, 1.0], &config).is_err());
 }
+
+#[test]
+fn hand_distances_use_the_object_pose_and_the_hand_groups() {
+    use dex2hoi_repr::mesh::box_mesh;
+    use dex2hoi_repr::object_repr::hand_distances;
+    use dex2hoi_repr::{MeshQuery, Skeleton};
+    let skeleton = Skeleton::smplx();
+    let rest = skeleton.rest_positions();
+    let groups = skeleton.groups();
+    // A 10 cm cube turned a quarter about Y and placed 5 cm below the left wrist.
+    let cube = MeshQuery::new(&box_mesh(Vec3::splat(0.05))).unwrap();
+    let wrist = rest[groups.left_wrist];
+    let object = ObjectPose {
+        rotation: axis_angle_to_matrix(Vec3::Y * std::f32::consts::FRAC_PI_2),
+        position: wrist - Vec3::Y * 0.1,
+    };
+    let (left, right) = hand_distances(&cube, object, &rest, groups);
+    // The wrist is 5 cm above the top face; finger joints hang lower but stay outside.
+    assert!(left > 0.0 && left <= 0.05 + 1e-5, "{left}");
+    assert!(right > 1.0, "the right hand is across the body: {right}");
+    // Moving the object into the hand makes the distance negative (penetration counts as contact).
+    let inside = ObjectPose { position: wrist, ..object };
+    assert!(hand_distances(&cube, inside, &rest, groups).0 < 0.0);
+}
