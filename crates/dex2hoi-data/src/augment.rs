@@ -1,0 +1,141 @@
+//! Augmentation on extracted features: swapping the two streams and mirroring left/right
+//! (InterGen's augmentations, REFERENCE section 2). Both are exact and their own inverse.
+//!
+//! Mirroring reflects the scene in the sagittal plane (`x -> -x`): joints trade places with their
+//! mirror joints (the skeleton's symmetry map), rotations `R -> M R M` with `M = diag(-1, 1, 1)`,
+//! positions `p -> M p`, the left and right wrist offsets trade places (`delta_L' = M delta_R`),
+//! so do the left and right mixture logits, hand contacts and feet, and the words "left" and
+//! "right" in the texts. Object meshes are not changed: the catalogue's objects are symmetric
+//! under the reflection; for an asymmetric mesh the mirrored sequence shows its mirror image.
+
+use dex2hoi_repr::Skeleton;
+use dex2hoi_repr::object_repr::{
+    GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, OBJECT_FEATURE_SIZE,
+    RIGHT_OFFSET_RANGE, ROTATION_RANGE,
+};
+
+use crate::features::ProcessedSequence;
+use crate::sequence::MAX_OBJECTS;
+
+/// Swaps the object slots: stream A becomes stream B and back.
+pub fn swap_streams(sequence: &ProcessedSequence) -> ProcessedSequence {
+    let mut out = sequence.clone();
+    let frames = sequence.frames;
+    let swap = |values: &mut Vec<f32>, per_slot: usize| {
+        for t in 0..frames {
+            let row = &mut values[t * MAX_OBJECTS * per_slot..(t + 1) * MAX_OBJECTS * per_slot];
+            let (a, b) = row.split_at_mut(per_slot);
+            a.swap_with_slice(b);
+        }
+    };
+    let hand = sequence.hand_distances.len() / (frames * MAX_OBJECTS).max(1);
+    swap(&mut out.objects, OBJECT_FEATURE_SIZE);
+    swap(&mut out.hand_distances, hand);
+    swap(&mut out.hand_contact, 2);
+    swap(&mut out.object_rotations, 9);
+    swap(&mut out.object_positions, 3);
+    out.object_present.swap(0, 1);
+    out.object_names.swap(0, 1);
+    out
+}
+
+/// The 6D form of `M R M` from the 6D form of `R` (first two rows).
+fn mirror_sixd(sixd: &[f32]) -> [f32; 6] {
+    [sixd[0], -sixd[1], -sixd[2], -sixd[3], sixd[4], sixd[5]]
+}
+
+/// Swaps the words "left" and "right" (any capitalisation of the first letter).
+pub fn mirror_text(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut word = String::new();
+    let flush = |word: &mut String, out: &mut String| {
+        let swapped = match word.as_str() {
+            "left" => "right",
+            "right" => "left",
+            "Left" => "Right",
+            "Right" => "Left",
+            "LEFT" => "RIGHT",
+            "RIGHT" => "LEFT",
+            other => other,
+        };
+        out.push_str(swapped);
+        word.clear();
+    };
+    for c in text.chars() {
+        if c.is_alphabetic() {
+            word.push(c);
+        } else {
+            flush(&mut word, &mut out);
+            out.push(c);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
+}
+
+/// Mirrors a sequence left/right (see the module documentation).
+pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSequence {
+    let mut out = sequence.clone();
+    let frames = sequence.frames;
+    let joints = sequence.joints;
+    let symmetry = skeleton.symmetry();
+    let body = 6 * joints + 3;
+    let m3 = |v: &[f32]| [-v[0], v[1], v[2]];
+    for t in 0..frames {
+        let row = &sequence.body[t * body..(t + 1) * body];
+        let new = &mut out.body[t * body..(t + 1) * body];
+        for j in 0..joints {
+            let m = symmetry[j];
+            new[6 * j..6 * j + 6].copy_from_slice(&mirror_sixd(&row[6 * m..6 * m + 6]));
+            let p = &sequence.joint_positions[(t * joints + m) * 3..(t * joints + m) * 3 + 3];
+            out.joint_positions[(t * joints + j) * 3..(t * joints + j) * 3 + 3]
+                .copy_from_slice(&m3(p));
+        }
+        new[6 * joints..].copy_from_slice(&m3(&row[6 * joints..]));
+        for slot in 0..MAX_OBJECTS {
+            let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
+            let o = &sequence.objects[base..base + OBJECT_FEATURE_SIZE];
+            let n = &mut out.objects[base..base + OBJECT_FEATURE_SIZE];
+            n[ROTATION_RANGE].copy_from_slice(&mirror_sixd(&o[ROTATION_RANGE]));
+            n[LEFT_OFFSET_RANGE].copy_from_slice(&m3(&o[RIGHT_OFFSET_RANGE]));
+            n[RIGHT_OFFSET_RANGE].copy_from_slice(&m3(&o[LEFT_OFFSET_RANGE]));
+            n[GLOBAL_POSITION_RANGE].copy_from_slice(&m3(&o[GLOBAL_POSITION_RANGE]));
+            let alpha = &o[MIXTURE_RANGE];
+            n[MIXTURE_RANGE].copy_from_slice(&[alpha[1], alpha[0], alpha[2]]);
+            let c = (t * MAX_OBJECTS + slot) * 2;
+            out.hand_contact[c] = sequence.hand_contact[c + 1];
+            out.hand_contact[c + 1] = sequence.hand_contact[c];
+            let r = (t * MAX_OBJECTS + slot) * 9;
+            let rot = &sequence.object_rotations[r..r + 9];
+            // (M R M)_ik = m_i R_ik m_k with m = (-1, 1, 1).
+            for i in 0..3 {
+                for k in 0..3 {
+                    let sign = if (i == 0) ^ (k == 0) { -1.0 } else { 1.0 };
+                    out.object_rotations[r + 3 * i + k] = sign * rot[3 * i + k];
+                }
+            }
+            let p = (t * MAX_OBJECTS + slot) * 3;
+            out.object_positions[p..p + 3]
+                .copy_from_slice(&m3(&sequence.object_positions[p..p + 3]));
+        }
+        let f = &sequence.foot_contact[t * 4..t * 4 + 4];
+        out.foot_contact[t * 4..t * 4 + 4].copy_from_slice(&[f[2], f[3], f[0], f[1]]);
+    }
+    // Hand-joint distances: each joint takes its mirror joint's distance.
+    let groups = skeleton.groups();
+    let hand_joints: Vec<usize> =
+        groups.left_hand.iter().chain(&groups.right_hand).copied().collect();
+    let h = hand_joints.len();
+    let source: Vec<usize> = hand_joints
+        .iter()
+        .map(|&j| hand_joints.iter().position(|&k| k == symmetry[j]).unwrap_or(0))
+        .collect();
+    for row in 0..frames * MAX_OBJECTS {
+        for k in 0..h {
+            out.hand_distances[row * h + k] = sequence.hand_distances[row * h + source[k]];
+        }
+    }
+    out.root_start.x = -sequence.root_start.x;
+    out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
+    out
+}

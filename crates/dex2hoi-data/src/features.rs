@@ -1,0 +1,292 @@
+//! The feature pipeline (paper Sec. 3.1): from a raw [`Sequence`] to the per-frame features of
+//! both streams and the targets the losses and metrics need.
+//!
+//! Per frame the body part is `[h (6J), r (3)]`: each joint's local rotation in the 6D form and
+//! the root's displacement from the first frame's pelvis. Each object slot `s` adds
+//! `o^s (18)`, the hand-relative object representation (Eq. 2-4) with ground-truth mixture
+//! logits. Stream A is `[h, r, o^A]`, stream B `[h, r, o^B]`.
+//!
+//! Every sequence is first put in a canonical frame: turned about +Y so that the root faces +Z
+//! at the first frame, and moved horizontally so that the first frame's pelvis is above the
+//! origin (its height is kept, so the floor stays at `y = 0`).
+
+use glam::{Mat3, Vec3};
+use rayon::prelude::*;
+
+use dex2hoi_repr::object_repr::{
+    HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists, hand_distances,
+    mixture_targets,
+};
+use dex2hoi_repr::rotation::{axis_angle_to_matrix, matrix_to_sixd};
+use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SurfaceSamples, forward_kinematics};
+
+use crate::error::{DataError, Result};
+use crate::sequence::{MAX_OBJECTS, Sequence};
+
+pub use dex2hoi_repr::object_repr::OBJECT_FEATURE_SIZE;
+
+/// Hand-joint distance to an absent object (metres): far beyond every threshold.
+pub const ABSENT_DISTANCE: f32 = 10.0;
+
+/// Numbers per frame of the body part `[h, r]` for `joints` joints.
+pub fn body_feature_size(joints: usize) -> usize {
+    6 * joints + 3
+}
+
+/// Numbers per frame of one stream `[h, r, o]`.
+pub fn stream_feature_size(joints: usize) -> usize {
+    body_feature_size(joints) + OBJECT_FEATURE_SIZE
+}
+
+/// Thresholds of the targets.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetConfig {
+    /// Mixture-target rule (a hand holds an object within 3 cm, smoothed over 5 frames).
+    pub mixture: MixtureTargetConfig,
+    /// A hand is in contact with an object when one of its joints is within this distance of
+    /// the surface. Default 0.05 m, the CHOIS contact threshold used by the contact metrics.
+    pub hand_contact_distance: f32,
+    /// Foot joints below these heights (ankle, toe; InterGen's 0.12 m and 0.05 m) ...
+    pub foot_height: [f32; 2],
+    /// ... that move less than this per frame (metres) are in contact (MDM's 0.01).
+    pub foot_speed: f32,
+}
+
+impl Default for TargetConfig {
+    fn default() -> Self {
+        Self {
+            mixture: MixtureTargetConfig::default(),
+            hand_contact_distance: 0.05,
+            foot_height: [0.12, 0.05],
+            foot_speed: 0.01,
+        }
+    }
+}
+
+/// What the features of one object mesh need, computed once per mesh: BPS and surface samples.
+#[derive(Debug, Clone)]
+pub struct ObjectAsset {
+    /// The object's name.
+    pub name: String,
+    /// The canonical (bounding-box-centred) mesh.
+    pub mesh: Mesh,
+    /// BPS offsets `[points]` in the object frame.
+    pub bps: Vec<Vec3>,
+    /// Surface samples with normals in the object frame (penetration terms).
+    pub samples: SurfaceSamples,
+}
+
+/// Number of surface samples stored per object.
+pub const SURFACE_SAMPLES: usize = 512;
+
+impl ObjectAsset {
+    /// BPS and surface samples of a mesh (the samples are seeded by `seed`).
+    pub fn new(name: &str, mesh: Mesh, basis: &BpsBasis, seed: u64) -> Result<Self> {
+        let query = MeshQuery::new(&mesh)?;
+        Ok(Self {
+            name: name.into(),
+            bps: basis.encode(&query),
+            samples: mesh.sample_surface(SURFACE_SAMPLES, seed)?,
+            mesh,
+        })
+    }
+}
+
+/// A sequence after feature extraction, in the canonical frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProcessedSequence {
+    /// Number of frames `T`.
+    pub frames: usize,
+    /// Number of joints `J`.
+    pub joints: usize,
+    /// `[T, 6J + 3]`: 6D local rotations then the root displacement from the first frame.
+    pub body: Vec<f32>,
+    /// `[T, 2, 18]`: the hand-relative representation of each object slot (zeros when absent).
+    pub objects: Vec<f32>,
+    /// Which object slots hold an object.
+    pub object_present: [bool; MAX_OBJECTS],
+    /// Names of the objects in the slots.
+    pub object_names: [Option<String>; MAX_OBJECTS],
+    /// `[T, J, 3]` joint positions.
+    pub joint_positions: Vec<f32>,
+    /// `[T, 2, H]` signed distance of every hand joint (left hand then right hand joints of the
+    /// skeleton's groups) to each object; [`ABSENT_DISTANCE`] for an absent object.
+    pub hand_distances: Vec<f32>,
+    /// `[T, 2, 2]` contact flags (object slot, then left and right hand), 0 or 1.
+    pub hand_contact: Vec<f32>,
+    /// `[T, 4]` foot contact flags: left ankle, left toe, right ankle, right toe.
+    pub foot_contact: Vec<f32>,
+    /// `[T, 2, 3, 3]` object rotations (identity when absent).
+    pub object_rotations: Vec<f32>,
+    /// `[T, 2, 3]` object positions (zero when absent).
+    pub object_positions: Vec<f32>,
+    /// The root position at the first frame in the canonical frame, `(0, height, 0)`.
+    pub root_start: Vec3,
+    /// Descriptions.
+    pub texts: Vec<String>,
+    /// Action label.
+    pub action: Option<String>,
+    /// Source id.
+    pub source_id: String,
+}
+
+/// The yaw (about +Y) that turns the root's forward direction at frame 0 to +Z.
+fn facing_yaw(root_rotation: Mat3) -> f32 {
+    let forward = root_rotation * Vec3::Z;
+    forward.x.atan2(forward.z)
+}
+
+/// Puts a sequence in the canonical frame (facing +Z, first pelvis above the origin).
+pub fn canonicalise(sequence: &Sequence) -> Sequence {
+    let mut out = sequence.clone();
+    let joints = sequence.skeleton.joint_count();
+    let turn = axis_angle_to_matrix(Vec3::Y * -facing_yaw(sequence.local_rotations[0]));
+    let start = sequence.root_positions[0];
+    let shift = Vec3::new(start.x, 0.0, start.z);
+    let to_canonical = |p: Vec3| turn * (p - shift);
+    for frame in 0..sequence.frames() {
+        out.local_rotations[frame * joints] = turn * sequence.local_rotations[frame * joints];
+        out.root_positions[frame] = to_canonical(sequence.root_positions[frame]);
+    }
+    for object in &mut out.objects {
+        for (rotation, translation) in object.rotations.iter_mut().zip(&mut object.translations) {
+            *rotation = turn * *rotation;
+            *translation = to_canonical(*translation);
+        }
+    }
+    out
+}
+
+/// Extracts features and targets. `assets` holds the canonical meshes of the objects by slot;
+/// the sequence is validated and canonicalised first.
+pub fn process_sequence(
+    sequence: &Sequence,
+    object_queries: &[&MeshQuery],
+    config: &TargetConfig,
+) -> Result<ProcessedSequence> {
+    sequence.validate()?;
+    if object_queries.len() != sequence.objects.len() {
+        return Err(DataError::invalid(
+            &sequence.source_id,
+            format!("one mesh query per object ({})", sequence.objects.len()),
+            object_queries.len(),
+        ));
+    }
+    let sequence = canonicalise(sequence);
+    let skeleton: &Skeleton = &sequence.skeleton;
+    let frames = sequence.frames();
+    let joints = skeleton.joint_count();
+    let groups = skeleton.groups();
+    let fk = forward_kinematics(skeleton, &sequence.local_rotations, &sequence.root_positions)?;
+    let root_start = sequence.root_positions[0];
+
+    let body_size = body_feature_size(joints);
+    let mut body = vec![0.0f32; frames * body_size];
+    body.par_chunks_mut(body_size).enumerate().for_each(|(t, row)| {
+        for j in 0..joints {
+            row[6 * j..6 * j + 6]
+                .copy_from_slice(&matrix_to_sixd(sequence.local_rotations[t * joints + j]));
+        }
+        row[6 * joints..].copy_from_slice(&(sequence.root_positions[t] - root_start).to_array());
+    });
+
+    let hand_joints: Vec<usize> =
+        groups.left_hand.iter().chain(&groups.right_hand).copied().collect();
+    let hand_count = hand_joints.len();
+    let wrists = |t: usize| Wrists {
+        left: WristPose {
+            position: fk.position(t, groups.left_wrist),
+            rotation: fk.rotation(t, groups.left_wrist),
+        },
+        right: WristPose {
+            position: fk.position(t, groups.right_wrist),
+            rotation: fk.rotation(t, groups.right_wrist),
+        },
+    };
+    let mut objects = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
+    let mut hand_distance = vec![ABSENT_DISTANCE; frames * MAX_OBJECTS * hand_count];
+    let mut hand_contact = vec![0.0f32; frames * MAX_OBJECTS * 2];
+    let mut object_rotations = vec![0.0f32; frames * MAX_OBJECTS * 9];
+    let mut object_positions = vec![0.0f32; frames * MAX_OBJECTS * 3];
+    let mut object_present = [false; MAX_OBJECTS];
+    let mut object_names: [Option<String>; MAX_OBJECTS] = [None, None];
+    for t in 0..frames {
+        for slot in 0..MAX_OBJECTS {
+            let rotation = sequence.objects.get(slot).map_or(Mat3::IDENTITY, |o| o.rotations[t]);
+            let base = (t * MAX_OBJECTS + slot) * 9;
+            object_rotations[base..base + 9].copy_from_slice(&rotation.transpose().to_cols_array());
+        }
+    }
+    for (slot, (object, query)) in sequence.objects.iter().zip(object_queries).enumerate() {
+        object_present[slot] = true;
+        object_names[slot] = Some(object.name.clone());
+        let per_frame: Vec<(Vec<f32>, (f32, f32))> = (0..frames)
+            .into_par_iter()
+            .map(|t| {
+                let pose =
+                    ObjectPose { rotation: object.rotations[t], position: object.translations[t] };
+                let to_object = pose.rotation.transpose();
+                let distances = hand_joints
+                    .iter()
+                    .map(|&j| {
+                        query.signed_distance(to_object * (fk.position(t, j) - pose.position))
+                    })
+                    .collect();
+                (distances, hand_distances(query, pose, fk.frame_positions(t), groups))
+            })
+            .collect();
+        let left: Vec<f32> = per_frame.iter().map(|(_, (l, _))| *l).collect();
+        let right: Vec<f32> = per_frame.iter().map(|(_, (_, r))| *r).collect();
+        let logits = mixture_targets(&left, &right, &config.mixture)?;
+        for (t, (distances, (l, r))) in per_frame.into_iter().enumerate() {
+            let pose =
+                ObjectPose { rotation: object.rotations[t], position: object.translations[t] };
+            let encoded = HandRelativeObject::encode(pose, wrists(t), logits[t]);
+            let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
+            objects[base..base + OBJECT_FEATURE_SIZE].copy_from_slice(&encoded.to_array());
+            let base = (t * MAX_OBJECTS + slot) * hand_count;
+            hand_distance[base..base + hand_count].copy_from_slice(&distances);
+            let base = (t * MAX_OBJECTS + slot) * 2;
+            hand_contact[base] = f32::from(u8::from(l <= config.hand_contact_distance));
+            hand_contact[base + 1] = f32::from(u8::from(r <= config.hand_contact_distance));
+            let base = (t * MAX_OBJECTS + slot) * 3;
+            object_positions[base..base + 3].copy_from_slice(&pose.position.to_array());
+        }
+    }
+
+    let feet = [
+        (groups.left_foot[0], 0),
+        (groups.left_foot[groups.left_foot.len() - 1], 1),
+        (groups.right_foot[0], 0),
+        (groups.right_foot[groups.right_foot.len() - 1], 1),
+    ];
+    let mut foot_contact = vec![0.0f32; frames * 4];
+    for t in 0..frames {
+        for (k, (joint, kind)) in feet.iter().enumerate() {
+            let p = fk.position(t, *joint);
+            let neighbour = if t + 1 < frames { t + 1 } else { t.saturating_sub(1) };
+            let speed = p.distance(fk.position(neighbour, *joint));
+            let low = p.y < config.foot_height[*kind];
+            foot_contact[t * 4 + k] = f32::from(u8::from(low && speed < config.foot_speed));
+        }
+    }
+    let joint_positions = fk.positions.iter().flat_map(|p| p.to_array()).collect();
+    Ok(ProcessedSequence {
+        frames,
+        joints,
+        body,
+        objects,
+        object_present,
+        object_names,
+        joint_positions,
+        hand_distances: hand_distance,
+        hand_contact,
+        foot_contact,
+        object_rotations,
+        object_positions,
+        root_start,
+        texts: sequence.texts.clone(),
+        action: sequence.action.clone(),
+        source_id: sequence.source_id.clone(),
+    })
+}
