@@ -1,0 +1,55 @@
+//! The `dex2hoi` binary end to end.
+
+use std::process::Command;
+
+fn dex2hoi(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .expect("the binary runs")
+}
+
+#[test]
+fn synth_then_info() {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let out = dir.to_str().unwrap();
+    let run = dex2hoi(&["data", "synth", "--out", out, "--sequences", "24", "--seed", "1"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(stdout.contains("wrote 24 sequences"), "{stdout}");
+    for file in [
+        "manifest.json",
+        "train.safetensors",
+        "train.json",
+        "objects.safetensors",
+        "stats.safetensors",
+    ] {
+        assert!(dir.join(file).is_file(), "{file}");
+    }
+    let info = dex2hoi(&["data", "info", out]);
+    assert!(info.status.success(), "{}", String::from_utf8_lossy(&info.stderr));
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(text.contains("train: 24 sequences"), "{text}");
+    assert!(text.contains("skeleton smplx52 (52 joints)"), "{text}");
+    assert!(text.contains("pick_place 3"), "{text}");
+    assert!(text.contains("e.g. synth-00000"), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_input_gives_clear_errors() {
+    let run = dex2hoi(&["data", "synth", "--out", "/tmp/never-written", "--sequences", "0"]);
+    assert!(!run.status.success());
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--sequences must be at least 1"));
+    let missing = dex2hoi(&["data", "info", "/nonexistent/dataset"]);
+    assert!(!missing.status.success());
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        stderr.contains("/nonexistent/dataset") && stderr.contains("manifest.json"),
+        "{stderr}"
+    );
+    let unknown = dex2hoi(&["data", "frobnicate"]);
+    assert!(!unknown.status.success());
+}

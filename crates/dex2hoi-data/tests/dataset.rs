@@ -1,0 +1,154 @@
+//! The dataset format, augmentation and windows.
+
+use dex2hoi_data::augment::{mirror, mirror_text, swap_streams};
+use dex2hoi_data::dataset::{Dataset, Split};
+use dex2hoi_data::synth::build_dataset;
+use dex2hoi_data::window::{WindowConfig, resample, windows};
+use dex2hoi_repr::Skeleton;
+
+fn temp_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    dir
+}
+
+fn small(seed: u64) -> Dataset {
+    build_dataset(88, seed, 20.0, &|_| {}).unwrap()
+}
+
+#[test]
+fn save_and_load_round_trip_and_same_seed_same_bytes() {
+    let dataset = small(3);
+    // Blocks of eight: block 9 (indices 72-79) is the test split, one of every task.
+    assert_eq!(dataset.manifest.splits[&Split::Test].sequences, 8);
+    assert_eq!(dataset.manifest.splits[&Split::Test].actions.len(), 8);
+    assert_eq!(dataset.manifest.splits[&Split::Train].sequences, 80);
+    let a = temp_dir("a");
+    dataset.save(&a).unwrap();
+    let loaded = Dataset::load(&a).unwrap();
+    assert_eq!(loaded.manifest, dataset.manifest);
+    assert_eq!(loaded.splits, dataset.splits);
+    assert_eq!(loaded.stats, dataset.stats);
+    assert_eq!(loaded.objects.len(), 8);
+    for (x, y) in loaded.objects.iter().zip(&dataset.objects) {
+        assert_eq!((&x.name, &x.mesh, &x.bps, &x.samples), (&y.name, &y.mesh, &y.bps, &y.samples));
+    }
+    // Same seed, same bytes; another seed, other bytes.
+    let b = temp_dir("b");
+    small(3).save(&b).unwrap();
+    let c = temp_dir("c");
+    small(4).save(&c).unwrap();
+    for file in [
+        "manifest.json",
+        "train.safetensors",
+        "test.safetensors",
+        "train.json",
+        "objects.safetensors",
+        "stats.safetensors",
+    ] {
+        let bytes = |d: &std::path::Path| std::fs::read(d.join(file)).unwrap();
+        assert_eq!(bytes(&a), bytes(&b), "{file}");
+        if file.starts_with("train") {
+            assert_ne!(bytes(&a), bytes(&c), "{file}");
+        }
+    }
+    // Statistics: floors hold, mixture channels are left as logits.
+    let width = dataset.manifest.stream_feature_size;
+    assert!(dataset.stats.std.iter().all(|s| *s >= 0.01));
+    assert_eq!(&dataset.stats.mean[width - 3..], &[0.0; 3]);
+    assert_eq!(&dataset.stats.std[width - 3..], &[1.0; 3]);
+    for d in [a, b, c] {
+        std::fs::remove_dir_all(d).ok();
+    }
+}
+
+#[test]
+fn broken_datasets_give_clear_errors() {
+    let dir = temp_dir("broken");
+    let error = Dataset::load(&dir).unwrap_err().to_string();
+    assert!(error.contains("manifest.json"), "{error}");
+    build_dataset(9, 1, 20.0, &|_| {}).unwrap().save(&dir).unwrap();
+    std::fs::write(dir.join("train.safetensors"), b"garbage").unwrap();
+    let error = Dataset::load(&dir).unwrap_err().to_string();
+    assert!(error.contains("train.safetensors"), "{error}");
+    let manifest = std::fs::read_to_string(dir.join("manifest.json")).unwrap();
+    std::fs::write(
+        dir.join("manifest.json"),
+        manifest.replace("\"format_version\": 1", "\"format_version\": 99"),
+    )
+    .unwrap();
+    let error = Dataset::load(&dir).unwrap_err().to_string();
+    assert!(error.contains("format_version"), "{error}");
+    std::fs::write(dir.join("manifest.json"), "{").unwrap();
+    assert!(Dataset::load(&dir).is_err());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn mirroring_and_swapping_twice_is_the_identity() {
+    let dataset = build_dataset(16, 2, 20.0, &|_| {}).unwrap();
+    let skeleton = Skeleton::smplx();
+    for sequence in &dataset.splits[&Split::Train] {
+        assert_eq!(&mirror(&mirror(sequence, &skeleton), &skeleton), sequence);
+        assert_eq!(&swap_streams(&swap_streams(sequence)), sequence);
+        let mirrored = mirror(sequence, &skeleton);
+        assert_ne!(&mirrored, sequence);
+        // Hands trade places: the left hand's contacts become the right hand's.
+        for (a, b) in mirrored.hand_contact.chunks(2).zip(sequence.hand_contact.chunks(2)) {
+            assert_eq!((a[0], a[1]), (b[1], b[0]));
+        }
+        let swapped = swap_streams(sequence);
+        assert_eq!(swapped.object_names[0], sequence.object_names[1]);
+    }
+    assert_eq!(
+        mirror_text("The left hand passes the Left cup to the right."),
+        "The right hand passes the Right cup to the left."
+    );
+    assert_eq!(mirror_text("leftover rights"), "leftover rights");
+}
+
+#[test]
+fn windows_cover_sequences_and_pad_short_ones() {
+    let config = WindowConfig::default();
+    let all = windows(&[60, 75, 30, 0], &config).unwrap();
+    let of = |s: usize| all.iter().filter(|w| w.sequence == s).copied().collect::<Vec<_>>();
+    assert_eq!(of(0).len(), 1);
+    // 75 frames: starts 0 and 10 fit, then one window ending at the last frame.
+    assert_eq!(of(1).iter().map(|w| w.start).collect::<Vec<_>>(), vec![0, 10, 15]);
+    let short = of(2)[0];
+    assert_eq!(short.valid_frames, 30);
+    let mask = short.mask(&config);
+    assert_eq!(mask.len(), 60);
+    assert_eq!(mask.iter().sum::<f32>(), 30.0);
+    assert_eq!(short.frame(45), 29, "padding repeats the last frame");
+    assert!(of(3).is_empty());
+    assert!(windows(&[10], &WindowConfig { stride: 0, ..config }).is_err());
+}
+
+#[test]
+fn resampling_keeps_the_motion() {
+    let synth = dex2hoi_data::synth::generate(0, 1, 20.0).unwrap();
+    let s = &synth.sequence;
+    let same = resample(s, 20.0).unwrap();
+    assert_eq!(same.frames(), s.frames());
+    for (a, b) in same.local_rotations.iter().zip(&s.local_rotations) {
+        assert!(a.abs_diff_eq(*b, 1e-5));
+    }
+    let half = resample(s, 10.0).unwrap();
+    assert_eq!(half.frames(), (s.frames() - 1) / 2 + 1);
+    let joints = s.skeleton.joint_count();
+    for k in 0..half.frames() {
+        for j in 0..joints {
+            assert!(
+                half.local_rotations[k * joints + j]
+                    .abs_diff_eq(s.local_rotations[2 * k * joints + j], 1e-5)
+            );
+        }
+        assert!(
+            half.objects[0].translations[k].abs_diff_eq(s.objects[0].translations[2 * k], 1e-5)
+        );
+    }
+    let up = resample(s, 30.0).unwrap();
+    assert!((up.frames() as f32 / 30.0 - s.frames() as f32 / 20.0).abs() < 0.1);
+    assert!(resample(s, 0.0).is_err());
+}
