@@ -8,14 +8,16 @@
 //! "right" in the texts. Object meshes are not changed: the catalogue's objects are symmetric
 //! under the reflection; for an asymmetric mesh the mirrored sequence shows its mirror image.
 
-use dex2hoi_repr::Skeleton;
+use glam::{Mat3, Vec3};
+
 use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, OBJECT_FEATURE_SIZE,
     RIGHT_OFFSET_RANGE, ROTATION_RANGE,
 };
+use dex2hoi_repr::{Mesh, Skeleton};
 
 use crate::features::ProcessedSequence;
-use crate::sequence::MAX_OBJECTS;
+use crate::sequence::{MAX_OBJECTS, Sequence};
 
 /// Swaps the object slots: stream A becomes stream B and back.
 pub fn swap_streams(sequence: &ProcessedSequence) -> ProcessedSequence {
@@ -136,6 +138,39 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
         }
     }
     out.root_start.x = -sequence.root_start.x;
+    out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
+    out
+}
+
+/// `M R M` with `M = diag(-1, 1, 1)`.
+fn mirror_matrix(r: Mat3) -> Mat3 {
+    let m = Mat3::from_diagonal(Vec3::new(-1.0, 1.0, 1.0));
+    m * r * m
+}
+
+/// Mirrors a raw sequence left/right: the same reflection as [`mirror`], before features. The
+/// skeleton must be symmetric (the built-in ones are); object meshes are reflected too (with
+/// their triangles reversed so that they still face outward).
+pub fn mirror_sequence(sequence: &Sequence) -> Sequence {
+    let mut out = sequence.clone();
+    let joints = sequence.skeleton.joint_count();
+    let symmetry = sequence.skeleton.symmetry();
+    let reflect = |p: Vec3| Vec3::new(-p.x, p.y, p.z);
+    for t in 0..sequence.frames() {
+        for j in 0..joints {
+            out.local_rotations[t * joints + j] =
+                mirror_matrix(sequence.local_rotations[t * joints + symmetry[j]]);
+        }
+        out.root_positions[t] = reflect(sequence.root_positions[t]);
+    }
+    for object in &mut out.objects {
+        object.rotations.iter_mut().for_each(|r| *r = mirror_matrix(*r));
+        object.translations.iter_mut().for_each(|p| *p = reflect(*p));
+        object.mesh = Mesh {
+            vertices: object.mesh.vertices.iter().map(|v| reflect(*v)).collect(),
+            faces: object.mesh.faces.iter().map(|f| [f[0], f[2], f[1]]).collect(),
+        };
+    }
     out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
     out
 }

@@ -152,3 +152,36 @@ fn resampling_keeps_the_motion() {
     assert!((up.frames() as f32 / 30.0 - s.frames() as f32 / 20.0).abs() < 0.1);
     assert!(resample(s, 0.0).is_err());
 }
+
+#[test]
+fn feature_mirroring_equals_mirroring_the_raw_motion() {
+    use dex2hoi_data::augment::mirror_sequence;
+    use dex2hoi_data::features::{TargetConfig, process_sequence};
+    use dex2hoi_repr::MeshQuery;
+    let skeleton = Skeleton::smplx();
+    for index in [0, 2, 4, 7] {
+        let synth = dex2hoi_data::synth::generate(index, 5, 20.0).unwrap();
+        let process = |s: &dex2hoi_data::Sequence| {
+            let queries: Vec<MeshQuery> =
+                s.objects.iter().map(|o| MeshQuery::new(&o.mesh).unwrap()).collect();
+            let refs: Vec<&MeshQuery> = queries.iter().collect();
+            process_sequence(s, &refs, &TargetConfig::default()).unwrap()
+        };
+        let a = mirror(&process(&synth.sequence), &skeleton);
+        let b = process(&mirror_sequence(&synth.sequence));
+        let close = |x: &[f32], y: &[f32], what: &str| {
+            assert_eq!(x.len(), y.len());
+            for (k, (p, q)) in x.iter().zip(y).enumerate() {
+                assert!((p - q).abs() < 2e-4, "sequence {index}, {what}[{k}]: {p} vs {q}");
+            }
+        };
+        close(&a.body, &b.body, "body");
+        close(&a.objects, &b.objects, "objects");
+        close(&a.joint_positions, &b.joint_positions, "joint positions");
+        close(&a.hand_distances, &b.hand_distances, "hand distances");
+        close(&a.object_rotations, &b.object_rotations, "object rotations");
+        close(&a.object_positions, &b.object_positions, "object positions");
+        assert_eq!(a.foot_contact, b.foot_contact);
+        assert_eq!(a.texts, b.texts);
+    }
+}

@@ -345,7 +345,9 @@ impl Skeleton {
     }
 
     /// The default SMPL-X skeleton with 52 joints: the public SMPL body proportions and our
-    /// finger design, pelvis 0.975 m above the floor.
+    /// finger design, pelvis 0.975 m above the floor, made exactly left/right symmetric (the
+    /// public figures differ by up to 1 cm between sides; averaging them makes mirroring an exact
+    /// augmentation).
     pub fn smplx() -> Self {
         let mut names: Vec<String> = SMPLX52_BODY_NAMES.map(String::from).to_vec();
         let mut offsets = vec![Vec3::new(0.0, SMPLX_PELVIS_HEIGHT, 0.0)];
@@ -372,8 +374,16 @@ impl Skeleton {
             left_foot: vec![7, 10],
             right_foot: vec![8, 11],
         };
-        Self::new(SkeletonKind::Smplx52, names, parents_from_i32(&SMPLX52_PARENTS), offsets, groups)
-            .expect("the built-in SMPL-X skeleton is valid")
+        let skeleton = Self::new(
+            SkeletonKind::Smplx52,
+            names,
+            parents_from_i32(&SMPLX52_PARENTS),
+            offsets,
+            groups,
+        )
+        .expect("the built-in SMPL-X skeleton is valid");
+        let symmetric = skeleton.symmetrised_offsets();
+        skeleton.with_rest_offsets(symmetric).expect("symmetrising keeps the skeleton valid")
     }
 
     /// The Mixamo rig of HUMOTO with 65 joints (names without the `mixamorig:` prefix): the
@@ -426,6 +436,17 @@ impl Skeleton {
         };
         Self::new(SkeletonKind::Mixamo65, names, parents, offsets, groups)
             .expect("the built-in Mixamo skeleton is valid")
+    }
+
+    /// Rest offsets made exactly symmetric: each joint's offset is averaged with the reflection
+    /// (`x -> -x`) of its mirror joint's, and joints on the midline get `x = 0`.
+    pub fn symmetrised_offsets(&self) -> Vec<Vec3> {
+        let reflect = |v: Vec3| Vec3::new(-v.x, v.y, v.z);
+        self.rest_offsets
+            .iter()
+            .zip(&self.symmetry)
+            .map(|(offset, &mirror)| (*offset + reflect(self.rest_offsets[mirror])) * 0.5)
+            .collect()
     }
 
     /// The built-in skeleton of a kind.
@@ -593,10 +614,10 @@ mod tests {
                 let reach = rest[tip].distance(rest[wrist]);
                 assert!((0.07..0.2).contains(&reach), "{}: {reach}", skeleton.joint_names()[tip]);
             }
-            // Symmetric: mirrored joints have mirrored rest positions.
+            // Exactly symmetric: mirrored joints have mirrored rest positions.
             for (j, &m) in skeleton.symmetry().iter().enumerate() {
                 let mirrored = Vec3::new(-rest[m].x, rest[m].y, rest[m].z);
-                assert!(rest[j].abs_diff_eq(mirrored, 0.02), "{}", skeleton.joint_names()[j]);
+                assert!(rest[j].abs_diff_eq(mirrored, 1e-5), "{}", skeleton.joint_names()[j]);
                 assert_eq!(skeleton.symmetry()[m], j);
             }
         }

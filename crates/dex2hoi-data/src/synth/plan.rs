@@ -513,13 +513,13 @@ pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
                 let parked = b.carry(ro, start1, &[apex(&right_rest, &park, 0.12), park]);
                 let end1 = parked + CLOSE_TIME;
                 let done1 = b.attach(Hand::Right, ro, GraspStyle::Top, idle, start1, end1);
-                b.t = end1 - 0.5;
+                b.t = end1 - 0.9;
                 let reach2 = b.t;
                 let start2 = b.reach();
                 let moved = b.carry(lo, start2, &[apex(&left_rest, &left_to, 0.14), left_to]);
                 let end2 = moved + CLOSE_TIME;
                 b.attach(Hand::Left, lo, GraspStyle::Top, reach2, start2, end2);
-                b.t = (end2 - 0.6).max(done1);
+                b.t = (end2 - 0.9).max(done1);
                 let reach3 = b.t;
                 let start3 = b.reach();
                 let placed = b.carry(ro, start3, &[apex(&park, &right_to, 0.30), right_to]);
