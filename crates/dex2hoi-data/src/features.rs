@@ -157,8 +157,8 @@ pub fn canonicalise(sequence: &Sequence) -> Sequence {
     out
 }
 
-/// Extracts features and targets. `assets` holds the canonical meshes of the objects by slot;
-/// the sequence is validated and canonicalised first.
+/// Extracts features and targets. `object_queries` holds a signed-distance query of each
+/// object's canonical mesh, by slot; the sequence is validated and canonicalised first.
 pub fn process_sequence(
     sequence: &Sequence,
     object_queries: &[&MeshQuery],
