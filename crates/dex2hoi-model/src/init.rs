@@ -1,0 +1,111 @@
+//! Seeded parameter initialisation: candle's CPU generator cannot be seeded, so every parameter
+//! is drawn from its own stream, seeded by the model seed and the parameter's name (creation
+//! order does not matter), with the distribution candle would use for it.
+
+use candle_core::{DType, Device, Shape, Tensor, Var};
+use candle_nn::init::{Init, NormalOrUniform};
+use candle_nn::var_builder::SimpleBackend;
+use candle_nn::{VarBuilder, VarMap};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// A [`VarMap`] whose new variables are initialised from a seed.
+#[derive(Clone)]
+pub struct SeededVarMap {
+    map: VarMap,
+    seed: u64,
+}
+
+impl SeededVarMap {
+    /// An empty map.
+    pub fn new(seed: u64) -> Self {
+        Self { map: VarMap::new(), seed }
+    }
+
+    /// The underlying map (every trained variable).
+    pub fn var_map(&self) -> &VarMap {
+        &self.map
+    }
+
+    /// A builder whose variables land in this map.
+    pub fn builder(&self, dtype: DType, device: &Device) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), dtype, device.clone())
+    }
+
+    fn initial(&self, shape: &Shape, name: &str, init: Init) -> Vec<f64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed ^ fnv1a(name));
+        let count = shape.elem_count();
+        let uniform = |rng: &mut ChaCha8Rng, lo: f64, up: f64| {
+            (0..count).map(|_| rng.random_range(lo..up)).collect()
+        };
+        let normal = |rng: &mut ChaCha8Rng, mean: f64, std: f64| {
+            (0..count).map(|_| mean + std * rng.sample::<f64, _>(StandardNormal)).collect()
+        };
+        match init {
+            Init::Const(value) => vec![value; count],
+            Init::Uniform { lo, up } => uniform(&mut rng, lo, up),
+            Init::Randn { mean, stdev } => normal(&mut rng, mean, stdev),
+            Init::Kaiming { dist, fan, non_linearity } => {
+                let std = non_linearity.gain() / (fan.for_shape(shape) as f64).sqrt();
+                match dist {
+                    NormalOrUniform::Uniform => {
+                        uniform(&mut rng, -(3f64.sqrt()) * std, 3f64.sqrt() * std)
+                    }
+                    NormalOrUniform::Normal => normal(&mut rng, 0.0, std),
+                }
+            }
+        }
+    }
+}
+
+impl SimpleBackend for SeededVarMap {
+    fn get(
+        &self,
+        shape: Shape,
+        name: &str,
+        init: Init,
+        dtype: DType,
+        device: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let mut data = self.map.data().lock().expect("the var map lock is not poisoned");
+        if let Some(var) = data.get(name) {
+            if var.shape() != &shape {
+                candle_core::bail!(
+                    "parameter {name}: shape {:?} already registered, asked for {shape:?}",
+                    var.shape()
+                );
+            }
+            return Ok(var.as_tensor().clone());
+        }
+        let values = self.initial(&shape, name, init);
+        let tensor = Tensor::from_vec(values, shape, device)?.to_dtype(dtype)?;
+        let var = Var::from_tensor(&tensor)?;
+        data.insert(name.to_string(), var.clone());
+        Ok(var.as_tensor().clone())
+    }
+
+    fn get_unchecked(
+        &self,
+        name: &str,
+        _dtype: DType,
+        _device: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let data = self.map.data().lock().expect("the var map lock is not poisoned");
+        match data.get(name) {
+            Some(var) => Ok(var.as_tensor().clone()),
+            None => candle_core::bail!("parameter {name} is not in the model"),
+        }
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.map.data().lock().expect("the var map lock is not poisoned").contains_key(name)
+    }
+}
+
+/// FNV-1a of a name: a hash that never changes between builds (std's hasher may).
+fn fnv1a(name: &str) -> u64 {
+    name.bytes().fold(0xcbf2_9ce4_8422_2325, |hash, byte| {
+        (hash ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3)
+    })
+}

@@ -1,0 +1,182 @@
+//! Building blocks, all made of operations with a backward pass (candle's fused `layer_norm` and
+//! `softmax_last_dim` have none): layer norm without affine parameters, AdaLN modulation,
+//! multi-head attention, feed-forward, dropout from an explicit random stream, and the
+//! sinusoidal timestep embedding.
+
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::{Linear, Module, VarBuilder, init::Init};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+use crate::error::Result;
+
+/// Layer norm over the last dimension without affine parameters, `eps = 1e-6`.
+///
+/// # Shapes
+/// - `x`: `[..., features]`; returns the same shape
+pub fn layer_norm(x: &Tensor) -> Result<Tensor> {
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let centred = x.broadcast_sub(&mean)?;
+    let variance = centred.sqr()?.mean_keepdim(D::Minus1)?;
+    Ok(centred.broadcast_div(&(variance + 1e-6)?.sqrt()?)?)
+}
+
+/// Softmax over the last dimension, composed (with a backward pass).
+pub fn softmax(x: &Tensor) -> Result<Tensor> {
+    Ok(candle_nn::ops::softmax(x, D::Minus1)?)
+}
+
+/// A linear layer whose weight and bias start at zero (AdaLN modulations and output heads, so
+/// that every block starts as the identity and the model starts predicting zeros).
+pub fn zero_linear(input: usize, output: usize, vb: VarBuilder<'_>) -> Result<Linear> {
+    let weight = vb.get_with_hints((output, input), "weight", Init::Const(0.0))?;
+    let bias = vb.get_with_hints(output, "bias", Init::Const(0.0))?;
+    Ok(Linear::new(weight, Some(bias)))
+}
+
+/// Dropout with a mask drawn from `rng` (training) or the identity (`rng` is `None`).
+pub fn dropout(x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
+    let Some(rng) = rng else { return Ok(x.clone()) };
+    if p <= 0.0 {
+        return Ok(x.clone());
+    }
+    let keep = 1.0 - p;
+    let mask: Vec<f32> = (0..x.elem_count())
+        .map(|_| if rng.random::<f64>() < keep { (1.0 / keep) as f32 } else { 0.0 })
+        .collect();
+    let mask = Tensor::from_vec(mask, x.shape(), x.device())?.to_dtype(x.dtype())?;
+    Ok((x * mask)?)
+}
+
+/// AdaLN: `norm(x) * (1 + scale) + shift` with `(shift, scale) = Linear(SiLU(emb))`, the linear
+/// layer zero-initialised.
+#[derive(Debug, Clone)]
+pub struct Modulation {
+    linear: Linear,
+}
+
+impl Modulation {
+    /// A modulation for `latent`-wide tokens and conditions.
+    pub fn new(latent: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Self { linear: zero_linear(latent, 2 * latent, vb)? })
+    }
+
+    /// # Shapes
+    /// - `x`: `[batch, frames, latent]`; `emb`: `[batch, latent]`; returns `x`'s shape
+    pub fn forward(&self, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
+        let (_, _, latent) = x.dims3()?;
+        let params = self.linear.forward(&emb.silu()?)?.unsqueeze(1)?;
+        let shift = params.narrow(D::Minus1, 0, latent)?;
+        let scale = params.narrow(D::Minus1, latent, latent)?;
+        Ok(layer_norm(x)?.broadcast_mul(&(scale + 1.0)?)?.broadcast_add(&shift)?)
+    }
+}
+
+/// Multi-head attention.
+#[derive(Debug, Clone)]
+pub struct Attention {
+    query: Linear,
+    key: Linear,
+    value: Linear,
+    out: Linear,
+    heads: usize,
+}
+
+impl Attention {
+    /// Attention over `latent`-wide tokens with `heads` heads.
+    pub fn new(latent: usize, heads: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Self {
+            query: candle_nn::linear(latent, latent, vb.pp("query"))?,
+            key: candle_nn::linear(latent, latent, vb.pp("key"))?,
+            value: candle_nn::linear(latent, latent, vb.pp("value"))?,
+            out: candle_nn::linear(latent, latent, vb.pp("out"))?,
+            heads,
+        })
+    }
+
+    fn split_heads(&self, x: &Tensor) -> Result<Tensor> {
+        let (batch, frames, latent) = x.dims3()?;
+        Ok(x.reshape((batch, frames, self.heads, latent / self.heads))?
+            .transpose(1, 2)?
+            .contiguous()?)
+    }
+
+    /// Attention of `queries` to `keys` (which also give the values); `key_mask` (1 = attend,
+    /// 0 = ignore) masks keys such as padding frames.
+    ///
+    /// # Shapes
+    /// - `queries`: `[batch, query_frames, latent]`; `keys`: `[batch, key_frames, latent]`
+    /// - `key_mask`: `[batch, key_frames]`
+    /// - returns `[batch, query_frames, latent]`
+    pub fn forward(
+        &self,
+        queries: &Tensor,
+        keys: &Tensor,
+        key_mask: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let (batch, query_frames, latent) = queries.dims3()?;
+        let head = latent / self.heads;
+        let q = self.split_heads(&self.query.forward(queries)?)?;
+        let k = self.split_heads(&self.key.forward(keys)?)?;
+        let v = self.split_heads(&self.value.forward(keys)?)?;
+        let mut scores = (q.matmul(&k.transpose(2, 3)?.contiguous()?)? / (head as f64).sqrt())?;
+        if let Some(mask) = key_mask {
+            // 0 where attended, -1e9 where masked, broadcast over heads and queries.
+            let bias =
+                ((mask.to_dtype(scores.dtype())? - 1.0)? * 1e9)?.unsqueeze(1)?.unsqueeze(1)?;
+            scores = scores.broadcast_add(&bias)?;
+        }
+        let attended = softmax(&scores)?.matmul(&v)?;
+        let merged =
+            attended.transpose(1, 2)?.contiguous()?.reshape((batch, query_frames, latent))?;
+        Ok(self.out.forward(&merged)?)
+    }
+}
+
+/// Two linear layers with a GELU between.
+#[derive(Debug, Clone)]
+pub struct FeedForward {
+    up: Linear,
+    down: Linear,
+}
+
+impl FeedForward {
+    /// `latent -> hidden -> latent`.
+    pub fn new(latent: usize, hidden: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Self {
+            up: candle_nn::linear(latent, hidden, vb.pp("up"))?,
+            down: candle_nn::linear(hidden, latent, vb.pp("down"))?,
+        })
+    }
+
+    /// # Shapes
+    /// - `x`: `[..., latent]`; returns the same shape
+    pub fn forward(&self, x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
+        let hidden = dropout(&self.up.forward(x)?.gelu()?, p, rng)?;
+        Ok(self.down.forward(&hidden)?)
+    }
+}
+
+/// Sinusoidal embedding of diffusion timesteps (`[sin(t f_k), cos(t f_k)]`,
+/// `f_k = 10000^(-k / (dim/2))`).
+///
+/// # Shapes
+/// - `timesteps`: `[batch]` (any numeric dtype); returns `[batch, dim]`
+pub fn timestep_embedding(
+    timesteps: &Tensor,
+    dim: usize,
+    dtype: DType,
+    device: &Device,
+) -> Result<Tensor> {
+    let t: Vec<f64> = timesteps.to_dtype(DType::F64)?.to_vec1()?;
+    let half = dim / 2;
+    let mut values = Vec::with_capacity(t.len() * dim);
+    for step in &t {
+        for k in 0..dim {
+            let frequency =
+                (-(10000f64.ln()) * (k % half.max(1)) as f64 / half.max(1) as f64).exp();
+            values.push(if k < half { (step * frequency).sin() } else { (step * frequency).cos() });
+        }
+    }
+    Ok(Tensor::from_vec(values, (t.len(), dim), device)?.to_dtype(dtype)?)
+}

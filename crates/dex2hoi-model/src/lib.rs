@@ -1,0 +1,14 @@
+//! The Dex2HOI networks (paper Sec. 3.2): the dual-stream denoiser with cross-attention between
+//! the streams, the Motion Fusion Network, their conditioning, and the ablation variants of the
+//! paper's Table 3, built on candle from operations that all have a backward pass.
+
+pub mod config;
+pub mod error;
+pub mod init;
+pub mod layers;
+pub mod model;
+
+pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
+pub use error::{ModelError, Result};
+pub use init::SeededVarMap;
+pub use model::{Model, ModelInput};

@@ -1,0 +1,270 @@
+//! The networks: shapes of every variant, the zero start, information flow between the
+//! streams, seeding, bad inputs, and a finite-difference check of the gradient of every
+//! parameter of the full model.
+
+use candle_core::{DType, Device, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_model::{
+    BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, SeededVarMap, StreamLayout,
+};
+
+struct Inputs {
+    noisy: Tensor,
+    prefix: Tensor,
+    timesteps: Tensor,
+    text: Tensor,
+    bps: Tensor,
+    presence: Tensor,
+    mask: Tensor,
+}
+
+impl Inputs {
+    fn random(cfg: &ModelConfig, batch: usize, dtype: DType, seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut t = |shape: &[usize]| {
+            let n: usize = shape.iter().product();
+            let v: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            Tensor::from_vec(v, shape, &Device::Cpu).unwrap().to_dtype(dtype).unwrap()
+        };
+        let d = cfg.stream_features();
+        let noisy = t(&[batch, 2, cfg.predicted_frames, d]);
+        let prefix = t(&[batch, 2, cfg.prefix_frames, d]);
+        let text = t(&[batch, cfg.text_embedding]);
+        let bps = t(&[batch, 2, cfg.bps_points * 3]);
+        let presence: Vec<f64> =
+            (0..batch).flat_map(|b| [1.0, if b % 2 == 0 { 1.0 } else { 0.0 }]).collect();
+        let mut mask = vec![1.0f64; batch * cfg.window_frames()];
+        mask[cfg.window_frames() - 1] = 0.0; // the last frame of the first sample is padding
+        Self {
+            noisy,
+            prefix,
+            timesteps: Tensor::from_vec(
+                (0..batch as u32).map(|b| 100 + 300 * b).collect::<Vec<_>>(),
+                batch,
+                &Device::Cpu,
+            )
+            .unwrap(),
+            text,
+            bps,
+            presence: Tensor::from_vec(presence, (batch, 2), &Device::Cpu)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap(),
+            mask: Tensor::from_vec(mask, (batch, cfg.window_frames()), &Device::Cpu)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap(),
+        }
+    }
+
+    fn view(&self) -> ModelInput<'_> {
+        ModelInput {
+            noisy: &self.noisy,
+            prefix: &self.prefix,
+            timesteps: &self.timesteps,
+            text: &self.text,
+            bps: &self.bps,
+            presence: &self.presence,
+            frame_mask: Some(&self.mask),
+        }
+    }
+}
+
+fn build(cfg: &ModelConfig, seed: u64, dtype: DType) -> (Model, SeededVarMap) {
+    let vars = SeededVarMap::new(seed);
+    let model = Model::new(cfg, vars.builder(dtype, &Device::Cpu)).unwrap();
+    (model, vars)
+}
+
+/// Replaces every parameter (the zero-initialised ones too) by random values, so that every
+/// gradient is non-trivial.
+fn randomise(vars: &SeededVarMap, seed: u64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let data = vars.var_map().data().lock().unwrap();
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &data[name];
+        let v: Vec<f64> = (0..var.elem_count()).map(|_| rng.random_range(-0.3..0.3)).collect();
+        let t =
+            Tensor::from_vec(v, var.shape(), &Device::Cpu).unwrap().to_dtype(var.dtype()).unwrap();
+        var.set(&t).unwrap();
+    }
+}
+
+fn variants() -> Vec<ModelConfig> {
+    let tiny = ModelConfig::tiny();
+    vec![
+        tiny.clone(),
+        ModelConfig { body_fusion: BodyFusion::Average, ..tiny.clone() },
+        ModelConfig { stream_layout: StreamLayout::Single, ..tiny.clone() },
+        ModelConfig { object_representation: ObjectRepresentation::GlobalOnly, ..tiny },
+    ]
+}
+
+#[test]
+fn every_variant_runs_and_starts_at_zero() {
+    for cfg in variants() {
+        let (model, _) = build(&cfg, 0, DType::F32);
+        let inputs = Inputs::random(&cfg, 3, DType::F32, 1);
+        let out = model.forward(&inputs.view(), None).unwrap();
+        assert_eq!(out.dims(), &[3, 2, cfg.predicted_frames, cfg.stream_features()]);
+        // Zero-initialised heads: the untrained model predicts zeros.
+        let max = out.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+        assert_eq!(max, 0.0, "{cfg:?}");
+    }
+}
+
+#[test]
+fn the_body_is_shared_and_streams_talk_to_each_other() {
+    for cfg in variants() {
+        let (model, vars) = build(&cfg, 0, DType::F64);
+        randomise(&vars, 5);
+        let inputs = Inputs::random(&cfg, 2, DType::F64, 2);
+        let out = model.forward(&inputs.view(), None).unwrap();
+        let body = cfg.body_features();
+        let a = out.narrow(1, 0, 1).unwrap().narrow(3, 0, body).unwrap();
+        let b = out.narrow(1, 1, 1).unwrap().narrow(3, 0, body).unwrap();
+        let diff = (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f64>().unwrap();
+        assert_eq!(diff, 0.0, "one body for both streams");
+        // Changing stream B's frames changes stream A's object prediction (cross-attention, or
+        // the shared single stream); sample 0 has both objects.
+        let mut changed = Inputs::random(&cfg, 2, DType::F64, 2);
+        let b_frames = changed.noisy.narrow(1, 1, 1).unwrap();
+        changed.noisy =
+            Tensor::cat(&[&changed.noisy.narrow(1, 0, 1).unwrap(), &(b_frames + 0.5).unwrap()], 1)
+                .unwrap();
+        let out2 = model.forward(&changed.view(), None).unwrap();
+        let object_a = |o: &Tensor| o.get(0).unwrap().get(0).unwrap().narrow(1, body, 18).unwrap();
+        let delta = (object_a(&out) - object_a(&out2))
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+        assert!(delta > 1e-6, "{:?}: stream A ignores stream B", cfg.stream_layout);
+    }
+}
+
+#[test]
+fn seeds_decide_the_parameters_and_the_dropout() {
+    let cfg = ModelConfig { dropout: 0.2, ..ModelConfig::tiny() };
+    let values = |seed| {
+        let (_, vars) = build(&cfg, seed, DType::F32);
+        let data = vars.var_map().data().lock().unwrap();
+        data["blocks.0.self_attention.query.weight"]
+            .as_tensor()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    };
+    assert_eq!(values(1), values(1));
+    assert_ne!(values(1), values(2));
+    let (model, vars) = build(&cfg, 1, DType::F32);
+    randomise(&vars, 3);
+    let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
+    let run = |rng: Option<&mut ChaCha8Rng>| {
+        model.forward(&inputs.view(), rng).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let eval = run(None);
+    assert_eq!(eval, run(None));
+    let train = run(Some(&mut ChaCha8Rng::seed_from_u64(9)));
+    assert_eq!(train, run(Some(&mut ChaCha8Rng::seed_from_u64(9))));
+    assert_ne!(train, eval);
+}
+
+#[test]
+fn bad_inputs_and_configs_are_refused() {
+    let cfg = ModelConfig::tiny();
+    let (model, _) = build(&cfg, 0, DType::F32);
+    let inputs = Inputs::random(&cfg, 2, DType::F32, 1);
+    let short = inputs.noisy.narrow(2, 0, 3).unwrap();
+    let error = model.forward(&ModelInput { noisy: &short, ..inputs.view() }, None).unwrap_err();
+    assert!(error.to_string().contains("noisy"), "{error}");
+    let text = inputs.text.narrow(1, 0, 3).unwrap();
+    assert!(model.forward(&ModelInput { text: &text, ..inputs.view() }, None).is_err());
+    assert!(ModelConfig { heads: 3, ..cfg.clone() }.validate().is_err());
+    assert!(ModelConfig { dropout: 1.0, ..cfg.clone() }.validate().is_err());
+    assert!(ModelConfig::preset("huge").is_err());
+    assert_eq!(ModelConfig::preset("paper").unwrap().latent, 512);
+    let json = serde_json::to_string(&ModelConfig::small()).unwrap();
+    assert_eq!(serde_json::from_str::<ModelConfig>(&json).unwrap(), ModelConfig::small());
+    assert!(
+        serde_json::from_str::<ModelConfig>(&json.replace("\"latent\"", "\"latency\"")).is_err()
+    );
+}
+
+/// Finite differences against the backward pass for a few entries of every parameter and of
+/// the noisy input, in f64, for each variant.
+#[test]
+fn gradients_of_every_parameter_match_finite_differences() {
+    for cfg in variants() {
+        let cfg = ModelConfig {
+            joints: 2,
+            prefix_frames: 2,
+            predicted_frames: 3,
+            bps_points: 4,
+            text_embedding: 5,
+            latent: 8,
+            feed_forward: 12,
+            ..cfg
+        };
+        let (model, vars) = build(&cfg, 0, DType::F64);
+        randomise(&vars, 11);
+        let inputs = Inputs::random(&cfg, 2, DType::F64, 12);
+        let count = 2 * 2 * cfg.predicted_frames * cfg.stream_features();
+        let weights: Vec<f64> = (0..count).map(|i| ((i as f64) * 0.37 + 0.1).sin()).collect();
+        let weights = Tensor::from_vec(
+            weights,
+            (2, 2, cfg.predicted_frames, cfg.stream_features()),
+            &Device::Cpu,
+        )
+        .unwrap();
+        let loss = |model: &Model, inputs: &Inputs| -> f64 {
+            (model.forward(&inputs.view(), None).unwrap() * &weights)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        let out =
+            (model.forward(&inputs.view(), None).unwrap() * &weights).unwrap().sum_all().unwrap();
+        let grads = out.backward().unwrap();
+        let data = vars.var_map().data().lock().unwrap();
+        let mut names: Vec<&String> = data.keys().collect();
+        names.sort();
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        for name in names {
+            let var = &data[name];
+            let grad = grads.get(var.as_tensor()).unwrap_or_else(|| panic!("{name}: no gradient"));
+            let grad: Vec<f64> = grad.flatten_all().unwrap().to_vec1().unwrap();
+            let base: Vec<f64> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            for _ in 0..2 {
+                let i = rng.random_range(0..base.len());
+                let h = 1e-6;
+                let at = |delta: f64| {
+                    let mut v = base.clone();
+                    v[i] += delta;
+                    var.set(&Tensor::from_vec(v, var.shape(), &Device::Cpu).unwrap()).unwrap();
+                    loss(&model, &inputs)
+                };
+                let numeric = (at(h) - at(-h)) / (2.0 * h);
+                var.set(&Tensor::from_vec(base.clone(), var.shape(), &Device::Cpu).unwrap())
+                    .unwrap();
+                let error = (numeric - grad[i]).abs();
+                assert!(
+                    error <= 1e-6 + 1e-5 * numeric.abs().max(grad[i].abs()),
+                    "{:?} {name}[{i}]: analytic {} vs numeric {numeric}",
+                    cfg.stream_layout,
+                    grad[i]
+                );
+            }
+        }
+    }
+}
