@@ -12,10 +12,11 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   ci            format check, clippy with warnings denied, then every test (optimised profile)
-  bench [NAME]  run the benchmarks (all, or one of: repr) and print their medians";
+  bench [NAME]  run the benchmarks (all, or one of: repr, sample) and print their medians";
 
 /// The benchmarks `cargo xtask bench` knows: name, package, bench target.
-const BENCHES: [(&str, &str, &str); 1] = [("repr", "dex2hoi-repr", "repr")];
+const BENCHES: [(&str, &str, &str); 2] =
+    [("repr", "dex2hoi-repr", "repr"), ("sample", "dex2hoi-diffusion", "sample")];
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

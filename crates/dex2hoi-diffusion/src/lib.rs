@@ -8,9 +8,13 @@
 //! `x0`, with a per-row switch to the null condition.
 
 mod error;
+pub mod generate;
 mod sampler;
 mod schedule;
 
 pub use error::{DiffusionError, Result};
+pub use generate::{
+    Generation, ModelDenoiser, Normaliser, TimedText, WindowCondition, generate, sample_window,
+};
 pub use sampler::{Denoiser, SamplerConfig, SamplerKind, gaussian, sample, sample_timesteps};
 pub use schedule::{CosineSchedule, DEFAULT_DIFFUSION_STEPS};

@@ -96,7 +96,9 @@ fn guided_x0(
         None => (x.clone(), vec![false; batch], batch),
     };
     let timesteps = CosineSchedule::timestep_tensor(&vec![t; rows], device)?;
-    let x0 = denoiser.predict_x0(&input, &timesteps, &null)?;
+    // Detached: sampling needs no gradient, and a tracked output would chain every step's
+    // activations into one graph that lives until the end.
+    let x0 = denoiser.predict_x0(&input, &timesteps, &null)?.detach();
     if x0.dims() != input.dims() {
         return Err(DiffusionError::Denoiser {
             expected: format!("shape {:?}", input.dims()),

@@ -4,7 +4,7 @@
 //! sinusoidal timestep embedding.
 
 use candle_core::{D, DType, Device, Tensor};
-use candle_nn::{Linear, Module, VarBuilder, init::Init};
+use candle_nn::{VarBuilder, init::Init};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -26,12 +26,51 @@ pub fn softmax(x: &Tensor) -> Result<Tensor> {
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
 
-/// A linear layer whose weight and bias start at zero (AdaLN modulations and output heads, so
-/// that every block starts as the identity and the model starts predicting zeros).
-pub fn zero_linear(input: usize, output: usize, vb: VarBuilder<'_>) -> Result<Linear> {
-    let weight = vb.get_with_hints((output, input), "weight", Init::Const(0.0))?;
+/// A linear layer whose weight is stored `[input, output]`, so that the product needs no
+/// transposed operand (about a quarter faster on the CPU than candle's `[output, input]`), and
+/// whose leading dimensions are flattened into one matrix product.
+#[derive(Debug, Clone)]
+pub struct Dense {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+/// A [`Dense`] layer initialised like PyTorch's `nn.Linear` (Kaiming-uniform weight, uniform
+/// bias in `+-1/sqrt(input)`).
+pub fn dense(input: usize, output: usize, vb: VarBuilder<'_>) -> Result<Dense> {
+    // Stored [input, output]: the fan-in is the first dimension.
+    let kaiming = Init::Kaiming {
+        dist: candle_nn::init::NormalOrUniform::Uniform,
+        fan: candle_nn::init::FanInOut::FanOut,
+        non_linearity: candle_nn::init::NonLinearity::ExplicitGain(1.0 / 3f64.sqrt()),
+    };
+    let weight = vb.get_with_hints((input, output), "weight", kaiming)?;
+    let bound = 1.0 / (input as f64).sqrt();
+    let bias = vb.get_with_hints(output, "bias", Init::Uniform { lo: -bound, up: bound })?;
+    Ok(Dense { weight, bias })
+}
+
+/// A [`Dense`] layer whose weight and bias start at zero (AdaLN modulations and output heads,
+/// so that every block starts as the identity and the model starts predicting zeros).
+pub fn zero_dense(input: usize, output: usize, vb: VarBuilder<'_>) -> Result<Dense> {
+    let weight = vb.get_with_hints((input, output), "weight", Init::Const(0.0))?;
     let bias = vb.get_with_hints(output, "bias", Init::Const(0.0))?;
-    Ok(Linear::new(weight, Some(bias)))
+    Ok(Dense { weight, bias })
+}
+
+impl Dense {
+    /// # Shapes
+    /// - `x`: `[..., input]`; returns `[..., output]`
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims();
+        let input = dims[dims.len() - 1];
+        let rows = x.elem_count() / input.max(1);
+        let flat = x.contiguous()?.reshape((rows, input))?;
+        let out = flat.matmul(&self.weight)?.broadcast_add(&self.bias)?;
+        let mut shape = dims.to_vec();
+        *shape.last_mut().expect("a non-scalar input") = self.weight.dims()[1];
+        Ok(out.reshape(shape)?)
+    }
 }
 
 /// Dropout with a mask drawn from `rng` (training) or the identity (`rng` is `None`).
@@ -48,17 +87,17 @@ pub fn dropout(x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tenso
     Ok((x * mask)?)
 }
 
-/// AdaLN: `norm(x) * (1 + scale) + shift` with `(shift, scale) = Linear(SiLU(emb))`, the linear
+/// AdaLN: `norm(x) * (1 + scale) + shift` with `(shift, scale) = Dense(SiLU(emb))`, the linear
 /// layer zero-initialised.
 #[derive(Debug, Clone)]
 pub struct Modulation {
-    linear: Linear,
+    linear: Dense,
 }
 
 impl Modulation {
     /// A modulation for `latent`-wide tokens and conditions.
     pub fn new(latent: usize, vb: VarBuilder<'_>) -> Result<Self> {
-        Ok(Self { linear: zero_linear(latent, 2 * latent, vb)? })
+        Ok(Self { linear: zero_dense(latent, 2 * latent, vb)? })
     }
 
     /// # Shapes
@@ -75,10 +114,10 @@ impl Modulation {
 /// Multi-head attention.
 #[derive(Debug, Clone)]
 pub struct Attention {
-    query: Linear,
-    key: Linear,
-    value: Linear,
-    out: Linear,
+    query: Dense,
+    key: Dense,
+    value: Dense,
+    out: Dense,
     heads: usize,
 }
 
@@ -86,10 +125,10 @@ impl Attention {
     /// Attention over `latent`-wide tokens with `heads` heads.
     pub fn new(latent: usize, heads: usize, vb: VarBuilder<'_>) -> Result<Self> {
         Ok(Self {
-            query: candle_nn::linear(latent, latent, vb.pp("query"))?,
-            key: candle_nn::linear(latent, latent, vb.pp("key"))?,
-            value: candle_nn::linear(latent, latent, vb.pp("value"))?,
-            out: candle_nn::linear(latent, latent, vb.pp("out"))?,
+            query: dense(latent, latent, vb.pp("query"))?,
+            key: dense(latent, latent, vb.pp("key"))?,
+            value: dense(latent, latent, vb.pp("value"))?,
+            out: dense(latent, latent, vb.pp("out"))?,
             heads,
         })
     }
@@ -133,26 +172,28 @@ impl Attention {
     }
 }
 
-/// Two linear layers with a GELU between.
+/// Two linear layers with a SiLU between (SiLU rather than MDM's GELU: as smooth, and on the
+/// CPU candle's SiLU is about six times faster than its tanh-based GELU, a third of the
+/// sampling time otherwise).
 #[derive(Debug, Clone)]
 pub struct FeedForward {
-    up: Linear,
-    down: Linear,
+    up: Dense,
+    down: Dense,
 }
 
 impl FeedForward {
     /// `latent -> hidden -> latent`.
     pub fn new(latent: usize, hidden: usize, vb: VarBuilder<'_>) -> Result<Self> {
         Ok(Self {
-            up: candle_nn::linear(latent, hidden, vb.pp("up"))?,
-            down: candle_nn::linear(hidden, latent, vb.pp("down"))?,
+            up: dense(latent, hidden, vb.pp("up"))?,
+            down: dense(hidden, latent, vb.pp("down"))?,
         })
     }
 
     /// # Shapes
     /// - `x`: `[..., latent]`; returns the same shape
     pub fn forward(&self, x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
-        let hidden = dropout(&self.up.forward(x)?.gelu()?, p, rng)?;
+        let hidden = dropout(&self.up.forward(x)?.silu()?, p, rng)?;
         Ok(self.down.forward(&hidden)?)
     }
 }

@@ -3,7 +3,7 @@
 //! plus the ablation variants of Table 3 selected by [`ModelConfig`].
 
 use candle_core::{D, DType, Tensor};
-use candle_nn::{Linear, Module, VarBuilder, init::Init};
+use candle_nn::{VarBuilder, init::Init};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_repr::object_repr::{
@@ -13,7 +13,8 @@ use dex2hoi_repr::object_repr::{
 use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 use crate::error::{ModelError, Result};
 use crate::layers::{
-    Attention, FeedForward, Modulation, dropout, layer_norm, timestep_embedding, zero_linear,
+    Attention, Dense, FeedForward, Modulation, dense, dropout, layer_norm, timestep_embedding,
+    zero_dense,
 };
 
 /// What the model reads for one batch.
@@ -40,12 +41,12 @@ pub struct ModelInput<'a> {
 /// (BPS MLP and presence).
 #[derive(Debug, Clone)]
 struct Conditioning {
-    time_in: Linear,
-    time_out: Linear,
-    text: Linear,
-    bps_in: Linear,
-    bps_out: Linear,
-    presence: Linear,
+    time_in: Dense,
+    time_out: Dense,
+    text: Dense,
+    bps_in: Dense,
+    bps_out: Dense,
+    presence: Dense,
     latent: usize,
 }
 
@@ -53,12 +54,12 @@ impl Conditioning {
     fn new(cfg: &ModelConfig, bps_inputs: usize, vb: VarBuilder<'_>) -> Result<Self> {
         let l = cfg.latent;
         Ok(Self {
-            time_in: candle_nn::linear(l, l, vb.pp("time_in"))?,
-            time_out: candle_nn::linear(l, l, vb.pp("time_out"))?,
-            text: candle_nn::linear(cfg.text_embedding, l, vb.pp("text"))?,
-            bps_in: candle_nn::linear(bps_inputs, l, vb.pp("bps_in"))?,
-            bps_out: candle_nn::linear(l, l, vb.pp("bps_out"))?,
-            presence: candle_nn::linear(2, l, vb.pp("presence"))?,
+            time_in: dense(l, l, vb.pp("time_in"))?,
+            time_out: dense(l, l, vb.pp("time_out"))?,
+            text: dense(cfg.text_embedding, l, vb.pp("text"))?,
+            bps_in: dense(bps_inputs, l, vb.pp("bps_in"))?,
+            bps_out: dense(l, l, vb.pp("bps_out"))?,
+            presence: dense(2, l, vb.pp("presence"))?,
             latent: l,
         })
     }
@@ -153,10 +154,10 @@ struct FusionLayer {
 /// the network starts as the average and learns what the average misses).
 #[derive(Debug, Clone)]
 struct FusionNetwork {
-    input: Linear,
+    input: Dense,
     positions: Tensor,
     layers: Vec<FusionLayer>,
-    output: Linear,
+    output: Dense,
     dropout: f64,
 }
 
@@ -173,14 +174,14 @@ impl FusionNetwork {
             })
             .collect::<Result<_>>()?;
         Ok(Self {
-            input: candle_nn::linear(2 * cfg.body_features() + 1, l, vb.pp("input"))?,
+            input: dense(2 * cfg.body_features() + 1, l, vb.pp("input"))?,
             positions: vb.get_with_hints(
                 (cfg.predicted_frames, l),
                 "positions",
                 Init::Randn { mean: 0.0, stdev: 0.02 },
             )?,
             layers,
-            output: zero_linear(l, cfg.body_features(), vb.pp("output"))?,
+            output: zero_dense(l, cfg.body_features(), vb.pp("output"))?,
             dropout: cfg.dropout,
         })
     }
@@ -227,12 +228,12 @@ impl FusionNetwork {
 pub struct Model {
     config: ModelConfig,
     conditioning: Conditioning,
-    input: Linear,
+    input: Dense,
     positions: Tensor,
     frame_types: Tensor,
     blocks: Vec<Block>,
     final_modulation: Modulation,
-    head: Linear,
+    head: Dense,
     fusion: Option<FusionNetwork>,
     /// Per-channel input mask (zeros the hand-relative channels for `GlobalOnly`).
     channel_mask: Option<Tensor>,
@@ -276,7 +277,7 @@ impl Model {
         Ok(Self {
             config: config.clone(),
             conditioning: Conditioning::new(config, bps_inputs, vb.pp("conditioning"))?,
-            input: candle_nn::linear(frame_features, l, vb.pp("input"))?,
+            input: dense(frame_features, l, vb.pp("input"))?,
             positions: vb.get_with_hints(
                 (config.window_frames(), l),
                 "positions",
@@ -289,7 +290,7 @@ impl Model {
             )?,
             blocks,
             final_modulation: Modulation::new(l, vb.pp("final_modulation"))?,
-            head: zero_linear(l, frame_features, vb.pp("head"))?,
+            head: zero_dense(l, frame_features, vb.pp("head"))?,
             fusion,
             channel_mask,
         })
