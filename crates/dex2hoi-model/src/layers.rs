@@ -168,7 +168,7 @@ impl Attention {
         let attended = softmax(&scores)?.matmul(&v)?;
         let merged =
             attended.transpose(1, 2)?.contiguous()?.reshape((batch, query_frames, latent))?;
-        Ok(self.out.forward(&merged)?)
+        self.out.forward(&merged)
     }
 }
 
@@ -194,7 +194,7 @@ impl FeedForward {
     /// - `x`: `[..., latent]`; returns the same shape
     pub fn forward(&self, x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         let hidden = dropout(&self.up.forward(x)?.silu()?, p, rng)?;
-        Ok(self.down.forward(&hidden)?)
+        self.down.forward(&hidden)
     }
 }
 
