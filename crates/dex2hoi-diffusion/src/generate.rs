@@ -55,7 +55,7 @@ impl Denoiser for ModelDenoiser<'_> {
     ) -> Result<Tensor> {
         let rows = noisy.dims()[0];
         let batch = self.condition.text.dims()[0];
-        if batch == 0 || rows % batch != 0 || null_condition.len() != rows {
+        if batch == 0 || !rows.is_multiple_of(batch) || null_condition.len() != rows {
             return Err(DiffusionError::invalid(
                 "denoiser batch",
                 format!("a multiple of the condition's {batch} rows with one null flag each"),
