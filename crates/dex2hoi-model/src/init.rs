@@ -17,6 +17,16 @@ pub struct SeededVarMap {
     seed: u64,
 }
 
+impl std::fmt::Debug for SeededVarMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let count = self.map.data().lock().map(|d| d.len()).unwrap_or(0);
+        f.debug_struct("SeededVarMap")
+            .field("seed", &self.seed)
+            .field("parameters", &count)
+            .finish()
+    }
+}
+
 impl SeededVarMap {
     /// An empty map.
     pub fn new(seed: u64) -> Self {

@@ -2,6 +2,7 @@
 //! the streams, the Motion Fusion Network, their conditioning, and the ablation variants of the
 //! paper's Table 3, built on candle from operations that all have a backward pass.
 
+pub mod checkpoint;
 pub mod config;
 pub mod error;
 pub mod init;

@@ -268,3 +268,79 @@ fn gradients_of_every_parameter_match_finite_differences() {
         }
     }
 }
+
+#[test]
+fn checkpoints_round_trip_and_refuse_mismatches() {
+    use dex2hoi_model::checkpoint::{
+        model_metadata, named_parameters, read_tensors, write_tensors,
+    };
+    let dir = std::env::temp_dir().join(format!("dex2hoi-ckpt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = ModelConfig::tiny();
+    let (model, vars) = build(&cfg, 0, DType::F32);
+    randomise(&vars, 21);
+    let path = dir.join("model.safetensors");
+    model.save(&vars, &path).unwrap();
+    let (loaded, _) = Model::load(&path, Some(&cfg), DType::F32, &Device::Cpu).unwrap();
+    let inputs = Inputs::random(&cfg, 2, DType::F32, 22);
+    let a = model
+        .forward(&inputs.view(), None)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    let b = loaded
+        .forward(&inputs.view(), None)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    assert_eq!(a, b);
+    // Another configuration is refused, naming the file.
+    let other = ModelConfig { layers: 3, ..cfg.clone() };
+    let error = Model::load(&path, Some(&other), DType::F32, &Device::Cpu).unwrap_err().to_string();
+    assert!(
+        error.contains("model.safetensors") && error.contains("model configuration"),
+        "{error}"
+    );
+    // A parameter of the wrong shape, a missing one, an extra one.
+    let (mut tensors, metadata) = read_tensors(&path, &Device::Cpu).unwrap();
+    let key = "model.blocks.0.self_attention.query.weight".to_string();
+    let original = tensors[&key].clone();
+    tensors.insert(key.clone(), Tensor::zeros((3, 3), DType::F32, &Device::Cpu).unwrap());
+    write_tensors(&path, &tensors, &metadata).unwrap();
+    let error = Model::load(&path, None, DType::F32, &Device::Cpu).unwrap_err().to_string();
+    assert!(error.contains(&key) && error.contains("shape"), "{error}");
+    tensors.remove(&key);
+    write_tensors(&path, &tensors, &metadata).unwrap();
+    assert!(
+        Model::load(&path, None, DType::F32, &Device::Cpu).unwrap_err().to_string().contains(&key)
+    );
+    tensors.insert(key, original);
+    tensors
+        .insert("model.blocks.9.extra".into(), Tensor::zeros(2, DType::F32, &Device::Cpu).unwrap());
+    write_tensors(&path, &tensors, &metadata).unwrap();
+    assert!(
+        Model::load(&path, None, DType::F32, &Device::Cpu)
+            .unwrap_err()
+            .to_string()
+            .contains("blocks.9.extra")
+    );
+    // No configuration in the metadata, or a corrupt file.
+    write_tensors(&path, &named_parameters(&vars, "model."), &Default::default()).unwrap();
+    assert!(Model::load(&path, None, DType::F32, &Device::Cpu).is_err());
+    let mut broken = model_metadata(&cfg);
+    broken.insert(dex2hoi_model::checkpoint::CONFIG_KEY.into(), "{\"latent\": 3}".into());
+    write_tensors(&path, &named_parameters(&vars, "model."), &broken).unwrap();
+    assert!(Model::load(&path, None, DType::F32, &Device::Cpu).is_err());
+    std::fs::write(&path, b"not a checkpoint").unwrap();
+    assert!(
+        Model::load(&path, None, DType::F32, &Device::Cpu)
+            .unwrap_err()
+            .to_string()
+            .contains("model.safetensors")
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,184 @@
+//! Checkpoints: safetensors files with named tensors and string metadata; the model's
+//! configuration always travels in the metadata, and a checkpoint whose configuration or
+//! parameters do not match is refused with the file and the difference named. Writes are
+//! atomic (temporary file, then rename).
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use candle_core::safetensors::Load;
+use candle_core::{DType, Device, Tensor};
+
+use crate::config::ModelConfig;
+use crate::error::{ModelError, Result};
+use crate::init::SeededVarMap;
+use crate::model::Model;
+
+/// Metadata key of the model configuration (JSON).
+pub const CONFIG_KEY: &str = "dex2hoi.model_config";
+/// Metadata key of the checkpoint format.
+pub const FORMAT_KEY: &str = "dex2hoi.format";
+/// The checkpoint format this code writes.
+pub const FORMAT: &str = "dex2hoi-checkpoint-1";
+
+fn checkpoint_error(
+    path: &Path,
+    what: &str,
+    expected: impl Into<String>,
+    got: impl std::fmt::Display,
+) -> ModelError {
+    ModelError::Checkpoint {
+        path: path.to_path_buf(),
+        what: what.into(),
+        expected: expected.into(),
+        got: got.to_string(),
+    }
+}
+
+/// Writes named tensors and metadata to a safetensors file, atomically.
+pub fn write_tensors(
+    path: &Path,
+    tensors: &BTreeMap<String, Tensor>,
+    metadata: &BTreeMap<String, String>,
+) -> Result<()> {
+    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    name.push(format!(".tmp-{}", std::process::id()));
+    let temporary: PathBuf = path.with_file_name(name);
+    let contiguous: Vec<(String, Tensor)> =
+        tensors.iter().map(|(k, t)| Ok((k.clone(), t.contiguous()?))).collect::<Result<_>>()?;
+    let info: HashMap<String, String> = metadata.clone().into_iter().collect();
+    safetensors::serialize_to_file(contiguous, Some(info), &temporary)
+        .map_err(|e| checkpoint_error(&temporary, "writing", "a writable file", e))?;
+    std::fs::rename(&temporary, path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        action: "renaming into place",
+        source,
+    })
+}
+
+/// Reads every tensor and the metadata of a safetensors file.
+pub fn read_tensors(
+    path: &Path,
+    device: &Device,
+) -> Result<(BTreeMap<String, Tensor>, BTreeMap<String, String>)> {
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        action: "reading the checkpoint",
+        source,
+    })?;
+    let file = safetensors::SafeTensors::deserialize(&bytes)
+        .map_err(|e| checkpoint_error(path, "content", "a safetensors file", e))?;
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+        .map_err(|e| checkpoint_error(path, "header", "a safetensors header", e))?;
+    let metadata: BTreeMap<String, String> =
+        header.metadata().clone().unwrap_or_default().into_iter().collect();
+    let mut tensors = BTreeMap::new();
+    for (name, view) in file.tensors() {
+        tensors.insert(name, view.load(device)?);
+    }
+    Ok((tensors, metadata))
+}
+
+/// The model configuration stored in checkpoint metadata.
+pub fn config_from_metadata(
+    path: &Path,
+    metadata: &BTreeMap<String, String>,
+) -> Result<ModelConfig> {
+    if metadata.get(FORMAT_KEY).map(String::as_str) != Some(FORMAT) {
+        return Err(checkpoint_error(
+            path,
+            FORMAT_KEY,
+            FORMAT,
+            format!("{:?}", metadata.get(FORMAT_KEY)),
+        ));
+    }
+    let json = metadata
+        .get(CONFIG_KEY)
+        .ok_or_else(|| checkpoint_error(path, CONFIG_KEY, "the model configuration", "nothing"))?;
+    let config: ModelConfig = serde_json::from_str(json)
+        .map_err(|e| checkpoint_error(path, CONFIG_KEY, "a valid model configuration", e))?;
+    config.validate()?;
+    Ok(config)
+}
+
+/// Metadata with the format and the configuration.
+pub fn model_metadata(config: &ModelConfig) -> BTreeMap<String, String> {
+    let json = serde_json::to_string(config).expect("a model configuration serialises");
+    BTreeMap::from([(FORMAT_KEY.to_string(), FORMAT.to_string()), (CONFIG_KEY.to_string(), json)])
+}
+
+/// The parameters of a var map by name, each prefixed.
+pub fn named_parameters(vars: &SeededVarMap, prefix: &str) -> BTreeMap<String, Tensor> {
+    let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
+    data.iter().map(|(name, var)| (format!("{prefix}{name}"), var.as_tensor().clone())).collect()
+}
+
+/// Sets every parameter of a var map from `tensors[prefix + name]`, refusing a missing
+/// parameter, a shape that differs, or a tensor under the prefix that the model does not have.
+pub fn assign_parameters(
+    vars: &SeededVarMap,
+    tensors: &BTreeMap<String, Tensor>,
+    prefix: &str,
+    path: &Path,
+) -> Result<()> {
+    let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
+    for (name, var) in data.iter() {
+        let key = format!("{prefix}{name}");
+        let tensor = tensors.get(&key).ok_or_else(|| {
+            checkpoint_error(path, &key, format!("a tensor of shape {:?}", var.dims()), "nothing")
+        })?;
+        if tensor.dims() != var.dims() {
+            return Err(checkpoint_error(
+                path,
+                &key,
+                format!("shape {:?}", var.dims()),
+                format!("{:?}", tensor.dims()),
+            ));
+        }
+        var.set(&tensor.to_dtype(var.dtype())?)?;
+    }
+    if let Some(extra) =
+        tensors.keys().find(|k| k.starts_with(prefix) && !data.contains_key(&k[prefix.len()..]))
+    {
+        return Err(checkpoint_error(
+            path,
+            extra,
+            "only parameters of this model",
+            "a parameter it does not have",
+        ));
+    }
+    Ok(())
+}
+
+impl Model {
+    /// Saves the parameters (under `model.`) and the configuration.
+    pub fn save(&self, vars: &SeededVarMap, path: &Path) -> Result<()> {
+        write_tensors(path, &named_parameters(vars, "model."), &model_metadata(self.config()))
+    }
+
+    /// Loads a model saved by [`Model::save`] (or a training checkpoint holding `model.`
+    /// parameters). With `expected`, a checkpoint of another configuration is refused.
+    pub fn load(
+        path: &Path,
+        expected: Option<&ModelConfig>,
+        dtype: DType,
+        device: &Device,
+    ) -> Result<(Model, SeededVarMap)> {
+        let (tensors, metadata) = read_tensors(path, device)?;
+        let config = config_from_metadata(path, &metadata)?;
+        if let Some(expected) = expected
+            && expected != &config
+        {
+            return Err(checkpoint_error(
+                path,
+                "model configuration",
+                serde_json::to_string(expected).unwrap_or_default(),
+                serde_json::to_string(&config).unwrap_or_default(),
+            ));
+        }
+        let vars = SeededVarMap::new(0);
+        let model = Model::new(&config, vars.builder(dtype, device))?;
+        assign_parameters(&vars, &tensors, "model.", path)?;
+        Ok((model, vars))
+    }
+}
