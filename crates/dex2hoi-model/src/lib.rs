@@ -8,6 +8,7 @@ pub mod error;
 pub mod init;
 pub mod layers;
 pub mod model;
+pub mod text;
 
 pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 pub use error::{ModelError, Result};
