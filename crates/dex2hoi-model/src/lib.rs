@@ -9,6 +9,7 @@ pub mod init;
 pub mod layers;
 pub mod model;
 pub mod text;
+pub mod text_bert;
 
 pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 pub use error::{ModelError, Result};
