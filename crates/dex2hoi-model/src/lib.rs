@@ -10,6 +10,7 @@ pub mod layers;
 pub mod model;
 pub mod text;
 pub mod text_bert;
+pub mod text_clip;
 
 pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 pub use error::{ModelError, Result};
