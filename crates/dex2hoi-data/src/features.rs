@@ -290,3 +290,96 @@ pub fn process_sequence(
         source_id: sequence.source_id.clone(),
     })
 }
+
+/// How object positions are decoded from object features.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ObjectDecoding {
+    /// Through the softmax mixture of the wrist and global branches (Eq. 4).
+    Mixture,
+    /// From the global branch alone (the "without hand-relative representation" variant).
+    GlobalOnly,
+}
+
+/// Motion decoded from features.
+#[derive(Debug, Clone)]
+pub struct DecodedMotion {
+    /// Local joint rotations, frame-major `[frames * joints]`.
+    pub local_rotations: Vec<Mat3>,
+    /// Root positions per frame.
+    pub root_positions: Vec<Vec3>,
+    /// Forward kinematics of the above.
+    pub joints: dex2hoi_repr::FkOutput,
+    /// Per object slot, rotations and positions per frame (`None` for an empty slot).
+    pub objects: [Option<(Vec<Mat3>, Vec<Vec3>)>; MAX_OBJECTS],
+}
+
+/// Decodes body and object features (as stored in a dataset or produced by the model) back into
+/// joint rotations, joint positions (FK) and object poses.
+///
+/// # Shapes
+/// - `body`: `[frames, 6J + 3]`; `objects`: `[frames, 2, 18]`
+pub fn decode_features(
+    skeleton: &Skeleton,
+    body: &[f32],
+    objects: &[f32],
+    present: [bool; MAX_OBJECTS],
+    root_start: Vec3,
+    decoding: ObjectDecoding,
+) -> Result<DecodedMotion> {
+    let joints = skeleton.joint_count();
+    let width = body_feature_size(joints);
+    let frames = body.len() / width;
+    if body.len() != frames * width || objects.len() != frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE {
+        return Err(DataError::invalid(
+            "features to decode",
+            format!("[frames, {width}] body and [frames, 2, 18] object features"),
+            format!("{} and {} numbers", body.len(), objects.len()),
+        ));
+    }
+    if let Some(i) = body.iter().chain(objects).position(|v| !v.is_finite()) {
+        return Err(DataError::invalid(
+            "features to decode",
+            "finite numbers",
+            format!("a NaN at {i}"),
+        ));
+    }
+    let mut local_rotations = Vec::with_capacity(frames * joints);
+    let mut root_positions = Vec::with_capacity(frames);
+    for row in body.chunks_exact(width) {
+        for j in 0..joints {
+            local_rotations.push(dex2hoi_repr::rotation::sixd_to_matrix(
+                row[6 * j..6 * j + 6].try_into().expect("six numbers"),
+            ));
+        }
+        root_positions.push(root_start + Vec3::from_slice(&row[6 * joints..]));
+    }
+    let fk = forward_kinematics(skeleton, &local_rotations, &root_positions)?;
+    let groups = skeleton.groups();
+    let decoded_objects = std::array::from_fn(|slot| {
+        present[slot].then(|| {
+            (0..frames)
+                .map(|t| {
+                    let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
+                    let o =
+                        HandRelativeObject::from_slice(&objects[base..base + OBJECT_FEATURE_SIZE])
+                            .expect("18 numbers");
+                    let position = match decoding {
+                        ObjectDecoding::GlobalOnly => o.global_position,
+                        ObjectDecoding::Mixture => o.decode_position(Wrists {
+                            left: WristPose {
+                                position: fk.position(t, groups.left_wrist),
+                                rotation: fk.rotation(t, groups.left_wrist),
+                            },
+                            right: WristPose {
+                                position: fk.position(t, groups.right_wrist),
+                                rotation: fk.rotation(t, groups.right_wrist),
+                            },
+                        }),
+                    };
+                    (o.decode_rotation(), position)
+                })
+                .unzip()
+        })
+    });
+    Ok(DecodedMotion { local_rotations, root_positions, joints: fk, objects: decoded_objects })
+}

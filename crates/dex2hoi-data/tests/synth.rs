@@ -255,3 +255,76 @@ fn the_same_seed_gives_the_same_sequences() {
     let c = generate(5, 12, 20.0).unwrap();
     assert_ne!(a.sequence.local_rotations, c.sequence.local_rotations);
 }
+
+#[test]
+fn decode_features_gives_back_the_canonical_motion() {
+    use dex2hoi_data::features::{ObjectDecoding, decode_features};
+    for synth in sample().iter().step_by(5) {
+        let processed = process(synth);
+        let canonical = dex2hoi_data::features::canonicalise(&synth.sequence);
+        let decoded = decode_features(
+            &canonical.skeleton,
+            &processed.body,
+            &processed.objects,
+            processed.object_present,
+            processed.root_start,
+            ObjectDecoding::Mixture,
+        )
+        .unwrap();
+        let raw = forward_kinematics(
+            &canonical.skeleton,
+            &canonical.local_rotations,
+            &canonical.root_positions,
+        )
+        .unwrap();
+        for (a, b) in decoded.joints.positions.iter().zip(&raw.positions) {
+            assert!(a.distance(*b) < 1e-4);
+        }
+        for (slot, object) in canonical.objects.iter().enumerate() {
+            let (rotations, positions) = decoded.objects[slot].as_ref().expect("a present object");
+            for t in 0..processed.frames {
+                assert!(positions[t].distance(object.translations[t]) < 1e-4);
+                assert!(rotations[t].abs_diff_eq(object.rotations[t], 1e-5));
+            }
+        }
+        // The global branch alone is exact too on ground truth.
+        let global = decode_features(
+            &canonical.skeleton,
+            &processed.body,
+            &processed.objects,
+            processed.object_present,
+            processed.root_start,
+            ObjectDecoding::GlobalOnly,
+        )
+        .unwrap();
+        assert!(
+            global.objects[0].as_ref().unwrap().1[0].distance(canonical.objects[0].translations[0])
+                < 1e-5
+        );
+    }
+    let skeleton = dex2hoi_repr::Skeleton::smplx();
+    assert!(
+        decode_features(
+            &skeleton,
+            &[0.0; 10],
+            &[],
+            [false; 2],
+            Vec3::ZERO,
+            ObjectDecoding::Mixture
+        )
+        .is_err()
+    );
+}
+
+#[test]
+fn the_standing_start_is_a_rest_pose_with_free_objects() {
+    use dex2hoi_repr::ObjectPose;
+    let pose = ObjectPose { rotation: Mat3::IDENTITY, position: Vec3::new(0.1, 0.95, 0.4) };
+    let (body, objects) = dex2hoi_data::synth::standing_features([Some(pose), None]).unwrap();
+    assert_eq!(body.len(), 6 * 52 + 3);
+    assert_eq!(objects.len(), 36);
+    assert!(objects[18..].iter().all(|v| *v == 0.0));
+    let o = HandRelativeObject::from_slice(&objects[..18]).unwrap();
+    assert!(o.global_position.distance(pose.position) < 1e-6);
+    assert!(softmax3(o.mixture_logits)[2] > 0.99, "nobody holds it");
+}

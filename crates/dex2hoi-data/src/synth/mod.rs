@@ -490,3 +490,48 @@ pub fn build_dataset(
     };
     Ok(Dataset { manifest, splits, objects: assets, stats })
 }
+
+/// One frame of features for the default character standing relaxed (hands hanging) at the
+/// canonical origin, with objects at the given poses (canonical frame) and nobody holding them:
+/// the starting state of generation. Returns the body row `[6J + 3]` and the object rows
+/// `[2, 18]` (zeros for an empty slot).
+pub fn standing_features(
+    objects: [Option<dex2hoi_repr::ObjectPose>; crate::MAX_OBJECTS],
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    use dex2hoi_repr::object_repr::{
+        HandRelativeObject, MixtureTargetConfig, WristPose, Wrists, mixture_targets,
+    };
+    let poser = Poser::new(Vec3::new(0.0, PELVIS_HEIGHT, 0.0));
+    let idle = [poser.idle_hand(Hand::Left), poser.idle_hand(Hand::Right)];
+    let local = poser.pose(0.0, 0.0, &idle);
+    let skeleton = poser.skeleton();
+    let joints = skeleton.joint_count();
+    let root = Vec3::new(0.0, PELVIS_HEIGHT, 0.0);
+    let fk = forward_kinematics(skeleton, &local, &[root])?;
+    let mut body: Vec<f32> =
+        local.iter().flat_map(|r| dex2hoi_repr::rotation::matrix_to_sixd(*r)).collect();
+    body.extend([0.0; 3]);
+    debug_assert_eq!(body.len(), 6 * joints + 3);
+    let g = skeleton.groups();
+    let wrists = Wrists {
+        left: WristPose {
+            position: fk.position(0, g.left_wrist),
+            rotation: fk.rotation(0, g.left_wrist),
+        },
+        right: WristPose {
+            position: fk.position(0, g.right_wrist),
+            rotation: fk.rotation(0, g.right_wrist),
+        },
+    };
+    // Nobody holds anything: the mixture target of "neither hand".
+    let free =
+        mixture_targets(&[f32::INFINITY], &[f32::INFINITY], &MixtureTargetConfig::default())?[0];
+    let mut rows = vec![0.0f32; crate::MAX_OBJECTS * crate::features::OBJECT_FEATURE_SIZE];
+    for (slot, pose) in objects.iter().enumerate() {
+        if let Some(pose) = pose {
+            let encoded = HandRelativeObject::encode(*pose, wrists, free).to_array();
+            rows[slot * 18..slot * 18 + 18].copy_from_slice(&encoded);
+        }
+    }
+    Ok((body, rows))
+}
