@@ -14,8 +14,7 @@ use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
 use dex2hoi_repr::object_repr::{
-    HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists, hand_distances,
-    mixture_targets,
+    HandRelativeObject, MixtureTargetConfig, ObjectPose, Wrists, hand_distances, mixture_targets,
 };
 use dex2hoi_repr::rotation::{axis_angle_to_matrix, matrix_to_sixd};
 use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SurfaceSamples, forward_kinematics};
@@ -193,16 +192,7 @@ pub fn process_sequence(
     let hand_joints: Vec<usize> =
         groups.left_hand.iter().chain(&groups.right_hand).copied().collect();
     let hand_count = hand_joints.len();
-    let wrists = |t: usize| Wrists {
-        left: WristPose {
-            position: fk.position(t, groups.left_wrist),
-            rotation: fk.rotation(t, groups.left_wrist),
-        },
-        right: WristPose {
-            position: fk.position(t, groups.right_wrist),
-            rotation: fk.rotation(t, groups.right_wrist),
-        },
-    };
+    let wrists = |t: usize| Wrists::from_fk(&fk, t, groups);
     let mut objects = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
     let mut hand_distance = vec![ABSENT_DISTANCE; frames * MAX_OBJECTS * hand_count];
     let mut hand_contact = vec![0.0f32; frames * MAX_OBJECTS * 2];
@@ -365,16 +355,9 @@ pub fn decode_features(
                             .expect("18 numbers");
                     let position = match decoding {
                         ObjectDecoding::GlobalOnly => o.global_position,
-                        ObjectDecoding::Mixture => o.decode_position(Wrists {
-                            left: WristPose {
-                                position: fk.position(t, groups.left_wrist),
-                                rotation: fk.rotation(t, groups.left_wrist),
-                            },
-                            right: WristPose {
-                                position: fk.position(t, groups.right_wrist),
-                                rotation: fk.rotation(t, groups.right_wrist),
-                            },
-                        }),
+                        ObjectDecoding::Mixture => {
+                            o.decode_position(Wrists::from_fk(&fk, t, groups))
+                        }
                     };
                     (o.decode_rotation(), position)
                 })

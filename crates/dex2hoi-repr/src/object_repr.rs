@@ -51,6 +51,17 @@ pub struct Wrists {
     pub right: WristPose,
 }
 
+impl Wrists {
+    /// Both wrists at a frame of forward kinematics, by the skeleton's groups.
+    pub fn from_fk(fk: &crate::fk::FkOutput, frame: usize, groups: &JointGroups) -> Self {
+        let wrist = |joint: usize| WristPose {
+            position: fk.position(frame, joint),
+            rotation: fk.rotation(frame, joint),
+        };
+        Self { left: wrist(groups.left_wrist), right: wrist(groups.right_wrist) }
+    }
+}
+
 /// An object's pose: the rotation and position of its bounding-box-centred frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ObjectPose {

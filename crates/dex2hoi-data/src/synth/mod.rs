@@ -499,7 +499,7 @@ pub fn standing_features(
     objects: [Option<dex2hoi_repr::ObjectPose>; crate::MAX_OBJECTS],
 ) -> Result<(Vec<f32>, Vec<f32>)> {
     use dex2hoi_repr::object_repr::{
-        HandRelativeObject, MixtureTargetConfig, WristPose, Wrists, mixture_targets,
+        HandRelativeObject, MixtureTargetConfig, Wrists, mixture_targets,
     };
     let poser = Poser::new(Vec3::new(0.0, PELVIS_HEIGHT, 0.0));
     let idle = [poser.idle_hand(Hand::Left), poser.idle_hand(Hand::Right)];
@@ -513,16 +513,7 @@ pub fn standing_features(
     body.extend([0.0; 3]);
     debug_assert_eq!(body.len(), 6 * joints + 3);
     let g = skeleton.groups();
-    let wrists = Wrists {
-        left: WristPose {
-            position: fk.position(0, g.left_wrist),
-            rotation: fk.rotation(0, g.left_wrist),
-        },
-        right: WristPose {
-            position: fk.position(0, g.right_wrist),
-            rotation: fk.rotation(0, g.right_wrist),
-        },
-    };
+    let wrists = Wrists::from_fk(&fk, 0, g);
     // Nobody holds anything: the mixture target of "neither hand".
     let free =
         mixture_targets(&[f32::INFINITY], &[f32::INFINITY], &MixtureTargetConfig::default())?[0];

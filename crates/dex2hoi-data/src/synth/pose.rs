@@ -175,19 +175,23 @@ impl Poser {
         local
     }
 
-    fn body_positions(&self, lean: f32, sway: f32) -> Vec<Vec3> {
-        let local = self.body_locals(lean, sway);
+    /// Global positions and rotations of a pose.
+    fn global(&self, local: &[Mat3]) -> (Vec<Vec3>, Vec<Mat3>) {
         let joints = self.skeleton.joint_count();
         let mut positions = vec![Vec3::ZERO; joints];
         let mut rotations = vec![Mat3::IDENTITY; joints];
         forward_kinematics_frame(
             &self.skeleton,
-            &local,
+            local,
             self.root_position,
             &mut positions,
             &mut rotations,
         );
-        positions
+        (positions, rotations)
+    }
+
+    fn body_positions(&self, lean: f32, sway: f32) -> Vec<Vec3> {
+        self.global(&self.body_locals(lean, sway)).0
     }
 
     /// The smallest lean (radians) that brings `target` within 95% of the arm's length of the
@@ -283,16 +287,7 @@ impl Poser {
     /// Local rotations of the whole body for a lean, an idle sway and both hands' targets.
     pub fn pose(&self, lean: f32, sway: f32, hands: &[HandPose; 2]) -> Vec<Mat3> {
         let mut local = self.body_locals(lean, sway);
-        let joints = self.skeleton.joint_count();
-        let mut positions = vec![Vec3::ZERO; joints];
-        let mut rotations = vec![Mat3::IDENTITY; joints];
-        forward_kinematics_frame(
-            &self.skeleton,
-            &local,
-            self.root_position,
-            &mut positions,
-            &mut rotations,
-        );
+        let (positions, rotations) = self.global(&local);
         let offsets = self.skeleton.rest_offsets();
         for hand in Hand::BOTH {
             let h = hand.index();
