@@ -131,19 +131,6 @@ pub fn axis_angle_to_matrix(rotation_vector: &Tensor) -> Result<Tensor> {
     Ok(rotation.broadcast_add(&eye)?)
 }
 
-/// Matrix products `a b` of `[..., 3, 3]` tensors as a broadcast multiply and a sum, which is
-/// much faster on the CPU than a batched matmul of many tiny matrices.
-///
-/// # Shapes
-/// - `a`, `b`: `[..., 3, 3]` (leading dimensions broadcast)
-/// - returns: `[..., 3, 3]`
-pub fn compose(a: &Tensor, b: &Tensor) -> Result<Tensor> {
-    leading_dims_matrix(a, "rotation matrix tensor")?;
-    leading_dims_matrix(b, "rotation matrix tensor")?;
-    // (a b)[i, j] = sum_k a[i, k] b[k, j]: [..., i, k, 1] * [..., 1, k, j], summed over k.
-    Ok(a.unsqueeze(D::Minus1)?.broadcast_mul(&b.unsqueeze(D::Minus(3))?)?.sum(D::Minus2)?)
-}
-
 /// Applies rotations to vectors: `R v`.
 ///
 /// # Shapes
