@@ -283,20 +283,10 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     model.save(&vars, &path).unwrap();
     let (loaded, _) = Model::load(&path, Some(&cfg), DType::F32, &Device::Cpu).unwrap();
     let inputs = Inputs::random(&cfg, 2, DType::F32, 22);
-    let a = model
-        .forward(&inputs.view(), None)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap();
-    let b = loaded
-        .forward(&inputs.view(), None)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap();
+    let output = |m: &Model| {
+        m.forward(&inputs.view(), None).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let (a, b) = (output(&model), output(&loaded));
     assert_eq!(a, b);
     // Another configuration is refused, naming the file.
     let other = ModelConfig { layers: 3, ..cfg.clone() };
