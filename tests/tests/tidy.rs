@@ -6,9 +6,10 @@ use std::path::{Path, PathBuf};
 use dex2hoi_tests::workspace_root;
 
 /// The allowed `dex2hoi-*` dependencies of each crate (docs/ARCHITECTURE.md, "Invariants").
-const LAYERING: [(&str, &[&str]); 8] = [
+const LAYERING: [(&str, &[&str]); 9] = [
     ("dex2hoi-repr", &[]),
     ("dex2hoi-data", &["dex2hoi-repr"]),
+    ("dex2hoi-import", &["dex2hoi-repr", "dex2hoi-data"]),
     ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"]),
     ("dex2hoi-diffusion", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model"]),
     ("dex2hoi-train", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
@@ -19,6 +20,7 @@ const LAYERING: [(&str, &[&str]); 8] = [
         &[
             "dex2hoi-repr",
             "dex2hoi-data",
+            "dex2hoi-import",
             "dex2hoi-model",
             "dex2hoi-diffusion",
             "dex2hoi-train",
