@@ -1,0 +1,286 @@
+//! Exports of a generated (or dataset) motion for people and other tools:
+//!
+//! - [`npz`]: `motion.npz`, SMPL-X-style parameters that numpy loads and the `smplx` Python
+//!   package's layer takes as they are (documented in `docs/FORMATS.md`);
+//! - [`glb`]: `motion.glb`, glTF 2.0 binary with the skeleton as a skin, a capsule body skinned
+//!   to it and the objects as animated nodes (Blender, three.js);
+//! - [`bvh`]: `motion.bvh`, the skeleton's animation in BioVision hierarchy form;
+//! - [`preview`]: `preview.gif`, an animation drawn by a small software rasteriser.
+//!
+//! Every writer checks its input first ([`ExportMotion::check`]), encodes the whole file in
+//! memory and writes it atomically (temporary file, then rename), so bad input leaves no file
+//! behind and a crash never leaves half a file. Joint positions are recomputed from the local
+//! rotations by forward kinematics, so all four files agree with each other.
+
+pub mod body_mesh;
+pub mod bvh;
+pub mod error;
+pub mod glb;
+pub mod npz;
+pub mod preview;
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use glam::{Mat3, Vec3};
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::features::DecodedMotion;
+use dex2hoi_repr::rotation::is_rotation;
+use dex2hoi_repr::{FkOutput, Mesh, Skeleton, forward_kinematics};
+
+pub use body_mesh::{SkinnedMesh, body_mesh};
+pub use bvh::{BvhMotion, encode_bvh, parse_bvh, read_bvh, write_bvh};
+pub use error::{ExportError, Result};
+pub use glb::{encode_glb, write_glb};
+pub use npz::{encode_npz, write_npz};
+pub use preview::{
+    Camera, Preview, PreviewOptions, Surface, TableBox, encode_preview_gif, render_preview,
+    write_preview_gif,
+};
+
+/// File name of the SMPL-X-style parameters in an export directory.
+pub const NPZ_FILE: &str = "motion.npz";
+/// File name of the glTF binary.
+pub const GLB_FILE: &str = "motion.glb";
+/// File name of the BVH animation.
+pub const BVH_FILE: &str = "motion.bvh";
+/// File name of the animated preview.
+pub const GIF_FILE: &str = "preview.gif";
+
+/// How far a matrix may be from a rotation (`R^T R = I`, `det R = 1`) and still be exported.
+const ROTATION_TOLERANCE: f32 = 1e-3;
+
+/// A motion to export: the skeleton it is posed on, its frame rate and text, the decoded motion
+/// and the objects of the occupied slots with their names and meshes.
+#[derive(Debug, Clone)]
+pub struct ExportMotion<'a> {
+    /// The skeleton of the motion's local rotations.
+    pub skeleton: &'a Skeleton,
+    /// Frames per second.
+    pub fps: f32,
+    /// The description the motion was generated from (may be empty).
+    pub text: String,
+    /// Local rotations, root positions and per-slot object poses.
+    pub motion: &'a DecodedMotion,
+    /// The objects to export, each naming the slot of `motion.objects` that holds its poses.
+    pub objects: Vec<ExportObject<'a>>,
+}
+
+/// One object of an [`ExportMotion`].
+#[derive(Debug, Clone)]
+pub struct ExportObject<'a> {
+    /// The object's name (non-empty, unique within the motion).
+    pub name: String,
+    /// Its mesh in the object frame (the frame that the slot's poses move).
+    pub mesh: &'a Mesh,
+    /// The slot of [`DecodedMotion::objects`] with its rotations and positions.
+    pub slot: usize,
+}
+
+/// An [`ExportMotion`] that passed [`ExportMotion::check`], with its forward kinematics.
+#[derive(Debug)]
+pub(crate) struct Checked<'a> {
+    pub skeleton: &'a Skeleton,
+    pub fps: f32,
+    pub text: &'a str,
+    pub frames: usize,
+    pub local_rotations: &'a [Mat3],
+    pub root_positions: &'a [Vec3],
+    pub fk: FkOutput,
+    pub objects: Vec<CheckedObject<'a>>,
+}
+
+/// An object whose poses cover every frame.
+#[derive(Debug)]
+pub(crate) struct CheckedObject<'a> {
+    pub name: &'a str,
+    pub mesh: &'a Mesh,
+    pub slot: usize,
+    pub rotations: &'a [Mat3],
+    pub positions: &'a [Vec3],
+}
+
+impl Checked<'_> {
+    /// Seconds from the start of the motion to a frame.
+    pub fn time(&self, frame: usize) -> f32 {
+        frame as f32 / self.fps
+    }
+}
+
+fn check_rotations(rotations: &[Mat3], what: &str, per_frame: usize) -> Result<()> {
+    if let Some(i) = rotations.iter().position(|r| !is_rotation(*r, ROTATION_TOLERANCE)) {
+        return Err(ExportError::invalid(
+            format!("{what} at frame {}, index {}", i / per_frame, i % per_frame),
+            format!("a rotation matrix (R^T R = I and det R = 1, to {ROTATION_TOLERANCE})"),
+            format!("{:?}", rotations[i].to_cols_array()),
+        ));
+    }
+    Ok(())
+}
+
+fn check_positions(positions: &[Vec3], what: &str) -> Result<()> {
+    if let Some(frame) = positions.iter().position(|p| !p.is_finite()) {
+        return Err(ExportError::invalid(
+            format!("{what} at frame {frame}"),
+            "finite numbers",
+            positions[frame],
+        ));
+    }
+    Ok(())
+}
+
+fn check_mesh(mesh: &Mesh, name: &str) -> Result<()> {
+    let context = || format!("mesh of object {name}");
+    if mesh.faces.is_empty() {
+        return Err(ExportError::invalid(context(), "at least one triangle", "none"));
+    }
+    if let Some(v) = mesh.vertices.iter().position(|v| !v.is_finite()) {
+        return Err(ExportError::invalid(
+            context(),
+            "finite vertices",
+            format!("vertex {v} = {}", mesh.vertices[v]),
+        ));
+    }
+    let count = mesh.vertices.len();
+    if let Some(face) = mesh.faces.iter().position(|f| f.iter().any(|&i| i as usize >= count)) {
+        return Err(ExportError::invalid(
+            context(),
+            format!("vertex indices below {count}"),
+            format!("face {face} = {:?}", mesh.faces[face]),
+        ));
+    }
+    Ok(())
+}
+
+impl<'a> ExportMotion<'a> {
+    /// Number of frames (the number of root positions).
+    pub fn frames(&self) -> usize {
+        self.motion.root_positions.len()
+    }
+
+    /// Checks everything the writers rely on: a positive finite frame rate, at least one frame,
+    /// `frames * joints` local rotations that are rotations, finite root positions, objects with
+    /// non-empty unique names in distinct occupied slots whose poses cover every frame, and
+    /// valid meshes. Returns the motion with its forward kinematics.
+    pub(crate) fn check(&self) -> Result<Checked<'_>> {
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return Err(ExportError::invalid("frame rate", "a positive number", self.fps));
+        }
+        let frames = self.frames();
+        let joints = self.skeleton.joint_count();
+        if frames == 0 {
+            return Err(ExportError::invalid("motion", "at least one frame", "none"));
+        }
+        let motion = self.motion;
+        if motion.local_rotations.len() != frames * joints {
+            return Err(ExportError::invalid(
+                "local rotations",
+                format!("{frames} frames x {joints} joints = {} matrices", frames * joints),
+                motion.local_rotations.len(),
+            ));
+        }
+        check_rotations(&motion.local_rotations, "local rotation (frame, joint)", joints)?;
+        check_positions(&motion.root_positions, "root position")?;
+        let mut names = HashSet::new();
+        let mut slots = HashSet::new();
+        let mut objects = Vec::with_capacity(self.objects.len());
+        for object in &self.objects {
+            let name = object.name.as_str();
+            if name.is_empty() || !names.insert(name) {
+                return Err(ExportError::invalid(
+                    "object names",
+                    "non-empty names, each used once",
+                    format!("{:?}", self.objects.iter().map(|o| &o.name).collect::<Vec<_>>()),
+                ));
+            }
+            let slot = object.slot;
+            let poses = motion.objects.get(slot).and_then(Option::as_ref);
+            let Some((rotations, positions)) = poses.filter(|_| slots.insert(slot)) else {
+                return Err(ExportError::invalid(
+                    format!("slot of object {name}"),
+                    format!("a distinct occupied slot below {MAX_OBJECTS}"),
+                    slot,
+                ));
+            };
+            if rotations.len() != frames || positions.len() != frames {
+                return Err(ExportError::invalid(
+                    format!("poses of object {name}"),
+                    format!("{frames} rotations and positions"),
+                    format!("{} and {}", rotations.len(), positions.len()),
+                ));
+            }
+            check_rotations(rotations, &format!("rotation of object {name} (frame, 0)"), 1)?;
+            check_positions(positions, &format!("position of object {name}"))?;
+            check_mesh(object.mesh, name)?;
+            objects.push(CheckedObject { name, mesh: object.mesh, slot, rotations, positions });
+        }
+        let fk =
+            forward_kinematics(self.skeleton, &motion.local_rotations, &motion.root_positions)?;
+        Ok(Checked {
+            skeleton: self.skeleton,
+            fps: self.fps,
+            text: &self.text,
+            frames,
+            local_rotations: &motion.local_rotations,
+            root_positions: &motion.root_positions,
+            fk,
+            objects,
+        })
+    }
+}
+
+/// Writes encoded bytes to `path` atomically (temporary file beside it, then rename).
+pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    Ok(dex2hoi_data::dataset::write_atomically(path, bytes)?)
+}
+
+/// Options of [`export_all`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ExportOptions {
+    /// Size of the preview and the table it shows.
+    pub preview: PreviewOptions,
+}
+
+/// The paths [`export_all`] wrote.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ExportedFiles {
+    /// `motion.npz`.
+    pub npz: PathBuf,
+    /// `motion.glb`.
+    pub glb: PathBuf,
+    /// `motion.bvh`.
+    pub bvh: PathBuf,
+    /// `preview.gif`.
+    pub gif: PathBuf,
+}
+
+/// Writes [`NPZ_FILE`], [`GLB_FILE`], [`BVH_FILE`] and [`GIF_FILE`] into `dir` (created if
+/// missing). All four are encoded before the first is written, so bad input writes nothing;
+/// each file is written atomically.
+pub fn export_all(
+    dir: &Path,
+    motion: &ExportMotion<'_>,
+    options: &ExportOptions,
+) -> Result<ExportedFiles> {
+    let npz = encode_npz(motion)?;
+    let glb = encode_glb(motion)?;
+    let bvh = encode_bvh(motion)?;
+    let gif = encode_preview_gif(motion, &options.preview)?;
+    std::fs::create_dir_all(dir).map_err(|source| ExportError::Io {
+        path: dir.to_path_buf(),
+        action: "creating the export directory",
+        source,
+    })?;
+    let files = ExportedFiles {
+        npz: dir.join(NPZ_FILE),
+        glb: dir.join(GLB_FILE),
+        bvh: dir.join(BVH_FILE),
+        gif: dir.join(GIF_FILE),
+    };
+    write_file(&files.npz, &npz)?;
+    write_file(&files.glb, &glb)?;
+    write_file(&files.bvh, bvh.as_bytes())?;
+    write_file(&files.gif, &gif)?;
+    Ok(files)
+}

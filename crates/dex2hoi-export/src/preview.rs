@@ -1,0 +1,586 @@
+//! `preview.gif`: the motion drawn by a small z-buffered software rasteriser, so that a person
+//! can look at a result without any other tool.
+//!
+//! The scene is the capsule body of [`crate::body_mesh`], the object meshes, an optional table
+//! and a checkered floor at `y = 0`, under one directional light with Lambert shading (flat per
+//! triangle, lit from whichever side faces the camera). The camera is fixed for the whole clip:
+//! a three-quarter view from the character's front left (35 degrees round from +Z towards +X,
+//! 20 degrees above the horizon) that frames the bounding box of every joint and object over
+//! all frames.
+//!
+//! Colours come from one fixed 256-entry palette: eight surfaces ([`Surface`]) times 32 shades,
+//! so every pixel is an exact palette index (no quantisation, no dithering) and the same motion
+//! always gives the same bytes. GIF frame delays are whole centiseconds: frame `i` lasts
+//! `round(100 (i + 1) / fps) - round(100 i / fps)` cs (at least 2, since browsers slow down
+//! shorter delays), so 20 fps gives 5 cs per frame and 30 fps alternates 3, 4 and 3 cs.
+
+use std::borrow::Cow;
+use std::path::Path;
+
+use glam::{Mat3, Mat4, Vec2, Vec3};
+use rayon::prelude::*;
+
+use dex2hoi_repr::Mesh;
+use dex2hoi_repr::mesh::box_mesh;
+
+use crate::body_mesh::body_mesh;
+use crate::error::{ExportError, Result};
+use crate::{Checked, ExportMotion, write_file};
+
+/// Shades per surface in the palette.
+pub const SHADES: usize = 32;
+/// Vertical field of view of the camera.
+const FIELD_OF_VIEW_Y: f32 = 40.0 * std::f32::consts::PI / 180.0;
+/// Camera direction: degrees round from +Z towards +X, and above the horizon.
+const CAMERA_AZIMUTH: f32 = 35.0 * std::f32::consts::PI / 180.0;
+const CAMERA_ELEVATION: f32 = 20.0 * std::f32::consts::PI / 180.0;
+/// Added to the framed box's half diagonal for the body's thickness.
+const FRAMING_MARGIN: f32 = 0.15;
+/// Distance of the near clipping plane.
+const NEAR: f32 = 0.05;
+/// Direction towards the light (above, in front, to the character's left).
+const LIGHT: Vec3 = Vec3::new(0.4, 1.0, 0.6);
+/// Light that reaches surfaces facing away from the light.
+const AMBIENT: f32 = 0.35;
+/// Floor tiles (metres) and how far the floor reaches from the framed centre.
+const FLOOR_TILE: f32 = 0.5;
+const FLOOR_REACH: f32 = 4.0;
+/// Thickness of the table top and width of its square legs.
+const TABLE_TOP_THICKNESS: f32 = 0.04;
+const TABLE_LEG_WIDTH: f32 = 0.05;
+/// Smallest and largest image side.
+const MIN_SIDE: u32 = 16;
+const MAX_SIDE: u32 = 4096;
+
+/// What a pixel of the preview shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Surface {
+    /// Nothing (the sky).
+    Background,
+    /// The floor (either tile colour).
+    Floor,
+    /// The table.
+    Table,
+    /// The body.
+    Body,
+    /// An object, by its index in [`ExportMotion::objects`] (the third and later share a
+    /// colour).
+    Object(usize),
+}
+
+/// Palette slots (each [`SHADES`] entries) and their base colours.
+const PALETTE_SURFACES: [[u8; 3]; 8] = [
+    [222, 230, 240], // background
+    [205, 203, 196], // floor, light tiles
+    [172, 170, 163], // floor, dark tiles
+    [150, 104, 64],  // table
+    [88, 140, 212],  // body
+    [236, 124, 40],  // first object
+    [56, 178, 92],   // second object
+    [196, 64, 160],  // further objects
+];
+const BACKGROUND: usize = 0;
+const FLOOR_LIGHT: usize = 1;
+const FLOOR_DARK: usize = 2;
+const TABLE: usize = 3;
+const BODY: usize = 4;
+const FIRST_OBJECT: usize = 5;
+
+fn surface_of_slot(slot: usize) -> Surface {
+    match slot {
+        BACKGROUND => Surface::Background,
+        FLOOR_LIGHT | FLOOR_DARK => Surface::Floor,
+        TABLE => Surface::Table,
+        BODY => Surface::Body,
+        object => Surface::Object(object - FIRST_OBJECT),
+    }
+}
+
+/// The palette slot of an object index.
+fn object_slot(object: usize) -> usize {
+    (FIRST_OBJECT + object).min(PALETTE_SURFACES.len() - 1)
+}
+
+/// The palette: entry `slot * SHADES + shade` is the slot's colour at light level
+/// `shade / (SHADES - 1)`.
+pub fn palette() -> Vec<[u8; 3]> {
+    PALETTE_SURFACES
+        .iter()
+        .flat_map(|base| {
+            (0..SHADES).map(move |shade| {
+                let light = shade as f32 / (SHADES - 1) as f32;
+                base.map(|c| (c as f32 * light).round() as u8)
+            })
+        })
+        .collect()
+}
+
+/// The palette index of a slot lit at `light` in `[0, 1]`.
+fn colour(slot: usize, light: f32) -> u8 {
+    let shade = (light.clamp(0.0, 1.0) * (SHADES - 1) as f32).round() as usize;
+    (slot * SHADES + shade) as u8
+}
+
+/// A table: a top at `height` over a rectangle of the floor, on four legs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TableBox {
+    /// Height of the top surface (metres).
+    pub height: f32,
+    /// Centre of the top, `(x, z)`.
+    pub centre: Vec2,
+    /// Half extents of the top, `(x, z)`.
+    pub half_extents: Vec2,
+}
+
+/// Options of the preview.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PreviewOptions {
+    /// Image width in pixels (16-4096).
+    pub width: u32,
+    /// Image height in pixels (16-4096).
+    pub height: u32,
+    /// The table to draw, if any.
+    pub table: Option<TableBox>,
+}
+
+impl Default for PreviewOptions {
+    /// 320 x 320 pixels, no table.
+    fn default() -> Self {
+        Self { width: 320, height: 320, table: None }
+    }
+}
+
+impl PreviewOptions {
+    fn check(&self) -> Result<()> {
+        for (what, side) in [("preview width", self.width), ("preview height", self.height)] {
+            if !(MIN_SIDE..=MAX_SIDE).contains(&side) {
+                return Err(ExportError::invalid(
+                    what,
+                    format!("{MIN_SIDE} to {MAX_SIDE} pixels"),
+                    side,
+                ));
+            }
+        }
+        if let Some(table) = &self.table {
+            let valid = table.height.is_finite()
+                && table.height > TABLE_TOP_THICKNESS
+                && table.centre.is_finite()
+                && table.half_extents.is_finite()
+                && table.half_extents.min_element() > TABLE_LEG_WIDTH;
+            if !valid {
+                return Err(ExportError::invalid(
+                    "preview table",
+                    format!(
+                        "a finite centre, a height above {TABLE_TOP_THICKNESS} m and half extents \
+                         above {TABLE_LEG_WIDTH} m"
+                    ),
+                    format!("{table:?}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The fixed perspective camera of a preview.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// Camera position (world).
+    pub eye: Vec3,
+    /// The point at the image centre.
+    pub target: Vec3,
+    /// Vertical field of view (radians).
+    pub fov_y: f32,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+impl Camera {
+    /// The three-quarter camera that frames the box `[min, max]`.
+    fn framing(min: Vec3, max: Vec3, width: u32, height: u32) -> Self {
+        let target = (min + max) * 0.5;
+        let radius = (max - min).length() * 0.5 + FRAMING_MARGIN;
+        let aspect = width as f32 / height as f32;
+        // The narrower of the two fields of view must hold the bounding sphere.
+        let half_fov = (FIELD_OF_VIEW_Y * 0.5).min(((FIELD_OF_VIEW_Y * 0.5).tan() * aspect).atan());
+        let direction = Vec3::new(
+            CAMERA_AZIMUTH.sin() * CAMERA_ELEVATION.cos(),
+            CAMERA_ELEVATION.sin(),
+            CAMERA_AZIMUTH.cos() * CAMERA_ELEVATION.cos(),
+        );
+        Self {
+            eye: target + direction * radius / half_fov.sin(),
+            target,
+            fov_y: FIELD_OF_VIEW_Y,
+            width,
+            height,
+        }
+    }
+
+    fn view(&self) -> Mat4 {
+        glam::camera::rh::view::look_at_mat4(self.eye, self.target, Vec3::Y)
+    }
+
+    /// A point in camera space (looking down -Z) to pixel coordinates and inverse depth.
+    fn to_screen(&self, camera_space: Vec3) -> (Vec2, f32) {
+        let focal = 1.0 / (self.fov_y * 0.5).tan();
+        let aspect = self.width as f32 / self.height as f32;
+        let inverse_depth = 1.0 / -camera_space.z;
+        let ndc = Vec2::new(
+            focal / aspect * camera_space.x * inverse_depth,
+            focal * camera_space.y * inverse_depth,
+        );
+        let pixel = Vec2::new(
+            (ndc.x + 1.0) * 0.5 * self.width as f32,
+            (1.0 - ndc.y) * 0.5 * self.height as f32,
+        );
+        (pixel, inverse_depth)
+    }
+
+    /// Pixel coordinates (x to the right, y down, pixel `(i, j)` covering `[i, i + 1) x
+    /// [j, j + 1)`) of a world point, `None` behind the near plane.
+    pub fn project(&self, world: Vec3) -> Option<Vec2> {
+        let camera_space = self.view().transform_point3(world);
+        (camera_space.z < -NEAR).then(|| self.to_screen(camera_space).0)
+    }
+}
+
+/// A rendered preview: palette indices per frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Preview {
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Per frame, `width * height` palette indices, row by row from the top.
+    pub frames: Vec<Vec<u8>>,
+    /// Per frame, its delay in centiseconds.
+    pub delays: Vec<u16>,
+    /// The camera.
+    pub camera: Camera,
+}
+
+impl Preview {
+    /// What the pixel `(x, y)` of a frame shows (`None` outside the image or the clip).
+    pub fn surface_at(&self, frame: usize, x: u32, y: u32) -> Option<Surface> {
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        let index = *self.frames.get(frame)?.get((y * self.width + x) as usize)?;
+        Some(surface_of_slot(index as usize / SHADES))
+    }
+
+    /// The animated GIF (global palette, looping forever).
+    pub fn encode_gif(&self) -> Result<Vec<u8>> {
+        let gif_error = |e: gif::EncodingError| ExportError::invalid("GIF encoding", "success", e);
+        let flat_palette: Vec<u8> = palette().concat();
+        let (width, height) = (self.width as u16, self.height as u16);
+        let mut encoder =
+            gif::Encoder::new(Vec::new(), width, height, &flat_palette).map_err(gif_error)?;
+        encoder.set_repeat(gif::Repeat::Infinite).map_err(gif_error)?;
+        for (pixels, &delay) in self.frames.iter().zip(&self.delays) {
+            let frame = gif::Frame {
+                width,
+                height,
+                delay,
+                buffer: Cow::Borrowed(pixels),
+                ..gif::Frame::default()
+            };
+            encoder.write_frame(&frame).map_err(gif_error)?;
+        }
+        encoder.into_inner().map_err(gif_error)
+    }
+}
+
+/// Frame delays in centiseconds with the rounding error carried over (module documentation).
+pub fn frame_delays(frames: usize, fps: f32) -> Vec<u16> {
+    let at = |frame: usize| (frame as f64 * 100.0 / fps as f64).round();
+    (0..frames).map(|i| (at(i + 1) - at(i)).clamp(2.0, u16::MAX as f64) as u16).collect()
+}
+
+/// A triangle in world space with its palette slot.
+#[derive(Debug, Clone, Copy)]
+struct Triangle {
+    corners: [Vec3; 3],
+    slot: usize,
+}
+
+fn mesh_triangles(vertices: &[Vec3], faces: &[[u32; 3]], slot: usize, out: &mut Vec<Triangle>) {
+    out.extend(faces.iter().map(|f| Triangle { corners: f.map(|i| vertices[i as usize]), slot }));
+}
+
+fn moved_mesh(mesh: &Mesh, rotation: Mat3, translation: Vec3) -> Vec<Vec3> {
+    mesh.vertices.iter().map(|&v| rotation * v + translation).collect()
+}
+
+/// The floor tiles and the table, which do not move.
+fn static_triangles(centre: Vec3, table: Option<&TableBox>) -> Vec<Triangle> {
+    let mut out = Vec::new();
+    let tiles = (FLOOR_REACH / FLOOR_TILE).ceil() as i32;
+    let (first_x, first_z) = (
+        (centre.x / FLOOR_TILE).floor() as i32 - tiles,
+        (centre.z / FLOOR_TILE).floor() as i32 - tiles,
+    );
+    for i in first_x..first_x + 2 * tiles {
+        for k in first_z..first_z + 2 * tiles {
+            let (x0, z0) = (i as f32 * FLOOR_TILE, k as f32 * FLOOR_TILE);
+            let (x1, z1) = (x0 + FLOOR_TILE, z0 + FLOOR_TILE);
+            let slot = if (i + k).rem_euclid(2) == 0 { FLOOR_LIGHT } else { FLOOR_DARK };
+            let corner = |x: f32, z: f32| Vec3::new(x, 0.0, z);
+            // Counter-clockwise seen from above.
+            out.push(Triangle { corners: [corner(x0, z0), corner(x0, z1), corner(x1, z1)], slot });
+            out.push(Triangle { corners: [corner(x0, z0), corner(x1, z1), corner(x1, z0)], slot });
+        }
+    }
+    if let Some(table) = table {
+        let top_centre =
+            Vec3::new(table.centre.x, table.height - TABLE_TOP_THICKNESS * 0.5, table.centre.y);
+        let top = box_mesh(Vec3::new(
+            table.half_extents.x,
+            TABLE_TOP_THICKNESS * 0.5,
+            table.half_extents.y,
+        ));
+        mesh_triangles(&moved_mesh(&top, Mat3::IDENTITY, top_centre), &top.faces, TABLE, &mut out);
+        let leg_height = table.height - TABLE_TOP_THICKNESS;
+        let leg =
+            box_mesh(Vec3::new(TABLE_LEG_WIDTH * 0.5, leg_height * 0.5, TABLE_LEG_WIDTH * 0.5));
+        let inset = table.half_extents - Vec2::splat(TABLE_LEG_WIDTH);
+        for (sx, sz) in [(-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)] {
+            let position = Vec3::new(
+                table.centre.x + sx * inset.x,
+                leg_height * 0.5,
+                table.centre.y + sz * inset.y,
+            );
+            mesh_triangles(
+                &moved_mesh(&leg, Mat3::IDENTITY, position),
+                &leg.faces,
+                TABLE,
+                &mut out,
+            );
+        }
+    }
+    out
+}
+
+/// A z-buffered image of palette indices.
+struct Raster<'a> {
+    camera: &'a Camera,
+    view: Mat4,
+    light: Vec3,
+    pixels: Vec<u8>,
+    /// Inverse view depth of the nearest surface so far (0: nothing).
+    depth: Vec<f32>,
+}
+
+impl<'a> Raster<'a> {
+    fn new(camera: &'a Camera) -> Self {
+        let count = (camera.width * camera.height) as usize;
+        Self {
+            camera,
+            view: camera.view(),
+            light: LIGHT.normalize(),
+            pixels: vec![colour(BACKGROUND, 1.0); count],
+            depth: vec![0.0; count],
+        }
+    }
+
+    fn draw(&mut self, triangle: &Triangle) {
+        let [a, b, c] = triangle.corners;
+        let mut normal = (b - a).cross(c - a).normalize_or_zero();
+        if normal == Vec3::ZERO {
+            return;
+        }
+        // Lit from the side that faces the camera (meshes of either winding look right).
+        if normal.dot(self.camera.eye - a) < 0.0 {
+            normal = -normal;
+        }
+        let light = AMBIENT + (1.0 - AMBIENT) * normal.dot(self.light).max(0.0);
+        let index = colour(triangle.slot, light);
+        let camera_space = triangle.corners.map(|p| self.view.transform_point3(p));
+        // Clip against the near plane (Sutherland-Hodgman on one plane), then fan.
+        let mut polygon: Vec<Vec3> = Vec::with_capacity(4);
+        for k in 0..3 {
+            let (p, q) = (camera_space[k], camera_space[(k + 1) % 3]);
+            let (p_in, q_in) = (p.z < -NEAR, q.z < -NEAR);
+            if p_in {
+                polygon.push(p);
+            }
+            if p_in != q_in {
+                let t = (-NEAR - p.z) / (q.z - p.z);
+                polygon.push(p + (q - p) * t);
+            }
+        }
+        for k in 1..polygon.len().saturating_sub(1) {
+            self.fill([polygon[0], polygon[k], polygon[k + 1]], index);
+        }
+    }
+
+    /// Fills a camera-space triangle in front of the near plane.
+    fn fill(&mut self, corners: [Vec3; 3], index: u8) {
+        let screen = corners.map(|p| self.camera.to_screen(p));
+        let [(p0, w0), (p1, w1), (p2, w2)] = screen;
+        let edge = |a: Vec2, b: Vec2, p: Vec2| (b - a).perp_dot(p - a);
+        let area = edge(p0, p1, p2);
+        if area.abs() < 1e-12 {
+            return;
+        }
+        let (width, height) = (self.camera.width as f32, self.camera.height as f32);
+        let min = p0.min(p1).min(p2).max(Vec2::ZERO).floor();
+        let max = p0.max(p1).max(p2).min(Vec2::new(width - 1.0, height - 1.0)).ceil();
+        if min.x > max.x || min.y > max.y {
+            return;
+        }
+        for y in min.y as u32..=max.y as u32 {
+            for x in min.x as u32..=max.x as u32 {
+                let p = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                let b0 = edge(p1, p2, p) / area;
+                let b1 = edge(p2, p0, p) / area;
+                let b2 = edge(p0, p1, p) / area;
+                if b0 < 0.0 || b1 < 0.0 || b2 < 0.0 {
+                    continue;
+                }
+                let inverse_depth = b0 * w0 + b1 * w1 + b2 * w2;
+                let at = (y * self.camera.width + x) as usize;
+                if inverse_depth > self.depth[at] {
+                    self.depth[at] = inverse_depth;
+                    self.pixels[at] = index;
+                }
+            }
+        }
+    }
+}
+
+/// Renders every frame of a motion (see the module documentation).
+///
+/// # Shapes
+/// - the motion's `local_rotations`: `[frames * joints]`; `root_positions`: `[frames]`; each
+///   exported object's slot: `[frames]` rotations and positions
+pub fn render_preview(motion: &ExportMotion<'_>, options: &PreviewOptions) -> Result<Preview> {
+    options.check()?;
+    let checked = motion.check()?;
+    Ok(render_checked(&checked, options))
+}
+
+fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Preview {
+    let (mut min, mut max) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+    for &p in &motion.fk.positions {
+        (min, max) = (min.min(p), max.max(p));
+    }
+    for object in &motion.objects {
+        let (low, high) = object.mesh.bounding_box();
+        let reach = low.abs().max(high.abs()).length();
+        for &p in object.positions {
+            (min, max) = (min.min(p - Vec3::splat(reach)), max.max(p + Vec3::splat(reach)));
+        }
+    }
+    let camera = Camera::framing(min, max, options.width, options.height);
+    let scenery = static_triangles((min + max) * 0.5, options.table.as_ref());
+    let body = body_mesh(motion.skeleton);
+    let rest = motion.skeleton.rest_positions();
+    let joints = motion.skeleton.joint_count();
+    let frames = (0..motion.frames)
+        .into_par_iter()
+        .map(|t| {
+            let mut raster = Raster::new(&camera);
+            for triangle in &scenery {
+                raster.draw(triangle);
+            }
+            let span = t * joints..(t + 1) * joints;
+            let posed =
+                body.posed(&rest, &motion.fk.rotations[span.clone()], &motion.fk.positions[span]);
+            let mut moving = Vec::new();
+            mesh_triangles(&posed, &body.faces, BODY, &mut moving);
+            for (k, object) in motion.objects.iter().enumerate() {
+                let vertices = moved_mesh(object.mesh, object.rotations[t], object.positions[t]);
+                mesh_triangles(&vertices, &object.mesh.faces, object_slot(k), &mut moving);
+            }
+            for triangle in &moving {
+                raster.draw(triangle);
+            }
+            raster.pixels
+        })
+        .collect();
+    Preview {
+        width: options.width,
+        height: options.height,
+        frames,
+        delays: frame_delays(motion.frames, motion.fps),
+        camera,
+    }
+}
+
+/// The bytes of `preview.gif` (see [`render_preview`]).
+///
+/// # Shapes
+/// - as [`render_preview`]
+pub fn encode_preview_gif(motion: &ExportMotion<'_>, options: &PreviewOptions) -> Result<Vec<u8>> {
+    render_preview(motion, options)?.encode_gif()
+}
+
+/// Writes `preview.gif` atomically (see [`render_preview`]).
+///
+/// # Shapes
+/// - as [`render_preview`]
+pub fn write_preview_gif(
+    path: &Path,
+    motion: &ExportMotion<'_>,
+    options: &PreviewOptions,
+) -> Result<()> {
+    let bytes = encode_preview_gif(motion, options)?;
+    write_file(path, &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn twenty_fps_is_five_centiseconds_and_thirty_fps_keeps_the_average() {
+        assert_eq!(frame_delays(4, 20.0), vec![5, 5, 5, 5]);
+        let delays = frame_delays(30, 30.0);
+        assert_eq!(delays.iter().map(|&d| d as u32).sum::<u32>(), 100);
+        assert!(delays.iter().all(|&d| d == 3 || d == 4));
+        assert!(frame_delays(3, 200.0).iter().all(|&d| d == 2));
+    }
+
+    #[test]
+    fn palette_has_256_entries_and_shades_grow_brighter() {
+        let palette = palette();
+        assert_eq!(palette.len(), 256);
+        let body = &palette[BODY * SHADES..(BODY + 1) * SHADES];
+        assert!(body.windows(2).all(|w| w[0].iter().zip(&w[1]).all(|(a, b)| a <= b)));
+        assert_eq!(surface_of_slot(colour(BODY, 0.7) as usize / SHADES), Surface::Body);
+        assert_eq!(
+            surface_of_slot(colour(object_slot(1), 0.2) as usize / SHADES),
+            Surface::Object(1)
+        );
+    }
+
+    #[test]
+    fn a_triangle_straddling_the_near_plane_is_clipped_not_dropped() {
+        let camera = Camera {
+            eye: Vec3::new(0.0, 1.0, 0.0),
+            target: Vec3::new(0.0, 1.0, -1.0),
+            fov_y: FIELD_OF_VIEW_Y,
+            width: 32,
+            height: 32,
+        };
+        let mut raster = Raster::new(&camera);
+        // A floor triangle from behind the camera to far in front of it.
+        let triangle = Triangle {
+            corners: [
+                Vec3::new(-5.0, 0.0, 5.0),
+                Vec3::new(5.0, 0.0, 5.0),
+                Vec3::new(0.0, 0.0, -50.0),
+            ],
+            slot: FLOOR_LIGHT,
+        };
+        raster.draw(&triangle);
+        // The lower half of the image sees the floor, the upper half the sky.
+        let at = |x: u32, y: u32| raster.pixels[(y * 32 + x) as usize] as usize / SHADES;
+        assert_eq!(at(16, 30), FLOOR_LIGHT);
+        assert_eq!(at(16, 2), BACKGROUND);
+    }
+}
