@@ -182,6 +182,68 @@ pub struct Dataset {
     pub stats: FeatureStats,
 }
 
+impl Dataset {
+    /// Assembles a dataset from processed sequences: the statistics over the training split
+    /// (the test split when there is no training split), the per-split counts and the
+    /// manifest. `objects` are the assets in manifest order; `seed` is the generator's seed
+    /// (`None` for data read from files).
+    pub fn assemble(
+        source: &str,
+        skeleton: &dex2hoi_repr::Skeleton,
+        fps: f32,
+        splits: BTreeMap<Split, Vec<ProcessedSequence>>,
+        objects: Vec<ObjectAsset>,
+        bps: BpsSettings,
+        seed: Option<u64>,
+    ) -> Result<Self> {
+        let joints = skeleton.joint_count();
+        let statistics_split = match (splits.get(&Split::Train), splits.get(&Split::Test)) {
+            (Some(train), _) if !train.is_empty() => train,
+            (_, Some(test)) if !test.is_empty() => test,
+            _ => return Err(DataError::invalid(source, "at least one sequence", 0)),
+        };
+        let stats = FeatureStats::compute(statistics_split, joints);
+        let summaries = splits
+            .iter()
+            .map(|(split, sequences)| {
+                let mut actions = BTreeMap::new();
+                let mut object_counts = BTreeMap::new();
+                for s in sequences {
+                    *actions.entry(s.action.clone().unwrap_or_default()).or_insert(0) += 1;
+                    for name in s.object_names.iter().flatten() {
+                        *object_counts.entry(name.clone()).or_insert(0) += 1;
+                    }
+                }
+                let frames = sequences.iter().map(|s| s.frames).sum();
+                let summary = SplitSummary {
+                    sequences: sequences.len(),
+                    frames,
+                    actions,
+                    objects: object_counts,
+                };
+                (*split, summary)
+            })
+            .collect();
+        let groups = skeleton.groups();
+        let manifest = Manifest {
+            format_version: FORMAT_VERSION,
+            source: source.into(),
+            skeleton: skeleton.kind().name().into(),
+            joints,
+            fps,
+            body_feature_size: body_feature_size(joints),
+            object_feature_size: OBJECT_FEATURE_SIZE,
+            stream_feature_size: stream_feature_size(joints),
+            hand_joints: groups.left_hand.len() + groups.right_hand.len(),
+            bps,
+            objects: objects.iter().map(|a| a.name.clone()).collect(),
+            splits: summaries,
+            seed,
+        };
+        Ok(Self { manifest, splits, objects, stats })
+    }
+}
+
 fn io_error<'a>(
     path: &'a Path,
     action: &'static str,

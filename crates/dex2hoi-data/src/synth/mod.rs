@@ -404,10 +404,8 @@ pub fn build_dataset(
     fps: f32,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<crate::dataset::Dataset> {
-    use crate::dataset::{
-        BpsSettings, Dataset, FORMAT_VERSION, FeatureStats, Manifest, Split, SplitSummary,
-    };
-    use crate::features::{TargetConfig, body_feature_size, process_sequence, stream_feature_size};
+    use crate::dataset::{BpsSettings, Dataset, Split};
+    use crate::features::{TargetConfig, process_sequence};
     use rayon::prelude::*;
     use std::collections::BTreeMap;
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -448,47 +446,13 @@ pub fn build_dataset(
     for (index, sequence) in processed {
         splits.entry(split_of(index)).or_default().push(sequence);
     }
-    let skeleton = dex2hoi_repr::Skeleton::smplx();
-    let joints = skeleton.joint_count();
-    let train = splits.get(&Split::Train).map(Vec::as_slice).unwrap_or_default();
-    let stats =
-        FeatureStats::compute(if train.is_empty() { &splits[&Split::Test] } else { train }, joints);
-    let summaries = splits
-        .iter()
-        .map(|(split, sequences)| {
-            let mut actions = BTreeMap::new();
-            let mut objects = BTreeMap::new();
-            for s in sequences {
-                *actions.entry(s.action.clone().unwrap_or_default()).or_insert(0) += 1;
-                for name in s.object_names.iter().flatten() {
-                    *objects.entry(name.clone()).or_insert(0) += 1;
-                }
-            }
-            let frames = sequences.iter().map(|s| s.frames).sum();
-            (*split, SplitSummary { sequences: sequences.len(), frames, actions, objects })
-        })
-        .collect();
-    let groups = skeleton.groups();
-    let manifest = Manifest {
-        format_version: FORMAT_VERSION,
-        source: "synth".into(),
-        skeleton: skeleton.kind().name().into(),
-        joints,
-        fps,
-        body_feature_size: body_feature_size(joints),
-        object_feature_size: crate::features::OBJECT_FEATURE_SIZE,
-        stream_feature_size: stream_feature_size(joints),
-        hand_joints: groups.left_hand.len() + groups.right_hand.len(),
-        bps: BpsSettings {
-            points: dex2hoi_repr::bps::DEFAULT_BPS_POINTS,
-            radius: BPS_RADIUS,
-            seed: BPS_SEED,
-        },
-        objects: assets.iter().map(|a| a.name.clone()).collect(),
-        splits: summaries,
-        seed: Some(seed),
+    let bps = BpsSettings {
+        points: dex2hoi_repr::bps::DEFAULT_BPS_POINTS,
+        radius: BPS_RADIUS,
+        seed: BPS_SEED,
     };
-    Ok(Dataset { manifest, splits, objects: assets, stats })
+    let skeleton = dex2hoi_repr::Skeleton::smplx();
+    Dataset::assemble("synth", &skeleton, fps, splits, assets, bps, Some(seed))
 }
 
 /// One frame of features for the default character standing relaxed (hands hanging) at the

@@ -1,0 +1,242 @@
+//! numpy's `.npy` and `.npz` files, read natively: the header (versions 1-3), raw arrays of
+//! the types in [`crate::array`], and object arrays, whose data is a pickle read by the
+//! data-only [`crate::pickle`] reader (GRAB's 0-d object arrays of dicts, HIMO's pose dicts).
+//!
+//! `.npz` archives (stored or deflated zip files, as `np.savez` and `np.savez_compressed`
+//! write them) are opened through `npyz`'s zip layer; each entry is read whole and parsed here.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use crate::array::{DType, DTypeKind, NdArray, decode_raw, element_count};
+use crate::error::{ImportError, Result};
+use crate::pickle::read_pickle;
+use crate::value::Value;
+
+/// The largest archive entry read (decompressed): far above any GRAB, HUMOTO or HIMO file, low
+/// enough that a zip bomb fails instead of filling memory.
+pub const MAX_ENTRY_BYTES: u64 = 8 << 30;
+
+/// The parsed header of an `.npy` file.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Header {
+    dtype_text: String,
+    fortran_order: bool,
+    shape: Vec<usize>,
+}
+
+/// Reads an `.npy` file. Object arrays come back as arrays of [`Value`]s; a 0-d object array
+/// (what `np.save(path, some_dict)` writes) is one element (see [`Value::item`]).
+pub fn read_npy(path: &Path) -> Result<Value> {
+    let bytes = std::fs::read(path).map_err(ImportError::io(path))?;
+    parse_npy(&bytes, &path.display().to_string())
+}
+
+/// Parses the bytes of an `.npy` file; `source_name` names it in errors.
+pub fn parse_npy(bytes: &[u8], source_name: &str) -> Result<Value> {
+    let malformed = |what: &str, expected: &str, got: String| {
+        ImportError::format(source_name, what, expected, got)
+    };
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err(malformed(
+            "magic",
+            "a numpy file starting with \\x93NUMPY",
+            format!("{} bytes starting {:?}", bytes.len(), &bytes[..bytes.len().min(6)]),
+        ));
+    }
+    let major = bytes[6];
+    let (length, start) = match major {
+        1 => (usize::from(u16::from_le_bytes([bytes[8], bytes[9]])), 10),
+        2 | 3 if bytes.len() >= 12 => {
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+        }
+        _ => return Err(malformed("version", "1, 2 or 3", format!("{major}.{}", bytes[7]))),
+    };
+    let end = start + length;
+    if bytes.len() < end {
+        return Err(malformed(
+            "header",
+            &format!("{length} header bytes"),
+            format!("{} (the file is truncated)", bytes.len() - start),
+        ));
+    }
+    let text = std::str::from_utf8(&bytes[start..end])
+        .map_err(|_| malformed("header", "UTF-8 text", "other bytes".into()))?;
+    let header = parse_header(text, source_name)?;
+    let dtype = DType::parse(&header.dtype_text, source_name)?;
+    let data = &bytes[end..];
+    let count = element_count(&header.shape, source_name)?;
+    if dtype.kind == DTypeKind::Object {
+        let (value, _) = read_pickle(data, source_name)?;
+        return match value {
+            Value::Array(array) if array.shape == header.shape => Ok(Value::Array(array)),
+            other => Err(malformed(
+                "pickled object array",
+                &format!("an array of shape {:?}", header.shape),
+                other.type_name(),
+            )),
+        };
+    }
+    let values = decode_raw(dtype, data, count, source_name)?;
+    Ok(Value::Array(NdArray::new(header.shape, values, header.fortran_order, source_name)?))
+}
+
+/// A tiny reader of the Python dict literal of a numpy header:
+/// `{'descr': '<f8', 'fortran_order': False, 'shape': (3, 4), }`.
+fn parse_header(text: &str, source_name: &str) -> Result<Header> {
+    let malformed = |got: &str| {
+        ImportError::format(
+            source_name,
+            "header",
+            "a dict with 'descr' (a type string), 'fortran_order' and 'shape'",
+            got,
+        )
+    };
+    let field = |key: &str| -> Result<&str> {
+        let quoted = format!("'{key}':");
+        let at = text.find(&quoted).ok_or_else(|| malformed(text.trim()))?;
+        Ok(text[at + quoted.len()..].trim_start())
+    };
+    let descr = field("descr")?;
+    let dtype_text = match descr.strip_prefix('\'') {
+        Some(rest) => rest.split('\'').next().unwrap_or_default().to_string(),
+        None => {
+            return Err(ImportError::format(
+                source_name,
+                "array type",
+                "a plain numpy type (structured arrays are not read)",
+                descr.split('}').next().unwrap_or(descr).trim(),
+            ));
+        }
+    };
+    let fortran = field("fortran_order")?;
+    let fortran_order = if fortran.starts_with("True") {
+        true
+    } else if fortran.starts_with("False") {
+        false
+    } else {
+        return Err(malformed(text.trim()));
+    };
+    let shape_text = field("shape")?;
+    let inner = shape_text
+        .strip_prefix('(')
+        .and_then(|s| s.split(')').next())
+        .ok_or_else(|| malformed(text.trim()))?;
+    let shape = inner
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.trim_end_matches('L').parse::<usize>().map_err(|_| malformed(text.trim())))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Header { dtype_text, fortran_order, shape })
+}
+
+/// An open `.npz` archive.
+pub struct Npz {
+    path: PathBuf,
+    archive: npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+}
+
+impl std::fmt::Debug for Npz {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Npz").field("path", &self.path).finish_non_exhaustive()
+    }
+}
+
+impl Npz {
+    /// Opens an archive.
+    pub fn open(path: &Path) -> Result<Self> {
+        let archive = npyz::npz::NpzArchive::open(path).map_err(|source| {
+            if source.kind() == std::io::ErrorKind::NotFound {
+                ImportError::Io { path: path.to_path_buf(), source }
+            } else {
+                ImportError::format(path.display(), "archive", "an .npz (zip) archive", source)
+            }
+        })?;
+        Ok(Self { path: path.to_path_buf(), archive })
+    }
+
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The array names in the archive (entry names without `.npy`).
+    pub fn names(&self) -> Vec<String> {
+        self.archive.array_names().map(String::from).collect()
+    }
+
+    /// Whether the archive holds an array of that name.
+    pub fn contains(&self, name: &str) -> bool {
+        self.archive.array_names().any(|n| n == name)
+    }
+
+    /// Reads one array; `expected` says what it should hold, for the error when it is missing.
+    pub fn read(&mut self, name: &str, expected: &str) -> Result<Value> {
+        let source_name = format!("{}[{name}]", self.path.display());
+        let entry_name = npyz::npz::file_name_from_array_name(name);
+        let path = self.path.clone();
+        let mut entry = match self.archive.zip_archive().by_name(&entry_name) {
+            Ok(entry) => entry,
+            Err(_) => return Err(ImportError::missing(path.display(), name, expected)),
+        };
+        if entry.size() > MAX_ENTRY_BYTES {
+            return Err(ImportError::format(
+                &source_name,
+                "entry size",
+                format!("at most {MAX_ENTRY_BYTES} bytes"),
+                entry.size(),
+            ));
+        }
+        let mut bytes = Vec::with_capacity(entry.size() as usize);
+        (&mut entry)
+            .take(MAX_ENTRY_BYTES)
+            .read_to_end(&mut bytes)
+            .map_err(|e| ImportError::format(&source_name, "entry data", "a readable entry", e))?;
+        parse_npy(&bytes, &source_name)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::array::ArrayData;
+
+    fn npy(header: &str, data: &[u8]) -> Vec<u8> {
+        let mut header = header.to_string();
+        while (10 + header.len() + 1) % 64 != 0 {
+            header.push(' ');
+        }
+        header.push('\n');
+        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+        bytes.extend((header.len() as u16).to_le_bytes());
+        bytes.extend(header.as_bytes());
+        bytes.extend(data);
+        bytes
+    }
+
+    #[test]
+    fn headers_parse() {
+        let h = parse_header("{'descr': '<f8', 'fortran_order': False, 'shape': (3, 4), }", "t")
+            .unwrap();
+        assert_eq!(h, Header { dtype_text: "<f8".into(), fortran_order: false, shape: vec![3, 4] });
+        let h = parse_header("{'descr': '|O', 'fortran_order': True, 'shape': (), }", "t").unwrap();
+        assert!(h.shape.is_empty() && h.fortran_order);
+        let h =
+            parse_header("{'descr': '<i8', 'fortran_order': False, 'shape': (5,), }", "t").unwrap();
+        assert_eq!(h.shape, vec![5]);
+        let structured = "{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (2,), }";
+        assert!(parse_header(structured, "t").unwrap_err().to_string().contains("structured"));
+    }
+
+    #[test]
+    fn raw_arrays_and_errors() {
+        let data: Vec<u8> = [1.5f32, -2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let bytes = npy("{'descr': '<f4', 'fortran_order': False, 'shape': (2,), }", &data);
+        let Value::Array(a) = parse_npy(&bytes, "a.npy").unwrap() else { panic!() };
+        assert_eq!((a.shape, a.data), (vec![2], ArrayData::Float(vec![1.5, -2.0])));
+        let short = &bytes[..bytes.len() - 1];
+        assert!(parse_npy(short, "a.npy").unwrap_err().to_string().contains("truncated"));
+        assert!(parse_npy(b"not numpy", "b.npy").unwrap_err().to_string().contains("b.npy"));
+    }
+}
