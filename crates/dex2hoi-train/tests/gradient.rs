@@ -1,0 +1,82 @@
+//! Finite-difference check of the full objective: the gradient of every term with respect to
+//! the prediction (normalised features of both streams) against central differences, in f64.
+
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor, Var};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_train::batch::BatchOptions;
+use dex2hoi_train::{Term, TrainConfig, Trainer};
+
+#[test]
+fn every_term_has_the_gradient_of_its_finite_differences() {
+    let data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let config = TrainConfig::preset("tiny").unwrap();
+    let trainer = Trainer::new(config.clone(), &data, Path::new("procedural")).unwrap();
+    let device = Device::Cpu;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let options = BatchOptions { size: 3, swap_probability: 0.5, mirror_probability: 0.5 };
+    let batch = trainer.training_set().batch(&options, &mut rng, &device).unwrap();
+    let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
+    let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
+    let noise = dex2hoi_diffusion::gaussian(target.dims(), &mut rng, DType::F64, &device).unwrap();
+    let start = (target + noise.affine(0.2, 0.0).unwrap()).unwrap();
+    let prediction = Var::from_tensor(&start).unwrap();
+    let timesteps = vec![100; batch.size];
+    let context = trainer.loss_context();
+    let objective = |p: &Tensor| context.objective(p, &batch, &timesteps).unwrap();
+    let terms = objective(prediction.as_tensor()).terms;
+    assert_eq!(terms.len(), Term::ALL.len());
+    let values: Vec<f64> = start.flatten_all().unwrap().to_vec1().unwrap();
+    let shape = start.dims().to_vec();
+    let width = shape[3];
+    let body = 6 * config.model.joints + 3;
+    // Entries: rotations, the root and every part of the object features of both slots.
+    let mut entries = Vec::new();
+    for _ in 0..40 {
+        let (i, s, k) =
+            (rng.random_range(0..shape[0]), rng.random_range(0..2), rng.random_range(0..tf));
+        let channel = match rng.random_range(0..3) {
+            0 => rng.random_range(0..6 * config.model.joints),
+            1 => rng.random_range(6 * config.model.joints..body),
+            _ => body + rng.random_range(0..18),
+        };
+        entries.push(((i * 2 + s) * tf + k) * width + channel);
+    }
+    for (term, value) in &terms {
+        assert!(
+            value.to_scalar::<f64>().unwrap() > 0.0,
+            "{} is measured on this batch",
+            term.name()
+        );
+        let gradients = value.backward().unwrap();
+        let analytic: Vec<f64> = gradients
+            .get(prediction.as_tensor())
+            .map(|g| g.flatten_all().unwrap().to_vec1().unwrap())
+            .unwrap_or_else(|| vec![0.0; values.len()]);
+        let evaluate = |index: usize, delta: f64| -> f64 {
+            let mut moved = values.clone();
+            moved[index] += delta;
+            let p = Tensor::from_vec(moved, shape.as_slice(), &device).unwrap();
+            let terms = objective(&p).terms;
+            let (_, v) = terms.iter().find(|(t, _)| t == term).unwrap();
+            v.to_scalar::<f64>().unwrap()
+        };
+        let eps = 1e-5;
+        let mut checked = 0;
+        for &index in &entries {
+            let numeric = (evaluate(index, eps) - evaluate(index, -eps)) / (2.0 * eps);
+            let tolerance = 1e-4 * numeric.abs().max(analytic[index].abs()) + 1e-6;
+            assert!(
+                (numeric - analytic[index]).abs() <= tolerance,
+                "{}: entry {index}: analytic {} numeric {numeric}",
+                term.name(),
+                analytic[index]
+            );
+            checked += usize::from(numeric != 0.0);
+        }
+        assert!(checked > 0, "{}: no entry with a gradient was checked", term.name());
+    }
+}
