@@ -3,6 +3,7 @@
 //! - `dex2hoi data synth --out DIR [--sequences N] [--seed S] [--fps F]`: generate the built-in
 //!   procedural dataset.
 //! - `dex2hoi data info DIR`: summarise a dataset directory.
+//! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -11,6 +12,8 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
+
+mod train;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -30,6 +33,8 @@ enum Command {
         #[command(subcommand)]
         command: DataCommand,
     },
+    /// Train a model on a dataset into a run directory (Ctrl-C stops with a checkpoint).
+    Train(train::TrainArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -62,6 +67,7 @@ fn main() -> Result<()> {
             synth(&out, sequences, seed, fps)
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
+        Command::Train(args) => train::run(args),
     }
 }
 

@@ -1,0 +1,101 @@
+//! `dex2hoi train`: train a model on a prepared dataset into a run directory.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+
+use dex2hoi_data::dataset::Dataset;
+use dex2hoi_train::{RunFiles, TrainConfig, TrainOptions, train};
+
+/// Arguments of `dex2hoi train`.
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Training configuration (TOML; presets in `configs/`). With `--resume` the run's own
+    /// `config.toml` is used when this is left out.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// The dataset directory (`dex2hoi data synth` or `dex2hoi data prepare`).
+    #[arg(long)]
+    data: PathBuf,
+    /// The run directory: config, statistics, checkpoint, metrics, loss curve.
+    #[arg(long)]
+    out: PathBuf,
+    /// Train for this many steps in all (overrides `training.steps`).
+    #[arg(long)]
+    steps: Option<usize>,
+    /// Continue the run in `--out` from its checkpoint, bit for bit.
+    #[arg(long)]
+    resume: bool,
+}
+
+/// Runs `dex2hoi train`.
+pub fn run(args: TrainArgs) -> Result<()> {
+    let mut config = match (&args.config, args.resume) {
+        (Some(path), _) => TrainConfig::load(path)?,
+        (None, true) => TrainConfig::load(&RunFiles::new(&args.out).config)
+            .context("reading the configuration of the run to resume")?,
+        (None, false) => bail!("--config FILE is required (presets are in configs/)"),
+    };
+    if let Some(steps) = args.steps {
+        if steps == 0 {
+            bail!("--steps must be at least 1");
+        }
+        config.training.steps = steps;
+    }
+    let dataset = Dataset::load(&args.data)
+        .with_context(|| format!("loading the dataset {}", args.data.display()))?;
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = Arc::clone(&stop);
+        ctrlc::set_handler(move || {
+            if stop.swap(true, Ordering::SeqCst) {
+                eprintln!("\nsecond Ctrl-C: leaving without a checkpoint");
+                std::process::exit(130);
+            }
+            eprintln!("\nCtrl-C: stopping after this step and writing the checkpoint");
+        })
+        .context("installing the Ctrl-C handler")?;
+    }
+    let bar = indicatif::ProgressBar::new(config.training.steps as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} step {pos}/{len} [{bar:30}] loss {msg} {per_sec} eta {eta}",
+        )
+        .context("progress bar template")?
+        .progress_chars("=> "),
+    );
+    println!(
+        "training a latent-{} model with {} layers on {} for {} steps -> {}",
+        config.model.latent,
+        config.model.layers,
+        args.data.display(),
+        config.training.steps,
+        args.out.display()
+    );
+    let options = TrainOptions { resume: args.resume, stop: &stop };
+    let summary = train(&args.out, config, &dataset, &args.data, options, &mut |report, total| {
+        bar.set_length(total as u64);
+        bar.set_position(report.step as u64);
+        bar.set_message(format!("{:.4}", report.loss));
+    });
+    bar.finish_and_clear();
+    let summary = summary?;
+    let files = RunFiles::new(&args.out);
+    if summary.interrupted {
+        println!("stopped at step {}; resume with --resume", summary.steps);
+    } else {
+        println!("trained {} steps", summary.steps);
+    }
+    if let Some(last) = &summary.last {
+        let terms: Vec<String> =
+            last.terms.iter().map(|(t, v)| format!("{} {v:.4}", t.name())).collect();
+        println!("last step: loss {:.4} ({})", last.loss, terms.join(", "));
+    }
+    println!("checkpoint: {}", files.checkpoint.display());
+    println!("metrics:    {}", files.metrics.display());
+    println!("loss curve: {}", files.loss_curve.display());
+    Ok(())
+}
