@@ -1,7 +1,10 @@
 //! Project automation, run as `cargo xtask <command>` (a cargo alias in `.cargo/config.toml`).
 //!
 //! - `ci`: the checks CI runs, cheapest first: format, clippy (warnings denied), tests.
-//! - `bench [repr]`: the benchmarks, built in the release profile; they print medians.
+//! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
+//!   medians.
+//! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
+//!   through, so that a checkout drives everything through xtask.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -12,11 +15,16 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   ci            format check, clippy with warnings denied, then every test (optimised profile)
-  bench [NAME]  run the benchmarks (all, or one of: repr, sample) and print their medians";
+  bench [NAME]  run the benchmarks (all, or one of: repr, sample, train) and print their medians
+  train|sample|evaluate ARGS...
+                run `dex2hoi <command> ARGS...` from a release build (see `dex2hoi --help`)";
 
 /// The benchmarks `cargo xtask bench` knows: name, package, bench target.
-const BENCHES: [(&str, &str, &str); 2] =
-    [("repr", "dex2hoi-repr", "repr"), ("sample", "dex2hoi-diffusion", "sample")];
+const BENCHES: [(&str, &str, &str); 3] = [
+    ("repr", "dex2hoi-repr", "repr"),
+    ("sample", "dex2hoi-diffusion", "sample"),
+    ("train", "dex2hoi-train", "train"),
+];
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -24,6 +32,13 @@ fn main() -> Result<()> {
     match args.first().map(String::as_str) {
         Some("ci") => ci(&root),
         Some("bench") => bench(&root, args.get(1).map(String::as_str)),
+        Some(command @ ("train" | "sample" | "evaluate")) => {
+            let mut forwarded =
+                vec!["run", "--release", "--quiet", "--locked", "-p", "dex2hoi-cli", "--"];
+            forwarded.push(command);
+            forwarded.extend(args[1..].iter().map(String::as_str));
+            cargo(&root, &forwarded)
+        }
         Some("help" | "--help" | "-h") | None => {
             println!("{USAGE}");
             Ok(())
