@@ -227,6 +227,8 @@ mod tests {
         // The identity pose reproduces the rest mesh.
         let rest = skeleton.rest_positions();
         let posed = mesh.posed(&rest, &vec![Mat3::IDENTITY; rest.len()], &rest);
-        assert_eq!(posed, mesh.vertices);
+        let worst =
+            posed.iter().zip(&mesh.vertices).map(|(a, b)| (*a - *b).length()).fold(0.0, f32::max);
+        assert!(worst < 1e-6, "{worst}");
     }
 }

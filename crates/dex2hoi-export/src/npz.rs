@@ -263,11 +263,13 @@ mod tests {
     #[test]
     fn npy_bytes_read_back_with_npyz() {
         let array = Array::f32("a", &[2, 3], vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.5]);
-        let file = npyz::NpyFile::new(&array.npy_bytes()[..]).expect("a valid npy file");
+        let bytes = array.npy_bytes();
+        let file = npyz::NpyFile::new(&bytes[..]).expect("a valid npy file");
         assert_eq!(file.shape(), &[2, 3]);
         assert_eq!(file.into_vec::<f32>().expect("f32 data"), vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.5]);
         let text = Array::text("t", &[2], vec!["héllo".into(), "a".into()]);
-        let file = npyz::NpyFile::new(&text.npy_bytes()[..]).expect("a valid npy file");
+        let bytes = text.npy_bytes();
+        let file = npyz::NpyFile::new(&bytes[..]).expect("a valid npy file");
         assert_eq!(file.dtype().descr(), "'<U5'");
         assert_eq!(file.into_vec::<String>().expect("strings"), vec!["héllo", "a"]);
     }

@@ -224,7 +224,7 @@ impl Camera {
     }
 
     /// A point in camera space (looking down -Z) to pixel coordinates and inverse depth.
-    fn to_screen(&self, camera_space: Vec3) -> (Vec2, f32) {
+    fn screen_position(&self, camera_space: Vec3) -> (Vec2, f32) {
         let focal = 1.0 / (self.fov_y * 0.5).tan();
         let aspect = self.width as f32 / self.height as f32;
         let inverse_depth = 1.0 / -camera_space.z;
@@ -243,7 +243,7 @@ impl Camera {
     /// [j, j + 1)`) of a world point, `None` behind the near plane.
     pub fn project(&self, world: Vec3) -> Option<Vec2> {
         let camera_space = self.view().transform_point3(world);
-        (camera_space.z < -NEAR).then(|| self.to_screen(camera_space).0)
+        (camera_space.z < -NEAR).then(|| self.screen_position(camera_space).0)
     }
 }
 
@@ -419,7 +419,7 @@ impl<'a> Raster<'a> {
 
     /// Fills a camera-space triangle in front of the near plane.
     fn fill(&mut self, corners: [Vec3; 3], index: u8) {
-        let screen = corners.map(|p| self.camera.to_screen(p));
+        let screen = corners.map(|p| self.camera.screen_position(p));
         let [(p0, w0), (p1, w1), (p2, w2)] = screen;
         let edge = |a: Vec2, b: Vec2, p: Vec2| (b - a).perp_dot(p - a);
         let area = edge(p0, p1, p2);
