@@ -108,12 +108,13 @@ impl Checked<'_> {
     }
 }
 
-fn check_rotations(rotations: &[Mat3], what: &str, per_frame: usize) -> Result<()> {
+/// The first matrix that is not a rotation, described by `describe(index)`.
+fn check_rotations(rotations: &[Mat3], describe: impl Fn(usize) -> String) -> Result<()> {
     if let Some(i) = rotations.iter().position(|r| !is_rotation(*r, ROTATION_TOLERANCE)) {
         return Err(ExportError::invalid(
-            format!("{what} at frame {}, index {}", i / per_frame, i % per_frame),
+            describe(i),
             format!("a rotation matrix (R^T R = I and det R = 1, to {ROTATION_TOLERANCE})"),
-            format!("{:?}", rotations[i].to_cols_array()),
+            format!("rows {:?}", rotations[i].transpose().to_cols_array_2d()),
         ));
     }
     Ok(())
@@ -180,7 +181,15 @@ impl<'a> ExportMotion<'a> {
                 motion.local_rotations.len(),
             ));
         }
-        check_rotations(&motion.local_rotations, "local rotation (frame, joint)", joints)?;
+        let joint_names = self.skeleton.joint_names();
+        check_rotations(&motion.local_rotations, |i| {
+            format!(
+                "local rotation of joint {} ({}) at frame {}",
+                i % joints,
+                joint_names[i % joints],
+                i / joints
+            )
+        })?;
         check_positions(&motion.root_positions, "root position")?;
         let mut names = HashSet::new();
         let mut slots = HashSet::new();
@@ -210,7 +219,9 @@ impl<'a> ExportMotion<'a> {
                     format!("{} and {}", rotations.len(), positions.len()),
                 ));
             }
-            check_rotations(rotations, &format!("rotation of object {name} (frame, 0)"), 1)?;
+            check_rotations(rotations, |frame| {
+                format!("rotation of object {name} at frame {frame}")
+            })?;
             check_positions(positions, &format!("position of object {name}"))?;
             check_mesh(object.mesh, name)?;
             objects.push(CheckedObject { name, mesh: object.mesh, slot, rotations, positions });
