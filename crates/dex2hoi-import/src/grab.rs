@@ -214,7 +214,7 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
     } else {
         120.0
     };
-    if !(fps > 0.0) {
+    if fps.is_nan() || fps <= 0.0 {
         return Err(ImportError::format(path.display(), "framerate", "a positive number", fps));
     }
 

@@ -331,10 +331,9 @@ impl Machine<'_> {
                     let mut word = [0u8; 8];
                     word[..bytes.len()].copy_from_slice(&bytes);
                     let mut value = i64::from_le_bytes(word);
-                    if let Some(&last) = bytes.last() {
-                        if last & 0x80 != 0 && bytes.len() < 8 {
-                            value -= 1i64 << (8 * bytes.len());
-                        }
+                    let negative = bytes.last().is_some_and(|last| last & 0x80 != 0);
+                    if negative && bytes.len() < 8 {
+                        value -= 1i64 << (8 * bytes.len());
                     }
                     self.push(Node::Value(Value::Int(value)))?;
                 }

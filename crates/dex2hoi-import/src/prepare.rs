@@ -338,7 +338,7 @@ pub fn hash_split(id: &str, seed: u64) -> Split {
         hash ^= u64::from(*byte);
         hash = hash.wrapping_mul(0x0100_0000_01b3);
     }
-    if hash % HASH_TEST_SHARE == 0 { Split::Test } else { Split::Train }
+    if hash.is_multiple_of(HASH_TEST_SHARE) { Split::Test } else { Split::Train }
 }
 
 /// The splits of a split file: `{"train": [ids], "test": [ids]}`.

@@ -134,12 +134,15 @@ fn read_hand_components(path: &Path) -> Result<[HandComponents; 2]> {
     Ok([read('l')?, read('r')?])
 }
 
+/// A model loaded once, shared by the readers (the error as text, shared too).
+type BodyCell = Arc<OnceLock<Result<Arc<SmplxBody>, String>>>;
+
 /// Where SMPL-X models come from: one file for every subject, or a directory with
 /// `SMPLX_MALE.npz`, `SMPLX_FEMALE.npz` and `SMPLX_NEUTRAL.npz` picked by the subject's gender.
 #[derive(Debug)]
 pub struct SmplxModels {
     source: PathBuf,
-    loaded: Mutex<HashMap<PathBuf, Arc<OnceLock<Result<Arc<SmplxBody>, String>>>>>,
+    loaded: Mutex<HashMap<PathBuf, BodyCell>>,
 }
 
 impl SmplxModels {
