@@ -5,7 +5,7 @@
 //!   in the skeleton; the root joint is a root node of the scene.
 //! - A skin over those joints whose inverse bind matrices undo the rest positions (the rest
 //!   pose has identity rotations), and a body node carrying the capsule mesh of
-//!   [`crate::body_mesh`]: `POSITION` (with exact `min`/`max`), `NORMAL`, `JOINTS_0` (unsigned
+//!   [`mod@crate::body_mesh`]: `POSITION` (with exact `min`/`max`), `NORMAL`, `JOINTS_0` (unsigned
 //!   byte, or unsigned short beyond 256 joints) and `WEIGHTS_0` (one joint per vertex, weight
 //!   1), unsigned int indices.
 //! - One node per object with its mesh, in the object frame.

@@ -7,7 +7,7 @@
 //! - [`bvh`]: `motion.bvh`, the skeleton's animation in BioVision hierarchy form;
 //! - [`preview`]: `preview.gif`, an animation drawn by a small software rasteriser.
 //!
-//! Every writer checks its input first ([`ExportMotion::check`]), encodes the whole file in
+//! Every writer checks its input first ([`ExportMotion::validate`]), encodes the whole file in
 //! memory and writes it atomically (temporary file, then rename), so bad input leaves no file
 //! behind and a crash never leaves half a file. Joint positions are recomputed from the local
 //! rotations by forward kinematics, so all four files agree with each other.
@@ -163,7 +163,16 @@ impl<'a> ExportMotion<'a> {
     /// Checks everything the writers rely on: a positive finite frame rate, at least one frame,
     /// `frames * joints` local rotations that are rotations, finite root positions, objects with
     /// non-empty unique names in distinct occupied slots whose poses cover every frame, and
-    /// valid meshes. Returns the motion with its forward kinematics.
+    /// valid meshes. Every writer runs this first; the error names the frame and joint.
+    ///
+    /// # Shapes
+    /// - `motion.local_rotations`: `[frames * joints]`; `motion.root_positions`: `[frames]`;
+    ///   each exported object's slot: `[frames]` rotations and positions
+    pub fn validate(&self) -> Result<()> {
+        self.check().map(|_| ())
+    }
+
+    /// [`ExportMotion::validate`], returning the motion with its forward kinematics.
     pub(crate) fn check(&self) -> Result<Checked<'_>> {
         if !(self.fps.is_finite() && self.fps > 0.0) {
             return Err(ExportError::invalid("frame rate", "a positive number", self.fps));

@@ -1,7 +1,7 @@
 //! `preview.gif`: the motion drawn by a small z-buffered software rasteriser, so that a person
 //! can look at a result without any other tool.
 //!
-//! The scene is the capsule body of [`crate::body_mesh`], the object meshes, an optional table
+//! The scene is the capsule body of [`mod@crate::body_mesh`], the object meshes, an optional table
 //! and a checkered floor at `y = 0`, under one directional light with Lambert shading (flat per
 //! triangle, lit from whichever side faces the camera). The camera is fixed for the whole clip:
 //! a three-quarter view from the character's front left (35 degrees round from +Z towards +X,

@@ -89,6 +89,7 @@ fn bad_input_is_a_clear_error_and_writes_nothing() {
         let target = dir.join(format!("case{case}"));
         let error = export_all(&target, export, &ExportOptions::default()).expect_err("bad input");
         println!("case {case}: {error}");
+        assert_eq!(export.validate().expect_err("invalid").to_string(), error.to_string());
         assert!(error.to_string().contains(expected), "case {case}: {error}");
         assert!(!target.exists(), "case {case} created {}", target.display());
         let error = export_all(&earlier, export, &ExportOptions::default()).expect_err("bad input");
