@@ -40,4 +40,9 @@ if [ ! -d "$validator/node_modules/gltf-validator" ]; then
   fi
 fi
 
+if ! "$python" -c "import numpy, yaml" >/dev/null 2>&1; then
+  say "numpy and PyYAML (PyPI): the dataset-reader tests write GRAB, HUMOTO and HIMO fixtures with them"
+  "$python" -m pip install --quiet --disable-pip-version-check numpy pyyaml
+fi
+
 say "set-up done"

@@ -3,6 +3,8 @@
 //! - `dex2hoi data synth --out DIR [--sequences N] [--seed S] [--fps F]`: generate the built-in
 //!   procedural dataset.
 //! - `dex2hoi data info DIR`: summarise a dataset directory.
+//! - `dex2hoi data prepare --format grab|humoto|himo --root DIR [--smplx-model FILE] --out DIR`:
+//!   read a downloaded real dataset as published into the dataset format.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
 
 use std::path::{Path, PathBuf};
@@ -13,6 +15,7 @@ use clap::{Parser, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
 
+mod prepare;
 mod train;
 
 #[derive(Debug, Parser)]
@@ -59,6 +62,8 @@ enum DataCommand {
         /// The dataset directory.
         dir: PathBuf,
     },
+    /// Read a downloaded GRAB, HUMOTO or HIMO dataset as published and write it as a dataset.
+    Prepare(prepare::PrepareArgs),
 }
 
 fn main() -> Result<()> {
@@ -67,6 +72,7 @@ fn main() -> Result<()> {
             synth(&out, sequences, seed, fps)
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
+        Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
         Command::Train(args) => train::run(args),
     }
 }

@@ -1,0 +1,152 @@
+//! `dex2hoi data prepare`: read a downloaded GRAB, HUMOTO or HIMO dataset as published and
+//! write it in the dex2hoi dataset format, with a progress bar and a summary of what was read,
+//! skipped and why.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+
+use dex2hoi_import::smplx::UpAxis;
+use dex2hoi_import::{HandPoseSource, PrepareOptions, SourceFormat, prepare};
+
+/// The published dataset formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FormatArg {
+    /// GRAB: `ROOT/grab/s1..s10/*.npz` and `ROOT/tools/` (SMPL-X, 120 fps, split s1-s9 / s10).
+    Grab,
+    /// HUMOTO: sequence folders `<seq>/<seq>.pkl` + `.yaml`, objects in `humoto_objects/`.
+    Humoto,
+    /// HIMO: `data/{smplx,object_pose,text,object_mesh}` (2-object sequences).
+    Himo,
+}
+
+/// Where GRAB's finger rotations come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum HandPoseArg {
+    /// The 45-D MANO `fullpose` of `lhand` / `rhand`.
+    Full,
+    /// The body's 24 PCA coefficients through the model's `hands_components`.
+    Pca,
+}
+
+/// The up axis of the source world.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum UpAxisArg {
+    /// Y up (no conversion).
+    Y,
+    /// Z up (the default of all three datasets).
+    Z,
+}
+
+/// Arguments of `dex2hoi data prepare`.
+#[derive(Debug, Args)]
+pub struct PrepareArgs {
+    /// The dataset's format.
+    #[arg(long, value_enum)]
+    format: FormatArg,
+    /// The dataset as downloaded: GRAB's root (holding grab/ and tools/), HUMOTO's folder of
+    /// sequence folders, HIMO's data/ folder (or its parent).
+    #[arg(long)]
+    root: PathBuf,
+    /// SMPL-X model file (SMPLX_NEUTRAL.npz) or a directory of SMPLX_{MALE,FEMALE,NEUTRAL}.npz
+    /// (required for GRAB and HIMO).
+    #[arg(long)]
+    smplx_model: Option<PathBuf>,
+    /// Output dataset directory (created; existing dataset files are replaced).
+    #[arg(long)]
+    out: PathBuf,
+    /// Frames per second of the prepared dataset.
+    #[arg(long, default_value_t = 20.0)]
+    fps: f32,
+    /// GRAB: where the finger rotations come from.
+    #[arg(long, value_enum, default_value_t = HandPoseArg::Full)]
+    hand_pose: HandPoseArg,
+    /// GRAB: a text template ({verb}, {object}, {intent} are filled in); repeat for several
+    /// texts per sequence. Default: "The person is {verb} the {object}."
+    #[arg(long = "text-template")]
+    text_templates: Vec<String>,
+    /// HUMOTO: the object mesh folder (default: humoto_objects in or beside the root).
+    #[arg(long)]
+    objects: Option<PathBuf>,
+    /// HUMOTO, HIMO: a JSON file {"train": [ids], "test": [ids]}; unlisted sequences are
+    /// skipped. Without it a seeded hash puts one sequence in ten in the test split.
+    #[arg(long)]
+    split_file: Option<PathBuf>,
+    /// Seed of the hash split.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Override the up axis of the source world.
+    #[arg(long, value_enum)]
+    up_axis: Option<UpAxisArg>,
+}
+
+/// Runs `dex2hoi data prepare`.
+pub fn run(args: PrepareArgs) -> Result<()> {
+    let format = match args.format {
+        FormatArg::Grab => SourceFormat::Grab,
+        FormatArg::Humoto => SourceFormat::Humoto,
+        FormatArg::Himo => SourceFormat::Himo,
+    };
+    if args.smplx_model.is_none() && format != SourceFormat::Humoto {
+        bail!(
+            "--smplx-model is required for {}: its SMPL-X parameters need the model's rest joints \
+             (give SMPLX_NEUTRAL.npz or a directory of SMPLX_*.npz)",
+            format.name()
+        );
+    }
+    let mut options = PrepareOptions::new(format, &args.root);
+    options.smplx_model = args.smplx_model;
+    options.fps = args.fps;
+    options.hand_pose = match args.hand_pose {
+        HandPoseArg::Full => HandPoseSource::Full,
+        HandPoseArg::Pca => HandPoseSource::Pca,
+    };
+    if !args.text_templates.is_empty() {
+        options.text_templates = args.text_templates;
+    }
+    options.objects_dir = args.objects;
+    options.split_file = args.split_file;
+    options.seed = args.seed;
+    options.up_axis = args.up_axis.map(|a| match a {
+        UpAxisArg::Y => UpAxis::Y,
+        UpAxisArg::Z => UpAxis::Z,
+    });
+
+    let start = Instant::now();
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} reading [{bar:40}] {pos}/{len} sequences, {per_sec}, eta {eta}",
+        )
+        .context("progress bar template")?
+        .progress_chars("=> "),
+    );
+    let prepared = prepare(options, &|done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .with_context(|| format!("preparing {} from {}", format.name(), args.root.display()))?;
+    bar.finish_and_clear();
+    println!("{}", prepared.report.summary());
+    let Some(dataset) = prepared.dataset else {
+        bail!("no sequence of {} could be read: nothing written", args.root.display());
+    };
+    dataset
+        .save(&args.out)
+        .with_context(|| format!("writing the dataset to {}", args.out.display()))?;
+    let m = &dataset.manifest;
+    let sequences: usize = m.splits.values().map(|s| s.sequences).sum();
+    let frames: usize = m.splits.values().map(|s| s.frames).sum();
+    println!(
+        "wrote {sequences} sequences ({frames} frames at {} fps, skeleton {}, {} objects) to {} in \
+         {:.1} s",
+        m.fps,
+        m.skeleton,
+        m.objects.len(),
+        args.out.display(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
