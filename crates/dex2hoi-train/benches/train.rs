@@ -9,17 +9,25 @@ use std::time::Instant;
 
 use dex2hoi_train::{TrainConfig, Trainer};
 
-fn median_step(trainer: &mut Trainer, runs: usize) -> f64 {
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+/// The median step time and the median of each part.
+fn median_step(trainer: &mut Trainer, runs: usize) -> (f64, [f64; 5]) {
     trainer.step(0).expect("a warm-up step");
-    let mut times: Vec<f64> = (0..runs)
-        .map(|_| {
-            let start = Instant::now();
-            trainer.step(0).expect("a training step");
-            start.elapsed().as_secs_f64()
-        })
-        .collect();
-    times.sort_by(f64::total_cmp);
-    times[runs / 2]
+    let mut times = Vec::new();
+    let mut parts = Vec::new();
+    for _ in 0..runs {
+        let start = Instant::now();
+        let report = trainer.step(0).expect("a training step");
+        times.push(start.elapsed().as_secs_f64());
+        let t = report.timing;
+        parts.push([t.batch, t.forward, t.objective, t.backward, t.update]);
+    }
+    let part = |k: usize| median(parts.iter().map(|p| p[k]).collect());
+    (median(times), [part(0), part(1), part(2), part(3), part(4)])
 }
 
 fn main() {
@@ -37,8 +45,12 @@ fn main() {
         config.loss.mse_only = mse_only;
         let mut trainer =
             Trainer::new(config.clone(), &dataset, Path::new("procedural")).expect("a trainer");
-        let seconds = median_step(&mut trainer, runs);
-        println!("  {label:<9} {seconds:>7.3} s per step");
+        let (seconds, parts) = median_step(&mut trainer, runs);
+        println!(
+            "  {label:<9} {seconds:>7.3} s per step (batch {:.3}, forward {:.3}, objective {:.3}, \
+             backward {:.3}, update {:.3})",
+            parts[0], parts[1], parts[2], parts[3], parts[4]
+        );
         results.push(seconds);
     }
     println!("\n  full / mse_only = {:.2}x", results[1] / results[0]);

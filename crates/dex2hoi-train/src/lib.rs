@@ -16,4 +16,4 @@ pub use config::{LoopConfig, LossConfig, OptimizerConfig, TextConfig, TrainConfi
 pub use error::{Result, TrainError};
 pub use loss::{LossContext, Objective, Term};
 pub use run::{RunFiles, TrainedRun, Weights};
-pub use trainer::{StepReport, TrainOptions, TrainSummary, Trainer, train};
+pub use trainer::{StepReport, StepTiming, TrainOptions, TrainSummary, Trainer, train};

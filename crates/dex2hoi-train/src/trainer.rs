@@ -51,6 +51,23 @@ pub struct StepReport {
     pub gradient_norm: f64,
     /// Wall-clock seconds of the step.
     pub seconds: f64,
+    /// Where the seconds went.
+    pub timing: StepTiming,
+}
+
+/// Seconds spent in the parts of a step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTiming {
+    /// Drawing the batch, embedding the texts, noising.
+    pub batch: f64,
+    /// The model's forward pass.
+    pub forward: f64,
+    /// The objective (FK, decode, distances).
+    pub objective: f64,
+    /// The backward pass.
+    pub backward: f64,
+    /// AdamW and EMA.
+    pub update: f64,
 }
 
 /// The text encoder during training.
@@ -272,10 +289,15 @@ impl Trainer {
     /// The objective of the batch of a step (no update): for tests and benchmarks.
     pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
         let mut rng = step_rng(self.config.training.seed, step);
-        self.objective(&mut rng)
+        self.objective(&mut rng, &mut StepTiming::default())
     }
 
-    fn objective(&self, rng: &mut ChaCha8Rng) -> Result<crate::loss::Objective> {
+    fn objective(
+        &self,
+        rng: &mut ChaCha8Rng,
+        timing: &mut StepTiming,
+    ) -> Result<crate::loss::Objective> {
+        let clock = Instant::now();
         let c = &self.config;
         let options = BatchOptions {
             size: c.training.batch_size,
@@ -300,8 +322,14 @@ impl Trainer {
             presence: &batch.presence,
             frame_mask: Some(&batch.frame_mask),
         };
+        timing.batch = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let prediction = self.model.forward(&input, Some(rng))?;
-        self.loss.objective(&prediction, &batch, &timesteps)
+        timing.forward = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let objective = self.loss.objective(&prediction, &batch, &timesteps);
+        timing.objective = clock.elapsed().as_secs_f64();
+        objective
     }
 
     /// One optimiser step. A NaN or infinite loss returns [`TrainError::NonFinite`] before
@@ -309,7 +337,8 @@ impl Trainer {
     pub fn step(&mut self, last_checkpoint: usize) -> Result<StepReport> {
         let started = Instant::now();
         let mut rng = step_rng(self.config.training.seed, self.step);
-        let objective = self.objective(&mut rng)?;
+        let mut timing = StepTiming::default();
+        let objective = self.objective(&mut rng, &mut timing)?;
         let loss = f64::from(objective.total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
         let mut terms = Vec::with_capacity(objective.terms.len());
         for (term, value) in &objective.terms {
@@ -332,7 +361,10 @@ impl Trainer {
                 last_checkpoint,
             });
         }
+        let clock = Instant::now();
         let gradients = objective.total.backward()?;
+        timing.backward = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);
         let update = self.optimizer.update(&self.parameters, &gradients, rate)?;
         if !update.gradient_norm.is_finite() {
@@ -344,6 +376,7 @@ impl Trainer {
             });
         }
         self.ema.update(&self.parameters, self.config.optimizer.ema_decay, self.step)?;
+        timing.update = clock.elapsed().as_secs_f64();
         self.step += 1;
         Ok(StepReport {
             step: self.step,
@@ -352,6 +385,7 @@ impl Trainer {
             learning_rate: update.learning_rate,
             gradient_norm: update.gradient_norm,
             seconds: started.elapsed().as_secs_f64(),
+            timing,
         })
     }
 
