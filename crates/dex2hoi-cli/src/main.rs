@@ -6,6 +6,7 @@
 //! - `dex2hoi data prepare --format grab|humoto|himo --root DIR [--smplx-model FILE] --out DIR`:
 //!   read a downloaded real dataset as published into the dataset format.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
+//! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR`: generate and export.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -16,6 +17,7 @@ use clap::{Parser, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod prepare;
+mod sample;
 mod train;
 
 #[derive(Debug, Parser)]
@@ -38,6 +40,8 @@ enum Command {
     },
     /// Train a model on a dataset into a run directory (Ctrl-C stops with a checkpoint).
     Train(train::TrainArgs),
+    /// Generate a motion with a trained run and export it (npz, glb, bvh, preview gif).
+    Sample(sample::SampleArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -74,6 +78,7 @@ fn main() -> Result<()> {
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
         Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
         Command::Train(args) => train::run(args),
+        Command::Sample(args) => sample::run(args),
     }
 }
 

@@ -10,6 +10,7 @@ pub mod loss;
 pub mod optim;
 pub mod plot;
 pub mod run;
+pub mod sampling;
 pub mod trainer;
 
 pub use config::{LoopConfig, LossConfig, OptimizerConfig, TextConfig, TrainConfig};

@@ -1,0 +1,158 @@
+//! `dex2hoi sample` end to end on a tiny run: the four files for one and two objects (a
+//! catalogue name and a user's OBJ), a timeline, the same seed giving the same files, and bad
+//! input refused without writing anything.
+
+use std::path::Path;
+use std::process::Command;
+
+fn dex2hoi(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .expect("the binary runs")
+}
+
+fn ok(output: &std::process::Output) -> String {
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn fails(output: &std::process::Output, needle: &str) {
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains(needle), "expected `{needle}` in: {stderr}");
+}
+
+#[test]
+fn sample_exports_four_files_and_refuses_bad_input() {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-sample-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let config =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml").display().to_string();
+    let data = dir.join("data");
+    let run = dir.join("run");
+    let (data, run) = (data.to_str().unwrap(), run.to_str().unwrap());
+    ok(&dex2hoi(&["data", "synth", "--out", data, "--sequences", "8", "--seed", "4"]));
+    ok(&dex2hoi(&["train", "--config", &config, "--data", data, "--out", run, "--steps", "3"]));
+
+    let one = dir.join("one");
+    let stdout = ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--text",
+        "A person picks up the mug with the right hand.",
+        "--object",
+        "mug",
+        "--frames",
+        "12",
+        "--ddim-steps",
+        "3",
+        "--seed",
+        "5",
+        "--out",
+        one.to_str().unwrap(),
+    ]));
+    assert!(stdout.contains("generated 12 frames") && stdout.contains("real time"), "{stdout}");
+    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif"] {
+        assert!(one.join(file).metadata().unwrap().len() > 100, "{file}");
+    }
+    // The same seed gives the same motion.
+    let again = dir.join("again");
+    ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--text",
+        "A person picks up the mug with the right hand.",
+        "--object",
+        "mug",
+        "--frames",
+        "12",
+        "--ddim-steps",
+        "3",
+        "--seed",
+        "5",
+        "--out",
+        again.to_str().unwrap(),
+    ]));
+    assert_eq!(
+        std::fs::read(one.join("motion.npz")).unwrap(),
+        std::fs::read(again.join("motion.npz")).unwrap()
+    );
+
+    // Two objects, one from the user's OBJ file, placed explicitly; a timeline.
+    let obj = dir.join("cube.obj");
+    std::fs::write(
+        &obj,
+        "v -0.04 -0.04 -0.04\nv 0.04 -0.04 -0.04\nv 0.04 0.04 -0.04\nv -0.04 0.04 -0.04\n\
+         v -0.04 -0.04 0.04\nv 0.04 -0.04 0.04\nv 0.04 0.04 0.04\nv -0.04 0.04 0.04\n\
+         f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\nf 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n",
+    )
+    .unwrap();
+    let timeline = dir.join("timeline.txt");
+    std::fs::write(
+        &timeline,
+        "# seconds text\n0 The person picks up the bowl.\n0.3 The person hands it over.\n",
+    )
+    .unwrap();
+    let two = dir.join("two");
+    let object = format!("{}@-0.15,0.94,0.4", obj.display());
+    ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--timeline",
+        timeline.to_str().unwrap(),
+        "--object",
+        "bowl",
+        "--object",
+        &object,
+        "--frames",
+        "10",
+        "--ddim-steps",
+        "2",
+        "--out",
+        two.to_str().unwrap(),
+    ]));
+    let glb = std::fs::read(two.join("motion.glb")).unwrap();
+    assert!(glb.windows(4).any(|w| w == b"cube"), "the user's object is in the scene");
+    assert!(glb.windows(4).any(|w| w == b"bowl"), "the catalogue object is in the scene");
+
+    // Bad input: nothing is written.
+    let bad = dir.join("bad");
+    let bad_out = bad.to_str().unwrap();
+    let base = ["sample", "--run", run, "--frames", "4", "--ddim-steps", "1", "--out", bad_out];
+    let with = |extra: &[&str]| {
+        let mut args: Vec<&str> = base.to_vec();
+        args.extend_from_slice(extra);
+        dex2hoi(&args)
+    };
+    fails(&with(&["--text", "hi", "--object", "teapot"]), "catalogue object");
+    fails(&with(&["--text", "hi", "--object", "/nonexistent/thing.obj"]), "/nonexistent/thing.obj");
+    let empty = dir.join("empty.obj");
+    std::fs::write(&empty, "v 0 0 0\n").unwrap();
+    fails(&with(&["--text", "hi", "--object", empty.to_str().unwrap()]), "empty.obj");
+    fails(&with(&["--text", "   ", "--object", "mug"]), "empty");
+    fails(
+        &with(&["--text", "hi", "--object", "mug", "--object", "can", "--object", "box"]),
+        "at most two",
+    );
+    fails(
+        &dex2hoi(&[
+            "sample",
+            "--run",
+            "/nonexistent/run",
+            "--text",
+            "hi",
+            "--object",
+            "mug",
+            "--out",
+            bad_out,
+        ]),
+        "/nonexistent/run",
+    );
+    assert!(!bad.exists(), "nothing partial is written");
+    std::fs::remove_dir_all(&dir).ok();
+}
