@@ -3,6 +3,8 @@
 //! - `ci`: the checks CI runs, cheapest first: format, clippy (warnings denied), tests.
 //! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
 //!   medians.
+//! - `demo`: the main job on the built-in default: the procedural dataset, the `demo` training
+//!   preset, two prompts sampled, exported and rendered; what is up to date is reused.
 //! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
 //!   through, so that a checkout drives everything through xtask.
 
@@ -16,6 +18,7 @@ const USAGE: &str = "usage: cargo xtask <command>
 commands:
   ci            format check, clippy with warnings denied, then every test (optimised profile)
   bench [NAME]  run the benchmarks (all, or one of: repr, sample, train) and print their medians
+  demo          generate the procedural dataset, train the demo preset, sample and render two prompts
   train|sample|evaluate ARGS...
                 run `dex2hoi <command> ARGS...` from a release build (see `dex2hoi --help`)";
 
@@ -32,6 +35,7 @@ fn main() -> Result<()> {
     match args.first().map(String::as_str) {
         Some("ci") => ci(&root),
         Some("bench") => bench(&root, args.get(1).map(String::as_str)),
+        Some("demo") => demo(&root),
         Some(command @ ("train" | "sample" | "evaluate")) => {
             let mut forwarded =
                 vec!["run", "--release", "--quiet", "--locked", "-p", "dex2hoi-cli", "--"];
@@ -90,4 +94,128 @@ fn bench(root: &Path, name: Option<&str>) -> Result<()> {
         cargo(root, &["bench", "--locked", "-p", package, "--bench", target])?;
     }
     Ok(())
+}
+
+/// Runs the release `dex2hoi` binary and fails if it fails.
+fn dex2hoi(root: &Path, args: &[&str]) -> Result<()> {
+    let binary = root.join("target/release/dex2hoi");
+    eprintln!("\n==> dex2hoi {}", args.join(" "));
+    let status = Command::new(&binary)
+        .args(args)
+        .current_dir(root)
+        .status()
+        .with_context(|| format!("cannot run {}", binary.display()))?;
+    if !status.success() {
+        bail!("`dex2hoi {}` failed ({status})", args.join(" "));
+    }
+    Ok(())
+}
+
+/// The demo's procedural dataset: sequences and seed.
+const DEMO_SEQUENCES: &str = "400";
+const DEMO_SEED: &str = "0";
+
+/// The two demo prompts: a name, the text and the objects.
+const DEMO_PROMPTS: [(&str, &str, &[&str]); 2] = [
+    (
+        "one-object",
+        "The person picks up the mug with the right hand and puts it down to the left.",
+        &["mug"],
+    ),
+    (
+        "two-objects",
+        "The person picks up the bottle with the left hand and the can with the right hand, holds both and puts them back.",
+        &["bottle", "can"],
+    ),
+];
+
+/// `cargo xtask demo`: dataset, training, two samples with exports and previews. A stamp file
+/// beside each stage records what made it; a stage whose stamp matches is reused, and an
+/// interrupted training run is resumed.
+fn demo(root: &Path) -> Result<()> {
+    let started = std::time::Instant::now();
+    let dir = root.join("target/demo");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    cargo(root, &["build", "--release", "--locked", "-p", "dex2hoi-cli"])?;
+    let path = |p: &Path| p.to_str().map(str::to_owned).context("a UTF-8 path");
+
+    let data = dir.join("data");
+    let data_stamp = format!("synth sequences={DEMO_SEQUENCES} seed={DEMO_SEED} fps=20\n");
+    let data_stamp_file = dir.join("data.stamp");
+    if read(&data_stamp_file) == data_stamp && data.join("manifest.json").is_file() {
+        eprintln!("\n==> reusing the dataset in {}", data.display());
+    } else {
+        let _ = std::fs::remove_file(&data_stamp_file);
+        dex2hoi(
+            root,
+            &[
+                "data",
+                "synth",
+                "--out",
+                &path(&data)?,
+                "--sequences",
+                DEMO_SEQUENCES,
+                "--seed",
+                DEMO_SEED,
+            ],
+        )?;
+        write(&data_stamp_file, &data_stamp)?;
+    }
+
+    let config = root.join("configs/demo.toml");
+    let run = dir.join("run");
+    let run_stamp = format!("{data_stamp}{}", read(&config));
+    let (done_file, pending_file) = (dir.join("run.stamp"), dir.join("run.pending"));
+    let checkpoint = run.join("checkpoint.safetensors");
+    if read(&done_file) == run_stamp && checkpoint.is_file() {
+        eprintln!("\n==> reusing the trained run in {}", run.display());
+    } else {
+        let _ = std::fs::remove_file(&done_file);
+        let resume = read(&pending_file) == run_stamp && checkpoint.is_file();
+        if !resume && run.exists() {
+            std::fs::remove_dir_all(&run).with_context(|| format!("removing {}", run.display()))?;
+        }
+        write(&pending_file, &run_stamp)?;
+        let (config, run_path, data) = (path(&config)?, path(&run)?, path(&data)?);
+        let mut args = vec!["train", "--config", &config, "--data", &data, "--out", &run_path];
+        if resume {
+            args.push("--resume");
+        }
+        dex2hoi(root, &args)?;
+        write(&done_file, &run_stamp)?;
+        let _ = std::fs::remove_file(&pending_file);
+    }
+
+    let run_path = path(&run)?;
+    let mut outputs = Vec::new();
+    for (name, text, objects) in DEMO_PROMPTS {
+        let out = path(&dir.join(name))?;
+        if Path::new(&out).exists() {
+            std::fs::remove_dir_all(&out).with_context(|| format!("removing {out}"))?;
+        }
+        let mut args = vec![
+            "sample", "--run", &run_path, "--text", text, "--frames", "160", "--seed", "1",
+            "--out", &out,
+        ];
+        for object in objects {
+            args.extend(["--object", object]);
+        }
+        dex2hoi(root, &args)?;
+        outputs.push((text, out));
+    }
+    println!("\ndemo done in {:.0} s", started.elapsed().as_secs_f64());
+    println!("  training run: {}  (loss curve: {}/loss.png)", run.display(), run.display());
+    for (text, out) in outputs {
+        println!("  \"{text}\"\n    {out}/preview.gif, motion.glb, motion.bvh, motion.npz");
+    }
+    Ok(())
+}
+
+/// A file's text, or nothing when it cannot be read.
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_default()
+}
+
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
 }

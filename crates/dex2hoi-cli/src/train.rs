@@ -85,10 +85,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let summary = summary?;
     let files = RunFiles::new(&args.out);
     if summary.interrupted {
-        println!("stopped at step {}; resume with --resume", summary.steps);
-    } else {
-        println!("trained {} steps", summary.steps);
+        bail!(
+            "stopped at step {} of {} (checkpoint written to {}); continue with --resume",
+            summary.steps,
+            summary.steps.max(summary.last.as_ref().map_or(0, |l| l.step)),
+            files.checkpoint.display()
+        );
     }
+    println!("trained {} steps", summary.steps);
     if let Some(last) = &summary.last {
         let terms: Vec<String> =
             last.terms.iter().map(|(t, v)| format!("{} {v:.4}", t.name())).collect();
