@@ -13,7 +13,10 @@ const LAYERING: [(&str, &[&str]); 9] = [
     ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"]),
     ("dex2hoi-diffusion", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model"]),
     ("dex2hoi-train", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
-    ("dex2hoi-eval", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
+    (
+        "dex2hoi-eval",
+        &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion", "dex2hoi-train"],
+    ),
     ("dex2hoi-export", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
     (
         "dex2hoi-cli",

@@ -1,0 +1,1 @@
+//! Learned evaluators: a contrastive text-motion model and an action classifier.
