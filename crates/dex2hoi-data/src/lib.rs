@@ -5,6 +5,7 @@ pub mod augment;
 pub mod dataset;
 pub mod error;
 pub mod features;
+pub mod npz;
 pub mod sequence;
 pub mod synth;
 pub mod window;

@@ -176,7 +176,6 @@ pub struct SampledMotion {
 /// Generates a motion with a trained run.
 pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion> {
     let started = Instant::now();
-    let device = Device::Cpu;
     if request.objects.is_empty() || request.objects.len() > MAX_OBJECTS {
         return Err(TrainError::config(
             "--object",
@@ -222,7 +221,6 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
     }
     let (body_row, object_rows) = standing_features(poses)?;
     let width = config.stream_features();
-    let body = config.body_features();
     let mut prefix = Vec::with_capacity(MAX_OBJECTS * config.prefix_frames * width);
     for slot in 0..MAX_OBJECTS {
         for _ in 0..config.prefix_frames {
@@ -232,19 +230,93 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             );
         }
     }
-    let initial_prefix =
-        Tensor::from_vec(prefix, (1, MAX_OBJECTS, config.prefix_frames, width), &device)?;
-    let timeline = request
+    let prompts: Vec<(usize, &str)> =
+        request.prompts.iter().map(|p| (p.start_frame, p.text.as_str())).collect();
+    let generated = generate_motion(
+        run,
+        &Conditioning { prefix, bps, present, prompts },
+        request.frames,
+        request.seed,
+        request.sampler,
+    )?;
+    let motion = generated.motion;
+    let frames = request.frames;
+    Ok(SampledMotion {
+        motion,
+        objects: request.objects.iter().cloned().enumerate().collect(),
+        frames,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// What a generation is conditioned on besides the model.
+#[derive(Debug, Clone)]
+pub struct Conditioning<'a> {
+    /// The initial prefix, unnormalised features `[2, T_p, D]` flattened (stream A then B); its
+    /// root displacement is measured from the canonical start (`r = 0` stands at the origin).
+    pub prefix: Vec<f32>,
+    /// BPS per slot, `[2, P * 3]` flattened (zeros for an empty slot).
+    pub bps: Vec<f32>,
+    /// Which slots hold an object.
+    pub present: [bool; MAX_OBJECTS],
+    /// Prompts by start frame (the first at 0).
+    pub prompts: Vec<(usize, &'a str)>,
+}
+
+/// A generated motion with its features.
+#[derive(Debug, Clone)]
+pub struct GeneratedMotion {
+    /// Decoded rotations, FK and object poses.
+    pub motion: DecodedMotion,
+    /// The unnormalised features of both streams, `[2, frames, D]` flattened.
+    pub features: Vec<f32>,
+    /// Seconds the generation took.
+    pub seconds: f64,
+}
+
+/// Generates `frames` frames after a prefix with a trained run (the weights it was loaded
+/// with) and decodes them; the root is measured from `(0, PELVIS_HEIGHT, 0)` as in the
+/// procedural data.
+pub fn generate_motion(
+    run: &TrainedRun,
+    conditioning: &Conditioning<'_>,
+    frames: usize,
+    seed: u64,
+    sampler: SamplerConfig,
+) -> Result<GeneratedMotion> {
+    let started = Instant::now();
+    let device = Device::Cpu;
+    let config = &run.config.model;
+    let (width, body) = (config.stream_features(), config.body_features());
+    let bps_width = config.bps_points * 3;
+    if conditioning.prefix.len() != MAX_OBJECTS * config.prefix_frames * width
+        || conditioning.bps.len() != MAX_OBJECTS * bps_width
+    {
+        return Err(TrainError::config(
+            "generation",
+            "conditioning",
+            format!("a [2, {}, {width}] prefix and [2, {bps_width}] BPS", config.prefix_frames),
+            format!("{} and {} numbers", conditioning.prefix.len(), conditioning.bps.len()),
+        ));
+    }
+    if frames == 0 {
+        return Err(TrainError::config("generation", "frames", "at least 1", 0));
+    }
+    let texts: Vec<&str> = conditioning.prompts.iter().map(|p| p.1).collect();
+    reject_empty(&texts)?;
+    let initial_prefix = Tensor::from_vec(
+        conditioning.prefix.clone(),
+        (1, MAX_OBJECTS, config.prefix_frames, width),
+        &device,
+    )?;
+    let timeline = conditioning
         .prompts
         .iter()
-        .map(|p| {
-            Ok(TimedText {
-                start_frame: p.start_frame,
-                embedding: run.text.encode(&[p.text.as_str()])?,
-            })
+        .map(|&(start_frame, text)| {
+            Ok(TimedText { start_frame, embedding: run.text.encode(&[text])? })
         })
         .collect::<Result<Vec<_>>>()?;
-    let presence: Vec<f32> = present.iter().map(|&p| f32::from(u8::from(p))).collect();
+    let presence: Vec<f32> = conditioning.present.iter().map(|&p| f32::from(u8::from(p))).collect();
     let schedule = CosineSchedule::new(run.config.training.diffusion_steps)?;
     let normaliser = run.normaliser(&device)?;
     let generation = Generation {
@@ -253,25 +325,21 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
         normaliser: &normaliser,
         initial_prefix,
         timeline,
-        bps: Tensor::from_vec(bps, (1, MAX_OBJECTS, config.bps_points * 3), &device)?,
+        bps: Tensor::from_vec(conditioning.bps.clone(), (1, MAX_OBJECTS, bps_width), &device)?,
         presence: Tensor::from_vec(presence, (1, MAX_OBJECTS), &device)?,
-        frames: request.frames,
-        sampler: request.sampler,
+        frames,
+        sampler,
     };
-    let mut rng = ChaCha8Rng::seed_from_u64(request.seed);
-    let features = generate(&generation, &mut rng)?.squeeze(0)?; // [2, frames, D]
-    let frames = request.frames;
-    let body_features: Vec<f32> = features.get(0)?.narrow(1, 0, body)?.flatten_all()?.to_vec1()?;
-    let objects_by_slot: Vec<Vec<f32>> = (0..MAX_OBJECTS)
-        .map(|s| {
-            Ok(features.get(s)?.narrow(1, body, OBJECT_FEATURE_SIZE)?.flatten_all()?.to_vec1()?)
-        })
-        .collect::<Result<_>>()?;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;
+    let mut body_features = Vec::with_capacity(frames * body);
     let mut object_features = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
     for t in 0..frames {
-        for (s, rows) in objects_by_slot.iter().enumerate() {
+        body_features.extend_from_slice(&features[t * width..t * width + body]);
+        for s in 0..MAX_OBJECTS {
+            let row = &features[(s * frames + t) * width..(s * frames + t + 1) * width];
             object_features[(t * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE..][..OBJECT_FEATURE_SIZE]
-                .copy_from_slice(&rows[t * OBJECT_FEATURE_SIZE..(t + 1) * OBJECT_FEATURE_SIZE]);
+                .copy_from_slice(&row[body..]);
         }
     }
     let decoding = match config.object_representation {
@@ -282,14 +350,9 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
         &run.skeleton,
         &body_features,
         &object_features,
-        present,
+        conditioning.present,
         Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
         decoding,
     )?;
-    Ok(SampledMotion {
-        motion,
-        objects: request.objects.iter().cloned().enumerate().collect(),
-        frames,
-        seconds: started.elapsed().as_secs_f64(),
-    })
+    Ok(GeneratedMotion { motion, features, seconds: started.elapsed().as_secs_f64() })
 }
