@@ -43,9 +43,11 @@ pub enum EvalError {
     /// An error from the model crate.
     #[error(transparent)]
     Model(#[from] dex2hoi_model::ModelError),
-    /// An error from the training crate.
+    /// An error from the training crate (boxed: it is large, and clippy's `result_large_err`
+    /// would flag every function returning this crate's `Result`; `?` still converts through
+    /// the `From` impl below).
     #[error(transparent)]
-    Train(#[from] dex2hoi_train::TrainError),
+    Train(Box<dex2hoi_train::TrainError>),
     /// An error from the geometry crate.
     #[error(transparent)]
     Repr(#[from] dex2hoi_repr::ReprError),
@@ -55,6 +57,12 @@ pub enum EvalError {
     /// An error from a tensor operation.
     #[error(transparent)]
     Tensor(#[from] candle_core::Error),
+}
+
+impl From<dex2hoi_train::TrainError> for EvalError {
+    fn from(error: dex2hoi_train::TrainError) -> Self {
+        Self::Train(Box::new(error))
+    }
 }
 
 /// Shorthand for `Result<T, EvalError>`.
@@ -77,11 +85,19 @@ impl EvalError {
         expected: impl Into<String>,
         got: impl std::fmt::Display,
     ) -> Self {
-        Self::File { path: path.into(), what: what.into(), expected: expected.into(), got: got.to_string() }
+        Self::File {
+            path: path.into(),
+            what: what.into(),
+            expected: expected.into(),
+            got: got.to_string(),
+        }
     }
 
     /// A closure turning an I/O error into [`EvalError::Io`].
-    pub fn io(path: impl Into<PathBuf>, action: &'static str) -> impl FnOnce(std::io::Error) -> Self {
+    pub fn io(
+        path: impl Into<PathBuf>,
+        action: &'static str,
+    ) -> impl FnOnce(std::io::Error) -> Self {
         let path = path.into();
         move |source| Self::Io { path, action, source }
     }
