@@ -7,6 +7,7 @@
 //!   read a downloaded real dataset as published into the dataset format.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
 //! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR`: generate and export.
+//! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR`: the paper's metrics.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -17,6 +18,7 @@ use clap::{Parser, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod prepare;
+mod evaluate;
 mod sample;
 mod train;
 
@@ -42,6 +44,8 @@ enum Command {
     Train(train::TrainArgs),
     /// Generate a motion with a trained run and export it (npz, glb, bvh, preview gif).
     Sample(sample::SampleArgs),
+    /// Evaluate a run on a dataset's test split: the metrics of the paper's tables.
+    Evaluate(evaluate::EvaluateArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -79,6 +83,7 @@ fn main() -> Result<()> {
         Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
+        Command::Evaluate(args) => evaluate::run(args),
     }
 }
 

@@ -4,6 +4,7 @@
 //! sliding, mixture agreement, runtime) and the evaluation report.
 
 pub mod error;
+pub mod evaluate;
 pub mod evaluator;
 pub mod metrics;
 

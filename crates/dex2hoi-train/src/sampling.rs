@@ -234,7 +234,13 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
         request.prompts.iter().map(|p| (p.start_frame, p.text.as_str())).collect();
     let generated = generate_motion(
         run,
-        &Conditioning { prefix, bps, present, prompts },
+        &Conditioning {
+            prefix,
+            bps,
+            present,
+            prompts,
+            root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+        },
         request.frames,
         request.seed,
         request.sampler,
@@ -261,6 +267,8 @@ pub struct Conditioning<'a> {
     pub present: [bool; MAX_OBJECTS],
     /// Prompts by start frame (the first at 0).
     pub prompts: Vec<(usize, &'a str)>,
+    /// The root position the prefix's root displacement is measured from.
+    pub root_start: Vec3,
 }
 
 /// A generated motion with its features.
@@ -275,8 +283,7 @@ pub struct GeneratedMotion {
 }
 
 /// Generates `frames` frames after a prefix with a trained run (the weights it was loaded
-/// with) and decodes them; the root is measured from `(0, PELVIS_HEIGHT, 0)` as in the
-/// procedural data.
+/// with) and decodes them, the root measured from the conditioning's `root_start`.
 pub fn generate_motion(
     run: &TrainedRun,
     conditioning: &Conditioning<'_>,
@@ -351,7 +358,7 @@ pub fn generate_motion(
         &body_features,
         &object_features,
         conditioning.present,
-        Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+        conditioning.root_start,
         decoding,
     )?;
     Ok(GeneratedMotion { motion, features, seconds: started.elapsed().as_secs_f64() })

@@ -1,0 +1,132 @@
+//! `dex2hoi evaluate`: the metrics of the paper's tables for a trained run on a dataset's test
+//! split, with an evaluator trained by `dex2hoi evaluator train`.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use candle_core::Device;
+use clap::Args;
+
+use dex2hoi_data::dataset::{Dataset, write_atomically};
+use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
+use dex2hoi_eval::evaluate::{EvaluateOptions, evaluate};
+use dex2hoi_eval::evaluator::Evaluator;
+use dex2hoi_eval::metrics::MultimodalityProtocol;
+use dex2hoi_train::{TrainedRun, Weights};
+
+/// Arguments of `dex2hoi evaluate`.
+#[derive(Debug, Args)]
+pub struct EvaluateArgs {
+    /// The run directory written by `dex2hoi train` (EMA weights).
+    #[arg(long)]
+    run: PathBuf,
+    /// The dataset whose test split is evaluated.
+    #[arg(long)]
+    data: PathBuf,
+    /// The evaluator directory written by `dex2hoi evaluator train` on the same kind of data.
+    #[arg(long)]
+    evaluator: PathBuf,
+    /// Output directory: report.md, report.json (and embeddings.npz).
+    #[arg(long)]
+    out: PathBuf,
+    /// Replications (mean and 95% interval over them).
+    #[arg(long, default_value_t = 3)]
+    replications: usize,
+    /// Evaluate at most this many test sequences.
+    #[arg(long)]
+    sequences: Option<usize>,
+    /// MultiModality protocol as PROMPTS,REPEATS,PAIRS (default 8,4,3; the paper's 100,30,10
+    /// with --paper-multimodality).
+    #[arg(long, conflicts_with = "paper_multimodality")]
+    multimodality: Option<String>,
+    /// Use the paper's MultiModality protocol (100 prompts x 30 repeats x 10 pairs).
+    #[arg(long)]
+    paper_multimodality: bool,
+    /// DDIM steps.
+    #[arg(long, default_value_t = 50)]
+    ddim_steps: usize,
+    /// Classifier-free guidance scale (0 or 1 turns it off).
+    #[arg(long, default_value_t = 2.5)]
+    guidance: f64,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Also write the embeddings (generated, ground truth, texts) to embeddings.npz.
+    #[arg(long)]
+    dump_embeddings: bool,
+}
+
+/// Runs `dex2hoi evaluate`.
+pub fn run(args: EvaluateArgs) -> Result<()> {
+    if args.replications == 0 || args.ddim_steps == 0 {
+        bail!("--replications and --ddim-steps must be at least 1");
+    }
+    let multimodality = if args.paper_multimodality {
+        MultimodalityProtocol::paper()
+    } else if let Some(spec) = &args.multimodality {
+        let values: Vec<usize> = spec
+            .split(',')
+            .map(|v| v.trim().parse())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--multimodality {spec}: expected PROMPTS,REPEATS,PAIRS"))?;
+        let [prompts, repeats, pairs] = values[..] else {
+            bail!("--multimodality {spec}: expected three numbers PROMPTS,REPEATS,PAIRS");
+        };
+        MultimodalityProtocol { prompts, repeats, pairs }
+    } else {
+        MultimodalityProtocol { prompts: 8, repeats: 4, pairs: 3 }
+    };
+    let device = Device::Cpu;
+    let run = TrainedRun::load(&args.run, Weights::Ema, &device)
+        .with_context(|| format!("loading the run {}", args.run.display()))?;
+    let dataset = Dataset::load(&args.data)
+        .with_context(|| format!("loading the dataset {}", args.data.display()))?;
+    let evaluator = Evaluator::load(&args.evaluator)
+        .with_context(|| format!("loading the evaluator {}", args.evaluator.display()))?;
+    evaluator.check_dataset(&dataset.manifest, &args.data)?;
+    if run.manifest.skeleton != dataset.manifest.skeleton || run.manifest.fps != dataset.manifest.fps {
+        bail!(
+            "the run was trained on {} at {} fps, the dataset {} is {} at {} fps",
+            run.manifest.skeleton,
+            run.manifest.fps,
+            args.data.display(),
+            dataset.manifest.skeleton,
+            dataset.manifest.fps
+        );
+    }
+    let guidance = if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };
+    let options = EvaluateOptions {
+        replications: args.replications,
+        sequences: args.sequences,
+        sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: args.ddim_steps, guidance },
+        seed: args.seed,
+        multimodality,
+    };
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} generating [{bar:30}] {pos}/{len} clips, {per_sec}, eta {eta}",
+        )
+        .context("progress bar template")?
+        .progress_chars("=> "),
+    );
+    let result = evaluate(&run, &dataset, &evaluator, &options, &mut |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    let (report, embeddings) = result?;
+    let title = format!("Evaluation of {} on {}", args.run.display(), args.data.display());
+    let markdown = report.markdown(&title);
+    let json = serde_json::to_vec_pretty(&report).context("serialising the report")?;
+    let npz = if args.dump_embeddings { Some(embeddings.npz()?) } else { None };
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    write_atomically(&args.out.join("report.md"), markdown.as_bytes())?;
+    write_atomically(&args.out.join("report.json"), &json)?;
+    if let Some(npz) = npz {
+        write_atomically(&args.out.join("embeddings.npz"), &npz)?;
+    }
+    println!("{markdown}");
+    println!("written to {}", args.out.display());
+    Ok(())
+}
