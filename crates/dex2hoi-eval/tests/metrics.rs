@@ -1,0 +1,658 @@
+//! Tests of `dex2hoi_eval::metrics` against values computed by hand or by scipy.
+
+use dex2hoi_eval::metrics::{
+    ANKLE_HEIGHT_M, CONTACT_RADIUS_M, ContactCounts, ContactScores, DIVERSITY_PAIRS,
+    EmbeddingStatistics, MotionSample, MultimodalityProtocol, PENETRATION_TOLERANCE_M,
+    R_PRECISION_BATCH, Retrieval, TOE_HEIGHT_M, contact_counts, contact_flags, contact_scores,
+    diversity, fid, fid_from_statistics, foot_sliding, hand_contact, hand_object_distances,
+    matching_distance, mean_interval, mixture_agreement, mixture_agreement_counts,
+    mixture_weights_from_features, multimodality, penetration, r_precision, r_precision_with,
+    runtime, symmetric_eigen,
+};
+use dex2hoi_repr::mesh::box_mesh;
+use dex2hoi_repr::{MeshQuery, Skeleton};
+use glam::{Mat3, Vec3};
+
+// ---------------------------------------------------------------------------------------------
+// FID against scipy.
+// ---------------------------------------------------------------------------------------------
+
+/// Rows of an embedding set from a closed-form formula, rounded to f32 as the Python script does.
+fn rows(count: usize, dim: usize, value: impl Fn(usize, usize) -> f64) -> Vec<Vec<f32>> {
+    (0..count).map(|i| (0..dim).map(|j| value(i, j) as f32).collect()).collect()
+}
+
+/// `case_small` of `tests/fixtures/fid_golden.py` (the same operations in the same order).
+fn case_small() -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+    let generated = rows(64, 8, |i, j| {
+        let (i, j) = (i as f64, j as f64);
+        (0.37 * i + 1.3 * j).sin() + 0.1 * (0.11 * i * j).cos()
+    });
+    let reference = rows(64, 8, |i, j| {
+        let (i, j) = (i as f64, j as f64);
+        (0.29 * i + 0.7 * j + 0.5).cos() * (1.0 + 0.05 * j) + 0.2
+    });
+    (generated, reference)
+}
+
+/// `nearly_singular_row` of the Python script.
+fn nearly_singular_row(i: usize, dim: usize, phase: f64) -> Vec<f64> {
+    let half = dim / 2;
+    let fi = i as f64;
+    let first: Vec<f64> =
+        (0..half).map(|j| (0.13 * fi * (j as f64 + 1.0) + 0.7 * j as f64 + phase).sin()).collect();
+    let second: Vec<f64> = (0..half)
+        .map(|j| {
+            0.5 * first[j]
+                + 0.25 * first[(j + 1) % half]
+                + 1e-4 * (0.31 * fi + 0.17 * j as f64 + phase).cos()
+        })
+        .collect();
+    first.into_iter().chain(second).collect()
+}
+
+/// `case_nearly_singular` of the Python script: dim 32, covariances of numerical rank ~18.
+fn case_nearly_singular() -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+    let generated = (0..200)
+        .map(|i| nearly_singular_row(i, 32, 0.0).into_iter().map(|v| v as f32).collect())
+        .collect();
+    let reference = (0..200)
+        .map(|i| {
+            nearly_singular_row(i, 32, 0.4).into_iter().map(|v| (v * 1.1 + 0.05) as f32).collect()
+        })
+        .collect();
+    (generated, reference)
+}
+
+/// `case_unequal` of the Python script: 100 against 150 rows of dim 16.
+fn case_unequal() -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+    let generated = rows(100, 16, |i, j| {
+        let (fi, fj) = (i as f64, j as f64);
+        (0.21 * fi * (1 + j % 3) as f64 + 0.5 * fj).sin() * (1.0 + 0.1 * fj)
+            + 0.3 * (0.05 * fi).cos()
+    });
+    let reference = rows(150, 16, |i, j| {
+        let (i, j) = (i as f64, j as f64);
+        (0.17 * i + 0.9 * j).cos() - 0.4 + 0.02 * j
+    });
+    (generated, reference)
+}
+
+// Golden values printed by `python3 crates/dex2hoi-eval/tests/fixtures/fid_golden.py`
+// (scipy 1.17.1, numpy 2.4.6): `sqrtm(sigma1.dot(sigma2)).real`, as pytorch-fid and T2M.
+const FID_SMALL: f64 = 7.176734953583436;
+const FID_NEARLY_SINGULAR: f64 = 0.1881843499695428;
+const FID_UNEQUAL: f64 = 32.1307309832752;
+
+fn assert_relative(actual: f64, expected: f64, tolerance: f64, what: &str) {
+    let error = (actual - expected).abs() / expected.abs().max(1e-300);
+    assert!(
+        error <= tolerance,
+        "{what}: {actual} against {expected}, relative error {error:e} > {tolerance:e}"
+    );
+}
+
+#[test]
+fn fid_matches_scipy_golden_values() {
+    for (what, (generated, reference), expected) in [
+        ("dim 8, 64 rows", case_small(), FID_SMALL),
+        ("dim 32, 200 rows, nearly singular", case_nearly_singular(), FID_NEARLY_SINGULAR),
+        ("dim 16, 100 against 150 rows", case_unequal(), FID_UNEQUAL),
+    ] {
+        let value = fid(&generated, &reference).unwrap();
+        assert_relative(value, expected, 1e-4, what);
+    }
+}
+
+#[test]
+fn fid_of_a_set_with_itself_is_zero_and_fid_is_symmetric() {
+    for (generated, reference) in [case_small(), case_nearly_singular(), case_unequal()] {
+        let itself = fid(&generated, &generated).unwrap();
+        assert!(itself.abs() < 1e-9, "FID of a set with itself: {itself}");
+        let forward = fid(&generated, &reference).unwrap();
+        let backward = fid(&reference, &generated).unwrap();
+        assert_relative(backward, forward, 1e-9, "FID symmetry");
+    }
+}
+
+#[test]
+fn fid_of_a_shifted_copy_is_the_squared_shift() {
+    // Same covariance, means differ by (1, -2, 0.5, 0, ...): FID = 1 + 4 + 0.25 = 5.25.
+    let (generated, _) = case_small();
+    let shift = [1.0f32, -2.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0];
+    let shifted: Vec<Vec<f32>> =
+        generated.iter().map(|r| r.iter().zip(&shift).map(|(v, s)| v + s).collect()).collect();
+    let value = fid(&generated, &shifted).unwrap();
+    // The f32 rounding of the shifted values perturbs the covariance by ~1e-7.
+    assert!((value - 5.25).abs() < 1e-5, "FID {value}");
+}
+
+#[test]
+fn fid_statistics_follow_numpy_cov() {
+    // Rows (0, 0), (2, 0), (1, 3): mean (1, 1); cov with ddof = 1:
+    // xx = (1 + 1 + 0) / 2 = 1, yy = (1 + 1 + 4) / 2 = 3, xy = (1 - 1 + 0) / 2 = 0.
+    let stats =
+        EmbeddingStatistics::from_embeddings(&[vec![0.0, 0.0], vec![2.0, 0.0], vec![1.0, 3.0]])
+            .unwrap();
+    assert_eq!(stats.mean, vec![1.0, 1.0]);
+    assert_eq!(stats.covariance, vec![1.0, 0.0, 0.0, 3.0]);
+    // FID between N(0, diag(1, 3)) and N(0, diag(4, 3)) = 1 + 4 - 2 * 2 + 2 * (3 - 3) = 1.
+    let other = EmbeddingStatistics {
+        mean: vec![1.0, 1.0],
+        covariance: vec![4.0, 0.0, 0.0, 3.0],
+        ..stats.clone()
+    };
+    let value = fid_from_statistics(&stats, &other).unwrap();
+    assert!((value - 1.0).abs() < 1e-12, "{value}");
+}
+
+#[test]
+fn fid_rejects_bad_embeddings() {
+    let good = vec![vec![0.0f32, 1.0], vec![1.0, 0.0], vec![2.0, 2.0]];
+    assert!(fid(&good[..1], &good).is_err(), "one row");
+    assert!(fid(&good, &[vec![0.0, 1.0], vec![1.0]]).is_err(), "ragged rows");
+    assert!(fid(&good, &[vec![0.0, f32::NAN], vec![1.0, 0.0]]).is_err(), "NaN");
+    assert!(fid(&good, &[vec![0.0, 1.0, 2.0], vec![1.0, 0.0, 2.0]]).is_err(), "other width");
+    assert!(fid(&good, &[vec![], vec![]]).is_err(), "empty rows");
+}
+
+#[test]
+fn symmetric_eigen_reconstructs_the_matrix() {
+    // [[2, 1], [1, 2]] has eigenvalues 1 and 3.
+    let eigen = symmetric_eigen(&[2.0, 1.0, 1.0, 2.0], 2, true).unwrap();
+    assert!((eigen.values[0] - 1.0).abs() < 1e-12 && (eigen.values[1] - 3.0).abs() < 1e-12);
+    // A 6x6 symmetric matrix from a formula: V diag(l) V^T must give it back, V orthonormal.
+    let n = 6;
+    let m: Vec<f64> = (0..n * n)
+        .map(|k| {
+            let (i, j) = (k / n, k % n);
+            ((i + j) as f64 * 0.7).sin() + if i == j { i as f64 } else { 0.0 }
+        })
+        .collect();
+    let eigen = symmetric_eigen(&m, n, true).unwrap();
+    assert!(eigen.values.windows(2).all(|w| w[0] <= w[1]), "ascending");
+    let v = &eigen.vectors;
+    for i in 0..n {
+        for j in 0..n {
+            let rebuilt: f64 = (0..n).map(|k| v[i * n + k] * eigen.values[k] * v[j * n + k]).sum();
+            assert!((rebuilt - m[i * n + j]).abs() < 1e-10, "A[{i}][{j}]");
+            let dot: f64 = (0..n).map(|k| v[k * n + i] * v[k * n + j]).sum();
+            assert!((dot - f64::from(u8::from(i == j))).abs() < 1e-10, "V^T V [{i}][{j}]");
+        }
+    }
+    let values_only = symmetric_eigen(&m, n, false).unwrap();
+    for (a, b) in values_only.values.iter().zip(&eigen.values) {
+        assert!((a - b).abs() < 1e-10);
+    }
+    assert!(symmetric_eigen(&m[..35], n, false).is_err(), "wrong size");
+    assert!(symmetric_eigen(&[f64::NAN], 1, false).is_err(), "NaN");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Diversity, MultiModality.
+// ---------------------------------------------------------------------------------------------
+
+/// `count` points, the first half at the origin and the second half at (3, 4): every pair is 0
+/// or 5 apart.
+fn two_clusters(count: usize) -> Vec<Vec<f32>> {
+    (0..count).map(|i| if i < count / 2 { vec![0.0, 0.0] } else { vec![3.0, 4.0] }).collect()
+}
+
+#[test]
+fn diversity_of_two_clusters_averages_to_half_the_gap() {
+    // Independent uniform draws land in different clusters with probability 1/2, so the mean
+    // distance is 2.5 in expectation; averaged over 40 seeds of 300 pairs the standard error is
+    // 2.5 / sqrt(12000) ~ 0.023.
+    let points = two_clusters(1000);
+    let mean: f64 =
+        (0..40).map(|seed| diversity(&points, DIVERSITY_PAIRS, seed).unwrap()).sum::<f64>() / 40.0;
+    assert!((mean - 2.5).abs() < 0.1, "mean diversity {mean}");
+    // Every single value is a multiple of 5 / 300.
+    let one = diversity(&points, DIVERSITY_PAIRS, 7).unwrap();
+    let steps = one * 300.0 / 5.0;
+    assert!((steps - steps.round()).abs() < 1e-9, "{one}");
+    // Same seed, same value; scaled points, scaled value.
+    assert_eq!(one, diversity(&points, DIVERSITY_PAIRS, 7).unwrap());
+    let doubled: Vec<Vec<f32>> =
+        points.iter().map(|r| r.iter().map(|v| 2.0 * v).collect()).collect();
+    assert!((diversity(&doubled, DIVERSITY_PAIRS, 7).unwrap() - 2.0 * one).abs() < 1e-12);
+    // Identical points: 0.
+    assert_eq!(diversity(&vec![vec![1.0, 2.0]; 400], DIVERSITY_PAIRS, 3).unwrap(), 0.0);
+}
+
+#[test]
+fn diversity_rejects_bad_input() {
+    let points = two_clusters(10);
+    assert!(diversity(&points, 11, 0).is_err(), "more pairs than rows");
+    assert!(diversity(&points, 0, 0).is_err(), "no pairs");
+    assert!(diversity(&[vec![0.0], vec![f32::INFINITY]], 1, 0).is_err(), "infinity");
+    assert!(diversity(&[], 1, 0).is_err(), "no rows");
+}
+
+#[test]
+fn multimodality_averages_pair_distances_over_prompts() {
+    let protocol = MultimodalityProtocol::paper();
+    assert_eq!((protocol.prompts, protocol.repeats, protocol.pairs), (100, 30, 10));
+    let small = MultimodalityProtocol::default();
+    assert!(small.repeats >= small.pairs && small.prompts > 0);
+
+    // Each prompt's generations on two clusters: expected pair distance 2.5 (as diversity).
+    let group = two_clusters(30);
+    let groups = vec![group.clone(); 4];
+    let mean: f64 =
+        (0..200).map(|seed| multimodality(&groups, 10, seed).unwrap()).sum::<f64>() / 200.0;
+    // The same indices serve every prompt, so the spread is that of one prompt: 2.5 / sqrt(2000)
+    // ~ 0.056 standard error.
+    assert!((mean - 2.5).abs() < 0.25, "mean multimodality {mean}");
+    // Prompts scaled by 1 and 3 share the draws: the average is twice one prompt's value.
+    let tripled: Vec<Vec<f32>> =
+        group.iter().map(|r| r.iter().map(|v| 3.0 * v).collect()).collect();
+    let single = multimodality(std::slice::from_ref(&group), 10, 5).unwrap();
+    let mixed = multimodality(&[group.clone(), tripled], 10, 5).unwrap();
+    assert!((mixed - 2.0 * single).abs() < 1e-12, "{mixed} against 2 x {single}");
+    // A prompt whose generations are all equal has MultiModality 0.
+    assert_eq!(multimodality(&[vec![vec![0.5, 0.5]; 10]], 5, 1).unwrap(), 0.0);
+}
+
+#[test]
+fn multimodality_rejects_bad_groups() {
+    let group = two_clusters(10);
+    assert!(multimodality(&[], 5, 0).is_err(), "no prompts");
+    assert!(multimodality(&[group.clone(), group[..9].to_vec()], 5, 0).is_err(), "sizes differ");
+    assert!(multimodality(std::slice::from_ref(&group), 11, 0).is_err(), "pairs > repeats");
+    assert!(multimodality(&[group.clone(), vec![vec![0.0, 0.0, 0.0]; 10]], 5, 0).is_err());
+}
+
+// ---------------------------------------------------------------------------------------------
+// R-precision, MMdist, replications, runtime.
+// ---------------------------------------------------------------------------------------------
+
+fn line(count: usize, offset: f32) -> Vec<Vec<f32>> {
+    (0..count).map(|i| vec![i as f32 + offset, 0.0]).collect()
+}
+
+#[test]
+fn r_precision_is_one_when_texts_equal_motions() {
+    let motion = line(70, 0.0);
+    for seed in 0..3 {
+        assert_eq!(r_precision(&motion, &motion, R_PRECISION_BATCH, seed).unwrap(), [1.0; 3]);
+    }
+}
+
+#[test]
+fn r_precision_with_texts_shifted_towards_the_next_motion() {
+    // Motions at x = i, texts at x = i + 0.6: for text i the motion i + 1 (0.4 away) is nearer
+    // than its own (0.6 away) and every other is farther than 1.4. In one batch of all 32,
+    // only the last text has no motion i + 1: top-1 = 1/32, top-2 = top-3 = 1.
+    let motion = line(32, 0.0);
+    let text = line(32, 0.6);
+    let [top1, top2, top3] = r_precision(&motion, &text, 32, 11).unwrap();
+    assert!((top1 - 1.0 / 32.0).abs() < 1e-12, "top-1 {top1}");
+    assert_eq!((top2, top3), (1.0, 1.0));
+    // With 70 pairs in batches of 32 the last 6 are dropped: 64 ranked texts. The own motion is
+    // never worse than second, and top-1 counts the texts whose motion i + 1 is in another
+    // batch, a whole number out of 64.
+    let motion = line(70, 0.0);
+    let text = line(70, 0.6);
+    let [top1, top2, _] = r_precision(&motion, &text, 32, 3).unwrap();
+    assert_eq!(top2, 1.0);
+    let hits = top1 * 64.0;
+    assert!((hits - hits.round()).abs() < 1e-9 && top1 > 0.0 && top1 < 1.0, "top-1 {top1}");
+}
+
+#[test]
+fn r_precision_directions_differ_as_computed_by_hand() {
+    // Motions at 0, 1, 10; texts at 0.9, 1.0, 10.
+    // Text to motion: text 0 (0.9) is nearer motion 1 (0.1) than motion 0 (0.9): top-1 = 2/3.
+    // Motion to text: motion 0 (0) is nearer text 0 (0.9) than text 1 (1.0); motion 1 (1) is on
+    // text 1: top-1 = 1.
+    let motion = vec![vec![0.0f32], vec![1.0], vec![10.0]];
+    let text = vec![vec![0.9f32], vec![1.0], vec![10.0]];
+    let t2m = r_precision_with(&motion, &text, 3, 0, Retrieval::TextToMotion).unwrap();
+    assert!((t2m[0] - 2.0 / 3.0).abs() < 1e-12 && t2m[1] == 1.0 && t2m[2] == 1.0, "{t2m:?}");
+    assert_eq!(r_precision(&motion, &text, 3, 0).unwrap(), t2m, "T2M's direction by default");
+    let m2t = r_precision_with(&motion, &text, 3, 0, Retrieval::MotionToText).unwrap();
+    assert_eq!(m2t, [1.0; 3]);
+}
+
+#[test]
+fn r_precision_and_matching_distance_reject_bad_input() {
+    let motion = line(10, 0.0);
+    assert!(r_precision(&motion, &motion, 11, 0).is_err(), "batch larger than the set");
+    assert!(r_precision(&motion, &motion, 0, 0).is_err(), "batch 0");
+    assert!(r_precision(&motion, &motion[..9], 4, 0).is_err(), "row counts differ");
+    let wide: Vec<Vec<f32>> = (0..10).map(|i| vec![i as f32, 0.0, 0.0]).collect();
+    assert!(r_precision(&motion, &wide, 4, 0).is_err(), "widths differ");
+    assert!(matching_distance(&motion, &wide).is_err(), "widths differ");
+    assert!(matching_distance(&[], &[]).is_err(), "no pairs");
+}
+
+#[test]
+fn matching_distance_by_hand() {
+    // Pairs ((0,0),(3,4)) and ((1,1),(1,1)): distances 5 and 0, mean 2.5.
+    let motion = vec![vec![0.0f32, 0.0], vec![1.0, 1.0]];
+    let text = vec![vec![3.0f32, 4.0], vec![1.0, 1.0]];
+    assert_eq!(matching_distance(&motion, &text).unwrap(), 2.5);
+}
+
+#[test]
+fn mean_interval_and_runtime_by_hand() {
+    // 1, 2, 3, 4: mean 2.5, population variance 1.25, half-width 1.96 sqrt(1.25) / 2.
+    let (mean, half) = mean_interval(&[1.0, 2.0, 3.0, 4.0]);
+    assert_eq!(mean, 2.5);
+    assert!((half - 1.96 * 1.25f64.sqrt() / 2.0).abs() < 1e-12, "{half}");
+    assert_eq!(mean_interval(&[0.7]), (0.7, 0.0));
+    let (mean, half) = mean_interval(&[]);
+    assert!(mean.is_nan() && half.is_nan());
+    let (mean, std) = runtime(&[0.2, 0.3]);
+    assert!((mean - 0.25).abs() < 1e-12 && (std - 0.05).abs() < 1e-12, "{mean} {std}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Motion metrics.
+// ---------------------------------------------------------------------------------------------
+
+/// Where unused joints wait: far from every object and above the feet thresholds.
+const FAR: Vec3 = Vec3::new(10.0, 10.0, 10.0);
+
+/// `[T, J, 3]` joints all at [`FAR`], then `place(t, j)` overrides.
+fn joints_with(
+    skeleton: &Skeleton,
+    frames: usize,
+    place: impl Fn(usize, usize) -> Option<Vec3>,
+) -> Vec<f32> {
+    let mut out = Vec::new();
+    for t in 0..frames {
+        for j in 0..skeleton.joint_count() {
+            out.extend(place(t, j).unwrap_or(FAR).to_array());
+        }
+    }
+    out
+}
+
+/// `[T, 2, 3, 3]` row-major rotations and `[T, 2, 3]` positions, the same pose every frame.
+fn poses(frames: usize, slots: [(Mat3, Vec3); 2]) -> (Vec<f32>, Vec<f32>) {
+    let mut rotations = Vec::new();
+    let mut positions = Vec::new();
+    for _ in 0..frames {
+        for (rotation, position) in slots {
+            rotations.extend(rotation.transpose().to_cols_array());
+            positions.extend(position.to_array());
+        }
+    }
+    (rotations, positions)
+}
+
+#[test]
+fn penetration_of_joints_at_known_depths() {
+    let skeleton = Skeleton::smplx();
+    // A 1 x 0.4 x 0.6 box turned 45 degrees about Y: a wrong rotation convention (R instead of
+    // R^T) would turn the local points by 90 degrees and put them outside.
+    let query = MeshQuery::new(&box_mesh(Vec3::new(0.5, 0.2, 0.3))).unwrap();
+    let rotation = Mat3::from_rotation_y(std::f32::consts::FRAC_PI_4);
+    let position = Vec3::new(1.0, 0.5, -2.0);
+    let world = |local: Vec3| rotation * local + position;
+    // Depth below the x = 0.5 face: 0.5 - x (the y and z faces are farther).
+    let depths = [
+        (0, 0, 0.100), // frame 0, joint 0: 100 mm deep
+        (0, 1, 0.003), // below the 5 mm tolerance: not counted
+        (2, 3, 0.150), // frame 2: 150 mm and 50 mm
+        (2, 5, 0.050),
+    ];
+    let frames = 3;
+    let joints = joints_with(&skeleton, frames, |t, j| {
+        depths
+            .iter()
+            .find(|&&(ft, fj, _)| ft == t && fj == j)
+            .map(|&(_, _, depth)| world(Vec3::new(0.5 - depth, 0.0, 0.0)))
+    });
+    let (object_rotations, object_positions) =
+        poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
+    let sample = MotionSample {
+        skeleton: &skeleton,
+        joints: &joints,
+        object_rotations: &object_rotations,
+        object_positions: &object_positions,
+        present: [true, false],
+        objects: [Some(&query), None],
+        mixture_weights: None,
+    };
+    let result = penetration(&sample, PENETRATION_TOLERANCE_M).unwrap();
+    assert_eq!(result.penetrating_joint_frames, 3);
+    assert_eq!(result.penetrating_frames, 2);
+    assert_eq!(result.frames, 3);
+    assert!((result.mean_depth_mm - 300.0 / 3.0).abs() < 1e-3, "{}", result.mean_depth_mm);
+    assert!((result.frame_share - 2.0 / 3.0).abs() < 1e-12);
+    // Deepest per frame: 100, 0, 150 over three frames.
+    assert!((result.mean_frame_depth_mm - 250.0 / 3.0).abs() < 1e-3);
+    // A 2 mm tolerance counts the 3 mm joint too.
+    let loose = penetration(&sample, 0.002).unwrap();
+    assert_eq!(loose.penetrating_joint_frames, 4);
+    // Pooling two copies changes counts, not ratios.
+    let pooled = dex2hoi_eval::metrics::Penetration::pooled(&[result, result]);
+    assert_eq!(pooled.frames, 6);
+    assert!((pooled.mean_depth_mm - result.mean_depth_mm).abs() < 1e-9);
+
+    // The second slot holds a unit cube at the origin of the world; joint 0 of frame 1 sits
+    // 0.2 deep in it. Slot 1 absent: not counted; present: counted.
+    let cube = MeshQuery::new(&box_mesh(Vec3::splat(0.5))).unwrap();
+    let joints = joints_with(&skeleton, frames, |t, j| {
+        (t == 1 && j == 0).then_some(Vec3::new(0.3, 0.0, 0.0))
+    });
+    let sample_two =
+        MotionSample { joints: &joints, objects: [Some(&query), Some(&cube)], ..sample };
+    assert_eq!(penetration(&sample_two, PENETRATION_TOLERANCE_M).unwrap().penetrating_frames, 0);
+    let sample_two = MotionSample { present: [true, true], ..sample_two };
+    let result = penetration(&sample_two, PENETRATION_TOLERANCE_M).unwrap();
+    assert_eq!(result.penetrating_frames, 1);
+    assert!((result.mean_depth_mm - 200.0).abs() < 1e-3, "{}", result.mean_depth_mm);
+}
+
+#[test]
+fn penetration_rejects_bad_samples() {
+    let skeleton = Skeleton::smplx();
+    let query = MeshQuery::new(&box_mesh(Vec3::splat(0.5))).unwrap();
+    let joints = joints_with(&skeleton, 2, |_, _| None);
+    let (rotations, positions) = poses(2, [(Mat3::IDENTITY, Vec3::ZERO); 2]);
+    let good = MotionSample {
+        skeleton: &skeleton,
+        joints: &joints,
+        object_rotations: &rotations,
+        object_positions: &positions,
+        present: [true, false],
+        objects: [Some(&query), None],
+        mixture_weights: None,
+    };
+    assert!(penetration(&good, PENETRATION_TOLERANCE_M).is_ok());
+    assert!(penetration(&good, -0.001).is_err(), "negative tolerance");
+    assert!(penetration(&good, f32::NAN).is_err(), "NaN tolerance");
+    let no_mesh = MotionSample { objects: [None, None], ..good };
+    assert!(penetration(&no_mesh, 0.005).is_err(), "present slot without a mesh");
+    let short = MotionSample { joints: &joints[..joints.len() - 3], ..good };
+    assert!(penetration(&short, 0.005).is_err(), "joints not [T, J, 3]");
+    let few = MotionSample { object_positions: &positions[..6], ..good };
+    assert!(penetration(&few, 0.005).is_err(), "positions of one frame for two");
+    let mut nan_joints = joints.clone();
+    nan_joints[4] = f32::NAN;
+    let nan = MotionSample { joints: &nan_joints, ..good };
+    assert!(penetration(&nan, 0.005).is_err(), "NaN joint");
+    let weights = vec![0.0f32; 5];
+    let bad_weights = MotionSample { mixture_weights: Some(&weights), ..good };
+    assert!(bad_weights.frames().is_err(), "mixture weights not [T, 2, 3]");
+    let empty = MotionSample { joints: &[], ..good };
+    assert!(empty.frames().is_err(), "no frames");
+}
+
+#[test]
+fn contact_scores_by_hand() {
+    let skeleton = Skeleton::smplx();
+    let groups = skeleton.groups().clone();
+    let query = MeshQuery::new(&box_mesh(Vec3::splat(0.5))).unwrap();
+    let position = Vec3::new(0.0, 1.0, 0.0);
+    // Frame 0: left wrist 3 cm above the top face (contact). Frame 1: 8 cm (none).
+    // Frame 2: a right fingertip 1 cm inside (contact, distance 0). Frame 3: nothing near.
+    let right_tip = groups.right_fingertips[0];
+    let joints = joints_with(&skeleton, 4, |t, j| match (t, j) {
+        (0, j) if j == groups.left_wrist => Some(position + Vec3::new(0.1, 0.53, 0.0)),
+        (1, j) if j == groups.left_wrist => Some(position + Vec3::new(0.1, 0.58, 0.0)),
+        (2, j) if j == right_tip => Some(position + Vec3::new(0.0, 0.0, 0.49)),
+        _ => None,
+    });
+    let (rotations, positions) =
+        poses(4, [(Mat3::IDENTITY, position), (Mat3::IDENTITY, Vec3::ZERO)]);
+    let sample = MotionSample {
+        skeleton: &skeleton,
+        joints: &joints,
+        object_rotations: &rotations,
+        object_positions: &positions,
+        present: [true, false],
+        objects: [Some(&query), None],
+        mixture_weights: None,
+    };
+    let distances = hand_object_distances(&sample).unwrap();
+    assert!((distances[0][0][0] - 0.03).abs() < 1e-5, "{:?}", distances[0]);
+    assert!((distances[1][0][0] - 0.08).abs() < 1e-5);
+    assert!((distances[2][0][1] + 0.01).abs() < 1e-5);
+    assert_eq!(distances[0][1], [f32::INFINITY; 2], "empty slot");
+    let contact = hand_contact(&sample, CONTACT_RADIUS_M).unwrap();
+    assert_eq!(contact, vec![[true, false], [false, false], [true, false], [false, false]]);
+
+    // Ground truth [T, 2, 2]: contact in frames 0 and 1 (left hand); slot 1 flags are ignored
+    // because slot 1 is empty. TP = 1 (frame 0), FN = 1 (frame 1), FP = 1 (frame 2), TN = 1.
+    #[rustfmt::skip]
+    let truth = [
+        1.0, 0.0,  1.0, 1.0,
+        0.0, 1.0,  1.0, 1.0,
+        0.0, 0.0,  1.0, 1.0,
+        0.0, 0.0,  1.0, 1.0,
+    ];
+    let scores = contact_scores(&sample, &truth, CONTACT_RADIUS_M).unwrap();
+    assert_eq!((scores.counts.true_positives, scores.counts.false_positives), (1, 1), "{scores:?}");
+    assert_eq!((scores.counts.false_negatives, scores.counts.true_negatives), (1, 1));
+    assert_eq!((scores.precision, scores.recall, scores.f1), (0.5, 0.5, 0.5));
+    // Distances on the ground-truth contact frames: 30 mm and 80 mm.
+    let mean = scores.mean_distance_on_contact_mm.unwrap();
+    assert!((mean - 55.0).abs() < 0.01, "{mean}");
+    // A 10 cm radius also catches frame 1: recall 1, precision 2/3.
+    let wide = contact_scores(&sample, &truth, 0.10).unwrap();
+    assert_eq!(wide.recall, 1.0);
+    assert!((wide.precision - 2.0 / 3.0).abs() < 1e-12);
+    assert!(contact_scores(&sample, &truth[..12], CONTACT_RADIUS_M).is_err(), "3 truth frames");
+    assert!(contact_scores(&sample, &truth, -1.0).is_err(), "negative radius");
+    assert!(hand_contact(&sample, f32::INFINITY).is_err(), "infinite radius");
+}
+
+#[test]
+fn contact_counts_on_hand_made_flags() {
+    let predicted = [[true, false], [true, true], [false, true], [false, false], [true, true]];
+    let truth = [[true, true], [false, true], [false, false], [true, false], [true, true]];
+    // Slot 0: TP (0, 4), FP (1), FN (3), TN (2). Slot 1: TP (1, 4), FP (2), FN (0), TN (3).
+    let both = contact_counts(&predicted, &truth, [true, true]).unwrap();
+    assert_eq!(
+        (both.true_positives, both.false_positives, both.false_negatives, both.true_negatives),
+        (4, 2, 2, 2)
+    );
+    let scores = ContactScores::from_counts(both);
+    assert!((scores.precision - 4.0 / 6.0).abs() < 1e-12);
+    assert!((scores.recall - 4.0 / 6.0).abs() < 1e-12);
+    assert!((scores.f1 - 4.0 / 6.0).abs() < 1e-12);
+    assert_eq!(scores.mean_distance_on_contact_mm, None);
+    // Slot 0 only: P = 2/3, R = 2/3.
+    let first = contact_counts(&predicted, &truth, [true, false]).unwrap();
+    assert_eq!((first.true_positives, first.false_positives, first.false_negatives), (2, 1, 1));
+    // Precision 1, recall 1/3: F1 = 2 * 1/3 / (4/3) = 1/2.
+    let counts = ContactCounts { true_positives: 1, false_negatives: 2, ..Default::default() };
+    assert!((ContactScores::from_counts(counts).f1 - 0.5).abs() < 1e-12);
+    let merged = counts.merge(counts);
+    assert_eq!((merged.true_positives, merged.false_negatives), (2, 4));
+    // Nothing predicted, nothing true: the undefined ratios are 0.
+    let none = ContactScores::from_counts(ContactCounts::default());
+    assert_eq!((none.precision, none.recall, none.f1), (0.0, 0.0, 0.0));
+    assert!(contact_counts(&predicted[..4], &truth, [true, true]).is_err());
+    // [T, 2, 2] numbers to flags.
+    assert_eq!(
+        contact_flags(&[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).unwrap(),
+        vec![[true, false], [false, true]]
+    );
+    assert!(contact_flags(&[1.0, 0.0, 0.0]).is_err());
+}
+
+#[test]
+fn foot_sliding_of_a_constructed_trajectory() {
+    let skeleton = Skeleton::smplx();
+    let groups = skeleton.groups().clone();
+    let (left_ankle, left_toe) = (groups.left_foot[0], *groups.left_foot.last().unwrap());
+    let (right_ankle, right_toe) = (groups.right_foot[0], *groups.right_foot.last().unwrap());
+    // Left ankle on the floor sliding 1 cm per frame along x: weight 2 - 2^0 = 1, 10 mm.
+    // Left toe at 2 cm sliding 1 cm per frame along z: weight 2 - 2^(0.02/0.04) = 2 - sqrt 2.
+    // Right ankle at 10 cm (above 8 cm) sliding: not counted. Right toe on the floor, still.
+    // Vertical motion of the right toe (none) and of the body (all at FAR, still) adds nothing.
+    let frames = 5;
+    let joints = joints_with(&skeleton, frames, |t, j| {
+        let s = 0.01 * t as f32;
+        match j {
+            j if j == left_ankle => Some(Vec3::new(s, 0.0, 0.0)),
+            j if j == left_toe => Some(Vec3::new(0.0, 0.02, s)),
+            j if j == right_ankle => Some(Vec3::new(s, 0.10, 0.0)),
+            j if j == right_toe => Some(Vec3::new(0.3, 0.0, 0.0)),
+            _ => None,
+        }
+    });
+    let value = foot_sliding(&joints, &skeleton).unwrap();
+    let expected = (10.0 + 10.0 * (2.0 - 2f64.sqrt())) / 4.0;
+    assert!((value - expected).abs() < 1e-3, "{value} against {expected}");
+    assert_eq!((ANKLE_HEIGHT_M, TOE_HEIGHT_M), (0.08, 0.04));
+
+    // The same ankle 8 cm up (the threshold itself) does not count.
+    let lifted = joints_with(&skeleton, frames, |t, j| {
+        (j == left_ankle).then(|| Vec3::new(0.01 * t as f32, ANKLE_HEIGHT_M, 0.0))
+    });
+    assert_eq!(foot_sliding(&lifted, &skeleton).unwrap(), 0.0);
+    assert!(foot_sliding(&joints[..skeleton.joint_count() * 3], &skeleton).is_err(), "1 frame");
+    assert!(foot_sliding(&joints[1..], &skeleton).is_err(), "not [T, J, 3]");
+}
+
+#[test]
+fn mixture_agreement_by_hand() {
+    // Slot 0 present, slot 1 empty. Ground truth: frame 0 left only, frame 1 right only,
+    // frame 2 both hands, frame 3 none. Slot 1 claims the left hand every frame (ignored).
+    #[rustfmt::skip]
+    let truth = [
+        1.0, 0.0,  1.0, 0.0,
+        0.0, 1.0,  1.0, 0.0,
+        1.0, 1.0,  1.0, 0.0,
+        0.0, 0.0,  1.0, 0.0,
+    ];
+    // Weights (left, right, global): frame 0 picks left (agrees), frame 1 picks left (does not).
+    #[rustfmt::skip]
+    let weights = [
+        0.7, 0.2, 0.1,  0.0, 0.0, 1.0,
+        0.6, 0.3, 0.1,  0.0, 0.0, 1.0,
+        0.1, 0.1, 0.8,  0.0, 0.0, 1.0,
+        0.1, 0.1, 0.8,  0.0, 0.0, 1.0,
+    ];
+    assert_eq!(mixture_agreement_counts(&weights, &truth, [true, false]).unwrap(), (1, 2));
+    assert_eq!(mixture_agreement(&weights, &truth, [true, false]).unwrap(), Some(0.5));
+    // Slot 1 present too: 4 more single-hand frames, none agreeing (global wins there).
+    assert_eq!(mixture_agreement_counts(&weights, &truth, [true, true]).unwrap(), (1, 6));
+    // No single-hand frames: None.
+    assert_eq!(mixture_agreement(&weights, &[0.0; 16], [true, true]).unwrap(), None);
+    assert!(mixture_agreement(&weights[..21], &truth, [true, false]).is_err(), "3 frames");
+    let mut nan = weights;
+    nan[0] = f32::NAN;
+    assert!(mixture_agreement(&nan, &truth, [true, false]).is_err(), "NaN weight");
+}
+
+#[test]
+fn mixture_weights_are_the_softmax_of_the_feature_logits() {
+    let mut features = vec![0.0f32; 2 * 18];
+    features[15..18].copy_from_slice(&[0.0, 2f32.ln(), 0.0]); // weights 1/4, 1/2, 1/4
+    let weights = mixture_weights_from_features(&features).unwrap();
+    let expected = [0.25, 0.5, 0.25, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0];
+    for (w, e) in weights.iter().zip(expected) {
+        assert!((w - e).abs() < 1e-6, "{weights:?}");
+    }
+    assert!(mixture_weights_from_features(&features[..35]).is_err());
+    features[16] = f32::NAN;
+    assert!(mixture_weights_from_features(&features).is_err());
+}
