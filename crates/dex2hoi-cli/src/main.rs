@@ -7,6 +7,8 @@
 //!   read a downloaded real dataset as published into the dataset format.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
 //! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR`: generate and export.
+//! - `dex2hoi evaluator train --data DIR --out EVAL [--steps N] [--seed S]`: train the
+//!   text-motion evaluator and action classifier.
 //! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR`: the paper's metrics.
 
 use std::path::{Path, PathBuf};
@@ -19,6 +21,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 
 mod prepare;
 mod evaluate;
+mod evaluator;
 mod sample;
 mod train;
 
@@ -46,6 +49,11 @@ enum Command {
     Sample(sample::SampleArgs),
     /// Evaluate a run on a dataset's test split: the metrics of the paper's tables.
     Evaluate(evaluate::EvaluateArgs),
+    /// Learned evaluators: train the text-motion model and action classifier on a dataset.
+    Evaluator {
+        #[command(subcommand)]
+        command: evaluator::EvaluatorCommand,
+    },
 }
 
 #[derive(Debug, Subcommand)]
@@ -84,6 +92,7 @@ fn main() -> Result<()> {
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Evaluate(args) => evaluate::run(args),
+        Command::Evaluator { command } => evaluator::run(command),
     }
 }
 
