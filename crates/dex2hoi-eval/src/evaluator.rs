@@ -40,7 +40,7 @@ use dex2hoi_model::SeededVarMap;
 use dex2hoi_model::checkpoint::{
     FORMAT_KEY, assign_parameters, named_parameters, read_tensors, write_tensors,
 };
-use dex2hoi_model::text::{BuiltinTextConfig, BuiltinTextEncoder, UNKNOWN, Vocabulary};
+use dex2hoi_model::text::{BuiltinTextConfig, BuiltinTextEncoder, UNKNOWN, Vocabulary, words};
 use dex2hoi_train::OptimizerConfig;
 use dex2hoi_train::optim::{AdamW, Parameter, learning_rate};
 use dex2hoi_train::trainer::step_rng;
@@ -315,13 +315,23 @@ impl std::fmt::Debug for Evaluator {
     }
 }
 
-/// The training sequences with at least one non-blank text.
+/// The texts of a sequence that have at least one word.
+fn usable_texts(sequence: &ProcessedSequence) -> Vec<&str> {
+    sequence.texts.iter().map(String::as_str).filter(|t| !words(t).is_empty()).collect()
+}
+
+/// The training sequences with at least one text that has a word.
 fn usable_sequences(dataset: &Dataset) -> Vec<&ProcessedSequence> {
     dataset
         .splits
         .get(&Split::Train)
-        .map(|s| s.iter().filter(|q| q.texts.iter().any(|t| !t.trim().is_empty())).collect())
+        .map(|s| s.iter().filter(|q| !usable_texts(q).is_empty()).collect())
         .unwrap_or_default()
+}
+
+/// A value as JSON for the metadata of `path`.
+fn to_json<T: Serialize + ?Sized>(path: &Path, key: &str, value: &T) -> Result<String> {
+    serde_json::to_string(value).map_err(|e| EvalError::file(path, key, "JSON", e))
 }
 
 impl Evaluator {
@@ -489,6 +499,10 @@ impl Evaluator {
     /// A training batch of clips with their texts and action labels (indices into
     /// [`Evaluator::labels`]); with `word_dropout`, words are replaced by the unknown token at
     /// the configured rate.
+    ///
+    /// # Shapes
+    /// - `clips`, `texts`, `actions`: `[batch]` each; the batch's features are
+    ///   `[batch, min(longest clip, clip_frames), 3J + 20]`
     pub fn batch(
         &self,
         clips: &[MotionClip],
@@ -592,12 +606,14 @@ impl Evaluator {
             let frames = sequence.frames.min(self.config.clip_frames);
             let start = rng.random_range(0..=sequence.frames - frames);
             clips.push(MotionClip::from_processed(sequence, start, frames)?);
-            let usable: Vec<&str> = sequence
-                .texts
-                .iter()
-                .map(String::as_str)
-                .filter(|t| !t.trim().is_empty())
-                .collect();
+            let usable = usable_texts(sequence);
+            if usable.is_empty() {
+                return Err(EvalError::invalid(
+                    format!("texts of sequence {}", sequence.source_id),
+                    "at least one text with a word",
+                    format!("{:?}", sequence.texts),
+                ));
+            }
             texts.push(usable[rng.random_range(0..usable.len())]);
             actions.push(
                 sequence.action.as_ref().and_then(|a| self.labels.iter().position(|l| l == a)),
@@ -696,6 +712,9 @@ impl Evaluator {
     }
 
     /// The most likely action label of each clip (an index into [`Evaluator::labels`]).
+    ///
+    /// # Shapes
+    /// - returns `[clips]`
     pub fn classify(&self, clips: &[MotionClip]) -> Result<Vec<usize>> {
         let head = self.action_head()?;
         let logits = self.pooled_chunks(clips, |pooled| head.forward(&head.features(pooled)?))?;
@@ -724,6 +743,9 @@ impl Evaluator {
     /// Top-1 text retrieval: the clips in consecutive batches of `batch` pairs (the remainder
     /// dropped, as in R-precision; one batch of all when there are fewer), each motion ranking
     /// the texts of its batch by Euclidean distance.
+    ///
+    /// # Shapes
+    /// - `clips`, `texts`: `[pairs]`, pair `i` a motion and its description
     pub fn retrieval(
         &self,
         clips: &[MotionClip],
@@ -759,6 +781,9 @@ impl Evaluator {
 
     /// Share of clips whose predicted label is `labels[i]` (a label the evaluator does not know
     /// counts as a miss).
+    ///
+    /// # Shapes
+    /// - `clips`, `labels`: `[clips]`
     pub fn classification_accuracy(&self, clips: &[MotionClip], labels: &[&str]) -> Result<f64> {
         if clips.len() != labels.len() || clips.is_empty() {
             return Err(EvalError::invalid(
@@ -812,9 +837,7 @@ impl Evaluator {
     pub fn save(&self, dir: &Path) -> Result<()> {
         std::fs::create_dir_all(dir)
             .map_err(EvalError::io(dir, "creating the evaluator directory"))?;
-        let json = |key: &str, value: &dyn erased_serde_free::Json| {
-            value.json().map_err(|e| EvalError::file(dir.join(EVALUATOR_FILE), key, "JSON", e))
-        };
+        let file = dir.join(EVALUATOR_FILE);
         let stats = serde_json::to_vec_pretty(&self.stats)
             .map_err(|e| EvalError::file(dir.join(STATS_FILE), "statistics", "JSON", e))?;
         write_atomically(&dir.join(STATS_FILE), &stats)?;
@@ -822,23 +845,30 @@ impl Evaluator {
         tensors.extend(named_parameters(&self.text_vars, "text."));
         let metadata = BTreeMap::from([
             (FORMAT_KEY.to_string(), EVALUATOR_FORMAT.to_string()),
-            (CONFIG_KEY.to_string(), json(CONFIG_KEY, &self.config)?),
-            (VOCABULARY_KEY.to_string(), json(VOCABULARY_KEY, &self.text.vocabulary().words())?),
-            (LABELS_KEY.to_string(), json(LABELS_KEY, &self.labels)?),
+            (CONFIG_KEY.to_string(), to_json(&file, CONFIG_KEY, &self.config)?),
+            (
+                VOCABULARY_KEY.to_string(),
+                to_json(&file, VOCABULARY_KEY, &self.text.vocabulary().words())?,
+            ),
+            (LABELS_KEY.to_string(), to_json(&file, LABELS_KEY, &self.labels)?),
             (SKELETON_KEY.to_string(), self.skeleton.clone()),
             (JOINTS_KEY.to_string(), self.joints.to_string()),
             (FPS_KEY.to_string(), self.fps.to_string()),
-            (TRAINING_KEY.to_string(), json(TRAINING_KEY, &self.training)?),
+            (TRAINING_KEY.to_string(), to_json(&file, TRAINING_KEY, &self.training)?),
         ]);
-        write_tensors(&dir.join(EVALUATOR_FILE), &tensors, &metadata)?;
+        write_tensors(&file, &tensors, &metadata)?;
         Ok(())
     }
 
     /// Reads an evaluator written by [`Evaluator::save`], refusing a file of another format, a
     /// missing or malformed entry, weights that do not fit the configuration, or statistics of
-    /// another size.
+    /// another size. `dir` is the evaluator directory (or its `evaluator.safetensors`).
     pub fn load(dir: &Path) -> Result<Self> {
-        let path = dir.join(EVALUATOR_FILE);
+        let (dir, path) = if dir.is_file() {
+            (dir.parent().unwrap_or(Path::new(".")), dir.to_path_buf())
+        } else {
+            (dir, dir.join(EVALUATOR_FILE))
+        };
         let (tensors, metadata) = read_tensors(&path, &Device::Cpu)?;
         let entry = |key: &str| {
             metadata
@@ -916,20 +946,6 @@ impl Evaluator {
         evaluator.training = training;
         evaluator.origin = Some(path);
         Ok(evaluator)
-    }
-}
-
-mod erased_serde_free {
-    /// Serialisation to JSON of anything the evaluator stores in metadata, as a trait object.
-    pub trait Json {
-        /// The value as JSON.
-        fn json(&self) -> serde_json::Result<String>;
-    }
-
-    impl<T: serde::Serialize> Json for T {
-        fn json(&self) -> serde_json::Result<String> {
-            serde_json::to_string(self)
-        }
     }
 }
 

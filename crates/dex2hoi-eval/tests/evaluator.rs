@@ -107,6 +107,8 @@ fn training_lowers_the_loss_retrieves_and_classifies_above_chance_and_round_trip
     evaluator.save(&dir).unwrap();
     assert!(dir.join(EVALUATOR_FILE).is_file() && dir.join(STATS_FILE).is_file());
     let loaded = Evaluator::load(&dir).unwrap();
+    let by_file = Evaluator::load(&dir.join(EVALUATOR_FILE)).unwrap();
+    assert_eq!(by_file.embed_motions(&windows[..2]).unwrap(), motion[..2]);
     assert_eq!(loaded.config(), evaluator.config());
     assert_eq!(loaded.labels(), evaluator.labels());
     assert_eq!(loaded.vocabulary(), evaluator.vocabulary());
