@@ -10,8 +10,9 @@
 //! ground truth is the same `clip_frames` frames of the sequence. FID, Diversity and
 //! MultiModality use the action classifier's features when the evaluator has action labels
 //! (IMoS) and the contrastive motion embeddings otherwise; R-precision and MMdist use the
-//! contrastive embeddings (T2M). R-precision ranks each motion's text among batches of 32 (fewer
-//! when the split is smaller). MultiModality generates `repeats` samples for each of the first
+//! contrastive embeddings (T2M). R-precision follows T2M's code (each text ranks the motions of its batch of
+//! 32, fewer when the split is smaller); Diversity uses 300 pairs, or as many as there are
+//! samples when fewer; intervals use T2M's `np.std` (ddof 0). MultiModality generates `repeats` samples for each of the first
 //! `prompts` sequences.
 
 use serde::Serialize;
@@ -424,7 +425,7 @@ pub fn evaluate(
             r[2],
             metrics::fid(distribution, truth_distribution)?,
             metrics::matching_distance(&generated, &texts)?,
-            metrics::diversity(distribution, metrics::DIVERSITY_PAIRS, seed)?,
+            metrics::diversity(distribution, metrics::DIVERSITY_PAIRS.min(chosen.len()), seed)?,
             multimodality,
         ]);
         truth_values.push([
@@ -433,7 +434,11 @@ pub fn evaluate(
             truth_r[2],
             0.0,
             metrics::matching_distance(&truth_embeddings, &texts)?,
-            metrics::diversity(truth_distribution, metrics::DIVERSITY_PAIRS, seed)?,
+            metrics::diversity(
+                truth_distribution,
+                metrics::DIVERSITY_PAIRS.min(chosen.len()),
+                seed,
+            )?,
         ]);
         last = Some(Embeddings {
             generated,
@@ -490,42 +495,46 @@ pub fn evaluate(
     Ok((report, embeddings))
 }
 
+/// One replication's physical metrics, pooled over its clips.
+struct Pooled {
+    penetration: metrics::Penetration,
+    contact: metrics::ContactScores,
+    foot_sliding_mm: f64,
+    agreement: (usize, usize),
+}
+
 /// Pools each replication's clips (counts and depths), then estimates over replications.
 fn physical_row(samples: &[Physical], per_replication: usize) -> PhysicalRow {
-    let replications: Vec<&[Physical]> = samples.chunks(per_replication.max(1)).collect();
-    let pooled: Vec<(metrics::Penetration, metrics::ContactScores, f64, (usize, usize))> =
-        replications
-            .iter()
-            .map(|r| {
-                let penetrations: Vec<metrics::Penetration> =
-                    r.iter().map(|p| p.penetration).collect();
-                let counts =
-                    r.iter().fold(metrics::ContactCounts::default(), |a, p| a.merge(p.contact));
-                let foot = r.iter().map(|p| p.foot_sliding_mm).sum::<f64>() / r.len().max(1) as f64;
-                let agreement =
-                    r.iter().fold((0, 0), |a, p| (a.0 + p.agreement.0, a.1 + p.agreement.1));
-                (
-                    metrics::Penetration::pooled(&penetrations),
-                    metrics::ContactScores::from_counts(counts),
-                    foot,
-                    agreement,
-                )
-            })
-            .collect();
-    let estimate = |f: &dyn Fn(
-        &(metrics::Penetration, metrics::ContactScores, f64, (usize, usize)),
-    ) -> f64| { Estimate::of(&pooled.iter().map(f).collect::<Vec<_>>()) };
-    let judged = pooled.iter().all(|p| p.3.1 > 0);
+    let pooled: Vec<Pooled> = samples
+        .chunks(per_replication.max(1))
+        .map(|r| {
+            let penetrations: Vec<metrics::Penetration> = r.iter().map(|p| p.penetration).collect();
+            let counts =
+                r.iter().fold(metrics::ContactCounts::default(), |a, p| a.merge(p.contact));
+            Pooled {
+                penetration: metrics::Penetration::pooled(&penetrations),
+                contact: metrics::ContactScores::from_counts(counts),
+                foot_sliding_mm: r.iter().map(|p| p.foot_sliding_mm).sum::<f64>()
+                    / r.len().max(1) as f64,
+                agreement: r.iter().fold((0, 0), |a, p| (a.0 + p.agreement.0, a.1 + p.agreement.1)),
+            }
+        })
+        .collect();
+    let estimate =
+        |f: &dyn Fn(&Pooled) -> f64| Estimate::of(&pooled.iter().map(f).collect::<Vec<_>>());
+    let judged = pooled.iter().all(|p| p.agreement.1 > 0);
     PhysicalRow {
-        penetration_depth_mm: estimate(&|p| p.0.mean_depth_mm),
-        penetration_frames_percent: estimate(&|p| 100.0 * p.0.frame_share),
-        contact_precision: estimate(&|p| p.1.precision),
-        contact_recall: estimate(&|p| p.1.recall),
-        contact_f1: estimate(&|p| p.1.f1),
-        contact_distance_mm: estimate(&|p| p.1.mean_distance_on_contact_mm.unwrap_or(f64::NAN)),
-        foot_sliding_mm: estimate(&|p| p.2),
+        penetration_depth_mm: estimate(&|p| p.penetration.mean_depth_mm),
+        penetration_frames_percent: estimate(&|p| 100.0 * p.penetration.frame_share),
+        contact_precision: estimate(&|p| p.contact.precision),
+        contact_recall: estimate(&|p| p.contact.recall),
+        contact_f1: estimate(&|p| p.contact.f1),
+        contact_distance_mm: estimate(&|p| {
+            p.contact.mean_distance_on_contact_mm.unwrap_or(f64::NAN)
+        }),
+        foot_sliding_mm: estimate(&|p| p.foot_sliding_mm),
         mixture_agreement_percent: judged
-            .then(|| estimate(&|p| 100.0 * p.3.0 as f64 / p.3.1 as f64)),
+            .then(|| estimate(&|p| 100.0 * p.agreement.0 as f64 / p.agreement.1 as f64)),
     }
 }
 

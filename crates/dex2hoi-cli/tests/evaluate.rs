@@ -1,0 +1,118 @@
+//! `dex2hoi evaluate` end to end on a tiny run and a tiny evaluator: the report files, the
+//! table's rows and columns, the embeddings dump, and bad input.
+
+use std::path::Path;
+use std::process::Command;
+
+fn dex2hoi(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .expect("the binary runs")
+}
+
+fn ok(output: &std::process::Output) -> String {
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+#[test]
+fn evaluate_writes_the_report_and_refuses_bad_input() {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-evaluate-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let config =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml").display().to_string();
+    let (data, run, evaluator, out) =
+        (dir.join("data"), dir.join("run"), dir.join("evaluator"), dir.join("report"));
+    let (data, run, evaluator, out) = (
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        evaluator.to_str().unwrap(),
+        out.to_str().unwrap(),
+    );
+    // 80 sequences: every tenth block of eight is a test sequence, so 8 test sequences.
+    ok(&dex2hoi(&["data", "synth", "--out", data, "--sequences", "80", "--seed", "6"]));
+    ok(&dex2hoi(&["train", "--config", &config, "--data", data, "--out", run, "--steps", "3"]));
+    ok(&dex2hoi(&["evaluator", "train", "--data", data, "--out", evaluator, "--steps", "3"]));
+    let stdout = ok(&dex2hoi(&[
+        "evaluate",
+        "--run",
+        run,
+        "--data",
+        data,
+        "--evaluator",
+        evaluator,
+        "--out",
+        out,
+        "--replications",
+        "2",
+        "--sequences",
+        "4",
+        "--ddim-steps",
+        "2",
+        "--multimodality",
+        "2,2,1",
+        "--dump-embeddings",
+    ]));
+    let report = std::fs::read_to_string(dir.join("report/report.md")).unwrap();
+    assert_eq!(stdout.lines().next(), report.lines().next());
+    let rows: Vec<&str> = report.lines().filter(|l| l.starts_with('|')).collect();
+    assert_eq!(rows.len(), 4, "header, separator, ground truth, run:\n{report}");
+    assert!(rows[0].contains("FID") && rows[0].contains("Foot sliding (mm/frame)"), "{report}");
+    assert!(rows[2].starts_with("| Ground truth |"), "{report}");
+    assert!(rows[3].starts_with("| Dex2HOI (this run) |"), "{report}");
+    assert_eq!(rows[2].matches('|').count(), rows[0].matches('|').count());
+    assert!(report.contains("4 test sequences") && report.contains("2 replications"), "{report}");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("report/report.json")).unwrap()).unwrap();
+    let fid = json["rows"][0]["fid"]["mean"].as_f64().unwrap();
+    assert_eq!(fid, 0.0, "the ground truth against itself");
+    assert!(json["rows"][1]["fid"]["mean"].as_f64().unwrap() > 0.0);
+    let runtime = &json["rows"][1]["runtime_seconds"];
+    assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
+    let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();
+    assert_eq!(&npz[..2], b"PK");
+
+    // Bad input: a missing evaluator, a missing run, zero replications.
+    let bad = dex2hoi(&[
+        "evaluate",
+        "--run",
+        run,
+        "--data",
+        data,
+        "--evaluator",
+        "/nonexistent/eval",
+        "--out",
+        out,
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("/nonexistent/eval"));
+    let bad = dex2hoi(&[
+        "evaluate",
+        "--run",
+        "/nonexistent/run",
+        "--data",
+        data,
+        "--evaluator",
+        evaluator,
+        "--out",
+        out,
+    ]);
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("/nonexistent/run"));
+    let bad = dex2hoi(&[
+        "evaluate",
+        "--run",
+        run,
+        "--data",
+        data,
+        "--evaluator",
+        evaluator,
+        "--out",
+        out,
+        "--replications",
+        "0",
+    ]);
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--replications"));
+    std::fs::remove_dir_all(&dir).ok();
+}
