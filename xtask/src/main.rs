@@ -226,9 +226,12 @@ fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
 }
 
-/// The variants of `cargo xtask ablate`: a label and the configuration changes (TOML lines
-/// replaced in `[model]`, and lines added to `[loss]`).
-const ABLATIONS: [(&str, &[(&str, &str)], &[&str]); 7] = [
+/// A variant of `cargo xtask ablate`: a label, TOML lines replaced in `[model]` (from, to),
+/// and lines added to `[loss]`.
+type Ablation = (&'static str, &'static [(&'static str, &'static str)], &'static [&'static str]);
+
+/// The variants of `cargo xtask ablate`.
+const ABLATIONS: [Ablation; 7] = [
     ("Dex2HOI (full)", &[], &[]),
     ("fusion -> average", &[("body_fusion = \"network\"", "body_fusion = \"average\"")], &[]),
     ("single stream", &[("stream_layout = \"dual\"", "stream_layout = \"single\"")], &[]),

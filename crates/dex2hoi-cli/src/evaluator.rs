@@ -127,8 +127,8 @@ fn train(args: EvaluatorTrainArgs) -> Result<()> {
         let frames = evaluator.config().clip_frames;
         let windows = test
             .iter()
-            .map(|s| MotionClip::from_processed(s, 0, s.frames.min(frames)))
-            .collect::<Result<Vec<_>, _>>()?;
+            .map(|s| Ok(MotionClip::from_processed(s, 0, s.frames.min(frames))?))
+            .collect::<Result<Vec<_>>>()?;
         let texts: Vec<&str> = test.iter().map(|s| first_text(s)).collect();
         let retrieval = evaluator.retrieval(&windows, &texts, RETRIEVAL_BATCH)?;
         line += &format!(
