@@ -64,11 +64,10 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
     let multimodality = if args.paper_multimodality {
         MultimodalityProtocol::paper()
     } else if let Some(spec) = &args.multimodality {
-        let values: Vec<usize> = spec
-            .split(',')
-            .map(|v| v.trim().parse())
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("--multimodality {spec}: expected PROMPTS,REPEATS,PAIRS"))?;
+        let values: Vec<usize> =
+            spec.split(',').map(|v| v.trim().parse()).collect::<Result<_, _>>().with_context(
+                || format!("--multimodality {spec}: expected PROMPTS,REPEATS,PAIRS"),
+            )?;
         let [prompts, repeats, pairs] = values[..] else {
             bail!("--multimodality {spec}: expected three numbers PROMPTS,REPEATS,PAIRS");
         };
@@ -84,7 +83,9 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
     let evaluator = Evaluator::load(&args.evaluator)
         .with_context(|| format!("loading the evaluator {}", args.evaluator.display()))?;
     evaluator.check_dataset(&dataset.manifest, &args.data)?;
-    if run.manifest.skeleton != dataset.manifest.skeleton || run.manifest.fps != dataset.manifest.fps {
+    if run.manifest.skeleton != dataset.manifest.skeleton
+        || run.manifest.fps != dataset.manifest.fps
+    {
         bail!(
             "the run was trained on {} at {} fps, the dataset {} is {} at {} fps",
             run.manifest.skeleton,
@@ -94,11 +95,16 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
             dataset.manifest.fps
         );
     }
-    let guidance = if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };
+    let guidance =
+        if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };
     let options = EvaluateOptions {
         replications: args.replications,
         sequences: args.sequences,
-        sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: args.ddim_steps, guidance },
+        sampler: SamplerConfig {
+            kind: SamplerKind::Ddim { eta: 0.0 },
+            steps: args.ddim_steps,
+            guidance,
+        },
         seed: args.seed,
         multimodality,
     };
@@ -120,7 +126,8 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
     let markdown = report.markdown(&title);
     let json = serde_json::to_vec_pretty(&report).context("serialising the report")?;
     let npz = if args.dump_embeddings { Some(embeddings.npz()?) } else { None };
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
     write_atomically(&args.out.join("report.md"), markdown.as_bytes())?;
     write_atomically(&args.out.join("report.json"), &json)?;
     if let Some(npz) = npz {

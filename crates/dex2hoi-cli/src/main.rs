@@ -19,9 +19,9 @@ use clap::{Parser, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
 
-mod prepare;
 mod evaluate;
 mod evaluator;
+mod prepare;
 mod sample;
 mod train;
 
