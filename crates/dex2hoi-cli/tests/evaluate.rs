@@ -62,7 +62,10 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(rows[0].contains("FID") && rows[0].contains("Foot sliding (mm/frame)"), "{report}");
     assert!(rows[2].starts_with("| Ground truth |"), "{report}");
     assert!(rows[3].starts_with("| Dex2HOI (this run) |"), "{report}");
-    assert_eq!(rows[2].matches('|').count(), rows[0].matches('|').count());
+    let columns = rows[0].matches('|').count();
+    assert_eq!(rows[1].matches('|').count(), columns, "the separator has one cell per column");
+    assert_eq!(rows[2].matches('|').count(), columns);
+    assert_eq!(rows[3].matches('|').count(), columns);
     assert!(report.contains("4 test sequences") && report.contains("2 replications"), "{report}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("report/report.json")).unwrap()).unwrap();

@@ -550,7 +550,7 @@ impl Report {
         out.push_str(
             "| Method | R-prec. top-1 ↑ | top-2 ↑ | top-3 ↑ | FID ↓ | MMdist ↓ | Diversity → | MModality ↑ | Pen. depth (mm) ↓ | Pen. frames (%) ↓ | Contact P ↑ | Contact R ↑ | Contact F1 ↑ | Hand-obj. dist. (mm) ↓ | Foot sliding (mm/frame) ↓ | Mixture picks holding hand (%) ↑ | Runtime (s / clip) ↓ |\n",
         );
-        out.push_str(&format!("|{}\n", "---|".repeat(18)));
+        out.push_str(&format!("|{}\n", "---|".repeat(17)));
         for row in &self.rows {
             let p = &row.physical;
             out.push_str(&format!(
