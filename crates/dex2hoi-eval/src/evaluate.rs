@@ -244,42 +244,18 @@ fn conditioning<'a>(
     })
 }
 
-/// Softmax of the generated mixture logits, `[T, 2, 3]`.
-fn mixture_weights(
+/// The generated object features `[T, 2, 18]` out of both streams' features `[2, T, D]`.
+fn generated_object_features(
     generated: &GeneratedMotion,
     frames: usize,
     width: usize,
     body: usize,
 ) -> Vec<f32> {
-    let mut out = vec![0.0f32; frames * MAX_OBJECTS * 3];
+    let mut out = Vec::with_capacity(frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE);
     for t in 0..frames {
         for s in 0..MAX_OBJECTS {
             let row = &generated.features[(s * frames + t) * width..(s * frames + t + 1) * width];
-            let logits = &row[body + 15..body + 18];
-            let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let exp: Vec<f32> = logits.iter().map(|l| (l - max).exp()).collect();
-            let sum: f32 = exp.iter().sum();
-            for k in 0..3 {
-                out[(t * MAX_OBJECTS + s) * 3 + k] = exp[k] / sum;
-            }
-        }
-    }
-    out
-}
-
-/// Softmax of a sequence's ground-truth mixture logits over a window, `[T, 2, 3]`.
-fn truth_mixture_weights(sequence: &ProcessedSequence, start: usize, frames: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; frames * MAX_OBJECTS * 3];
-    for t in 0..frames {
-        for s in 0..MAX_OBJECTS {
-            let o = ((start + t) * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE;
-            let logits = &sequence.objects[o + 15..o + 18];
-            let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let exp: Vec<f32> = logits.iter().map(|l| (l - max).exp()).collect();
-            let sum: f32 = exp.iter().sum();
-            for k in 0..3 {
-                out[(t * MAX_OBJECTS + s) * 3 + k] = exp[k] / sum;
-            }
+            out.extend_from_slice(&row[body..body + OBJECT_FEATURE_SIZE]);
         }
     }
     out
@@ -343,7 +319,9 @@ pub fn evaluate(
         .iter()
         .zip(&truth_clips)
         .map(|(s, truth)| {
-            let weights = truth_mixture_weights(s, c.prefix_frames, clip);
+            let objects = &s.objects[c.prefix_frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE
+                ..(c.prefix_frames + clip) * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
+            let weights = metrics::mixture_weights_from_features(objects)?;
             let sample = clip_sample(truth, &run.skeleton, query_of(s), Some(&weights));
             measure(&sample, s, c.prefix_frames, clip)
         })
@@ -369,7 +347,9 @@ pub fn evaluate(
                 options.sampler,
             )?;
             runtimes.push(generated.seconds);
-            let weights = mixture_weights(&generated, clip, width, body);
+            let weights = metrics::mixture_weights_from_features(&generated_object_features(
+                &generated, clip, width, body,
+            ))?;
             let generated_clip = MotionClip::from_decoded(&generated.motion)?;
             let sample =
                 clip_sample(&generated_clip, &run.skeleton, query_of(sequence), Some(&weights));

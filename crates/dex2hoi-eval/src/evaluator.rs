@@ -42,7 +42,7 @@ use dex2hoi_model::checkpoint::{
 };
 use dex2hoi_model::text::{BuiltinTextConfig, BuiltinTextEncoder, UNKNOWN, Vocabulary, words};
 use dex2hoi_train::OptimizerConfig;
-use dex2hoi_train::optim::{AdamW, Parameter, learning_rate};
+use dex2hoi_train::optim::{AdamW, Parameter, learning_rate, parameters_of};
 use dex2hoi_train::trainer::step_rng;
 
 use crate::error::{EvalError, Result};
@@ -447,17 +447,8 @@ impl Evaluator {
 
     /// Every trained parameter, sorted by name: `motion.*` then `text.*`.
     pub fn parameters(&self) -> Vec<Parameter> {
-        let collect = |vars: &SeededVarMap, prefix: &str| {
-            let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
-            let mut out: Vec<Parameter> = data
-                .iter()
-                .map(|(name, var)| Parameter { name: format!("{prefix}{name}"), var: var.clone() })
-                .collect();
-            out.sort_by(|a, b| a.name.cmp(&b.name));
-            out
-        };
-        let mut parameters = collect(&self.motion_vars, "motion.");
-        parameters.extend(collect(&self.text_vars, "text."));
+        let mut parameters = parameters_of(&self.motion_vars, "motion.");
+        parameters.extend(parameters_of(&self.text_vars, "text."));
         parameters
     }
 

@@ -29,6 +29,18 @@ impl Parameter {
     }
 }
 
+/// The variables of a var map as parameters named `prefix + name`, sorted by name (the order
+/// of optimiser state and checkpoints).
+pub fn parameters_of(vars: &dex2hoi_model::SeededVarMap, prefix: &str) -> Vec<Parameter> {
+    let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
+    let mut out: Vec<Parameter> = data
+        .iter()
+        .map(|(name, var)| Parameter { name: format!("{prefix}{name}"), var: var.clone() })
+        .collect();
+    out.sort_by(|a, b| a.name.cmp(&b.name));
+    out
+}
+
 /// The learning rate at a step (0-based): linear warm-up to the peak, then cosine decay to
 /// `final_learning_rate_ratio` of the peak at the last step.
 pub fn learning_rate(config: &OptimizerConfig, step: usize, total_steps: usize) -> f64 {

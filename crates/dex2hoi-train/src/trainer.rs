@@ -29,7 +29,7 @@ use crate::batch::{BatchOptions, TrainingSet};
 use crate::config::{TextConfig, TrainConfig};
 use crate::error::{Result, TrainError};
 use crate::loss::{LossContext, Term};
-use crate::optim::{AdamW, Ema, Parameter, learning_rate};
+use crate::optim::{AdamW, Ema, Parameter, learning_rate, parameters_of};
 use crate::run::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
 
 /// Salt of the built-in text encoder's parameter seed (its names differ from the model's, the
@@ -130,18 +130,9 @@ pub fn text_module(
 
 /// Every trained parameter by checkpoint name, sorted: `model.*`, then `text_encoder.*`.
 pub fn trained_parameters(model_vars: &SeededVarMap, text: &TextModule) -> Vec<Parameter> {
-    let collect = |vars: &SeededVarMap, prefix: &str| {
-        let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
-        let mut out: Vec<Parameter> = data
-            .iter()
-            .map(|(name, var)| Parameter { name: format!("{prefix}{name}"), var: var.clone() })
-            .collect();
-        out.sort_by(|a, b| a.name.cmp(&b.name));
-        out
-    };
-    let mut parameters = collect(model_vars, "model.");
+    let mut parameters = parameters_of(model_vars, "model.");
     if let TextModule::Builtin { vars, .. } = text {
-        parameters.extend(collect(vars, "text_encoder."));
+        parameters.extend(parameters_of(vars, "text_encoder."));
     }
     parameters
 }
