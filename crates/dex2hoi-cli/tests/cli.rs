@@ -1,14 +1,7 @@
 //! The `dex2hoi` binary end to end.
 
-use std::process::Command;
-
-fn dex2hoi(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the binary runs")
-}
+mod common;
+use common::dex2hoi;
 
 #[test]
 fn synth_then_info() {

@@ -2,15 +2,9 @@
 //! table's rows and columns, the embeddings dump, and bad input.
 
 use std::path::Path;
-use std::process::Command;
 
-fn dex2hoi(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the binary runs")
-}
+mod common;
+use common::dex2hoi;
 
 fn ok(output: &std::process::Output) -> String {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));

@@ -1,15 +1,8 @@
 //! `dex2hoi evaluator train` end to end: a procedural dataset, a short training, the files, and
 //! bad input.
 
-use std::process::Command;
-
-fn dex2hoi(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the binary runs")
-}
+mod common;
+use common::dex2hoi;
 
 #[test]
 fn evaluator_train_writes_the_evaluator_and_refuses_bad_input() {

@@ -3,18 +3,13 @@
 //! and pickle; `$PYTHON`, else `python3`).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::OnceLock;
 
 use dex2hoi_data::dataset::{Dataset, Split};
 
-fn dex2hoi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the binary runs")
-}
+mod common;
+use common::dex2hoi;
 
 fn temp_dir(name: &str) -> PathBuf {
     let dir =

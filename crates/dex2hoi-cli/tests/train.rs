@@ -1,15 +1,9 @@
 //! `dex2hoi train` end to end: a procedural dataset, a short tiny run, a resume, bad input.
 
 use std::path::Path;
-use std::process::Command;
 
-fn dex2hoi(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_dex2hoi"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the binary runs")
-}
+mod common;
+use common::dex2hoi;
 
 fn config() -> String {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml").display().to_string()
