@@ -20,7 +20,6 @@
 //! [`MAX_OBJECTS`].
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::{DecodedMotion, ProcessedSequence};
 use dex2hoi_repr::object_repr::{MIXTURE_RANGE, OBJECT_FEATURE_SIZE, softmax3};
 use dex2hoi_repr::{MeshQuery, ObjectPose, Skeleton};
 use glam::{Mat3, Vec3};
@@ -793,7 +792,7 @@ pub struct MotionSample<'a> {
     /// `[T, J, 3]` joint positions in metres, Y up, floor at `y = 0`.
     pub joints: &'a [f32],
     /// `[T, 2, 3, 3]` object rotations (object to world), each matrix **row-major** as
-    /// [`ProcessedSequence::object_rotations`] stores them.
+    /// [`ProcessedSequence::object_rotations`](dex2hoi_data::features::ProcessedSequence::object_rotations) stores them.
     pub object_rotations: &'a [f32],
     /// `[T, 2, 3]` object positions (the origin of the mesh's frame in the world).
     pub object_positions: &'a [f32],
@@ -896,73 +895,6 @@ fn check_array(
         return Err(EvalError::invalid(what, "finite numbers", format!("{} at {i}", values[i])));
     }
     Ok(())
-}
-
-/// Owned arrays of one motion in the layout [`MotionSample`] borrows.
-#[derive(Debug, Clone, PartialEq)]
-pub struct MotionArrays {
-    /// `[T, J, 3]` joint positions.
-    pub joints: Vec<f32>,
-    /// `[T, 2, 3, 3]` row-major object rotations (identity for an empty slot).
-    pub object_rotations: Vec<f32>,
-    /// `[T, 2, 3]` object positions (zero for an empty slot).
-    pub object_positions: Vec<f32>,
-    /// Which slots hold an object.
-    pub present: [bool; MAX_OBJECTS],
-}
-
-impl MotionArrays {
-    /// The arrays of a motion decoded from features (a generated sample).
-    pub fn from_decoded(motion: &DecodedMotion) -> Self {
-        let frames = motion.joints.frames;
-        let joints = motion.joints.positions.iter().flat_map(|p| p.to_array()).collect();
-        let mut object_rotations = Vec::with_capacity(frames * MAX_OBJECTS * 9);
-        let mut object_positions = Vec::with_capacity(frames * MAX_OBJECTS * 3);
-        for t in 0..frames {
-            for slot in &motion.objects {
-                let (rotation, position) = slot
-                    .as_ref()
-                    .and_then(|(r, p)| Some((*r.get(t)?, *p.get(t)?)))
-                    .unwrap_or((Mat3::IDENTITY, Vec3::ZERO));
-                object_rotations.extend(rotation.transpose().to_cols_array());
-                object_positions.extend(position.to_array());
-            }
-        }
-        Self {
-            joints,
-            object_rotations,
-            object_positions,
-            present: std::array::from_fn(|slot| motion.objects[slot].is_some()),
-        }
-    }
-
-    /// The arrays of a processed (ground-truth) sequence.
-    pub fn from_processed(sequence: &ProcessedSequence) -> Self {
-        Self {
-            joints: sequence.joint_positions.clone(),
-            object_rotations: sequence.object_rotations.clone(),
-            object_positions: sequence.object_positions.clone(),
-            present: sequence.object_present,
-        }
-    }
-
-    /// A [`MotionSample`] borrowing these arrays.
-    pub fn sample<'a>(
-        &'a self,
-        skeleton: &'a Skeleton,
-        objects: [Option<&'a MeshQuery>; MAX_OBJECTS],
-        mixture_weights: Option<&'a [f32]>,
-    ) -> MotionSample<'a> {
-        MotionSample {
-            skeleton,
-            joints: &self.joints,
-            object_rotations: &self.object_rotations,
-            object_positions: &self.object_positions,
-            present: self.present,
-            objects,
-            mixture_weights,
-        }
-    }
 }
 
 /// The mixture weights `softmax(alpha)` (Eq. 4) of object features.
@@ -1177,7 +1109,7 @@ fn check_radius(radius_m: f32) -> Result<()> {
 }
 
 /// Ground-truth contact per frame and slot from `[T, 2, 2]` flags (slot, then left and right
-/// hand; as [`ProcessedSequence::hand_contact`]): `true` when either hand's flag is above 0.5.
+/// hand; as [`ProcessedSequence::hand_contact`](dex2hoi_data::features::ProcessedSequence::hand_contact)): `true` when either hand's flag is above 0.5.
 ///
 /// # Shapes
 /// - `truth_contact`: `[T, 2, 2]`.
@@ -1322,7 +1254,7 @@ pub fn contact_counts(
 /// slot-frames where the ground truth has contact.
 ///
 /// # Shapes
-/// - `truth_contact`: `[T, 2, 2]` ([`ProcessedSequence::hand_contact`]), the same `T` as the
+/// - `truth_contact`: `[T, 2, 2]` ([`ProcessedSequence::hand_contact`](dex2hoi_data::features::ProcessedSequence::hand_contact)), the same `T` as the
 ///   sample.
 ///
 /// # Errors
@@ -1468,7 +1400,7 @@ pub fn mixture_agreement_counts(
 ///
 /// # Shapes
 /// - `weights`: `[T, 2, 3]` (weights or logits), `truth_contact`: `[T, 2, 2]`
-///   ([`ProcessedSequence::hand_contact`]), the same `T`.
+///   ([`ProcessedSequence::hand_contact`](dex2hoi_data::features::ProcessedSequence::hand_contact)), the same `T`.
 ///
 /// # Errors
 /// As [`mixture_agreement_counts`].
