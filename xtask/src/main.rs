@@ -30,7 +30,7 @@ commands:
 /// The benchmarks `cargo xtask bench` knows: name, package, bench target.
 const BENCHES: [(&str, &str, &str); 3] = [
     ("repr", "dex2hoi-repr", "repr"),
-    ("sample", "dex2hoi-diffusion", "sample"),
+    ("sample", "dex2hoi-sample", "sample"),
     ("train", "dex2hoi-train", "train"),
 ];
 

@@ -12,7 +12,7 @@ use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_eval::evaluate::{EvaluateOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
-use dex2hoi_train::{TrainedRun, Weights};
+use dex2hoi_sample::{TrainedRun, Weights};
 
 /// Arguments of `dex2hoi evaluate`.
 #[derive(Debug, Args)]

@@ -11,11 +11,10 @@ use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
-use dex2hoi_train::sampling::{
-    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleRequest, SceneObject,
-    parse_timeline, sample,
+use dex2hoi_sample::{
+    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleRequest, SceneObject, TrainedRun,
+    Weights, parse_timeline, sample,
 };
-use dex2hoi_train::{TrainedRun, Weights};
 
 /// Arguments of `dex2hoi sample`.
 #[derive(Debug, Args)]
@@ -70,7 +69,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let objects = args
         .objects
         .iter()
-        .map(|spec| SceneObject::parse(spec).with_context(|| format!("object `{spec}`")))
+        .map(|spec| SceneObject::parse(spec).with_context(|| format!("--object `{spec}`")))
         .collect::<Result<Vec<_>>>()?;
     let device = Device::Cpu;
     let run = TrainedRun::load(&args.run, Weights::Ema, &device)

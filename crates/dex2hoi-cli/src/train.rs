@@ -8,7 +8,8 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 
 use dex2hoi_data::dataset::Dataset;
-use dex2hoi_train::{RunFiles, TrainConfig, TrainOptions, train};
+use dex2hoi_sample::RunFiles;
+use dex2hoi_train::{TrainConfig, TrainOptions, train};
 
 /// Arguments of `dex2hoi train`.
 #[derive(Debug, Args)]

@@ -5,16 +5,13 @@
 //! guidance computed in one batched call of the model.
 //!
 //! The samplers only see a [`Denoiser`]: anything that maps noisy samples and timesteps to
-//! `x0`, with a per-row switch to the null condition.
+//! `x0`, with a per-row switch to the null condition. This crate knows nothing of our network:
+//! `dex2hoi-sample` adapts the model to the trait and runs autoregressive generation.
 
 mod error;
-pub mod generate;
 mod sampler;
 mod schedule;
 
 pub use error::{DiffusionError, Result};
-pub use generate::{
-    Generation, ModelDenoiser, Normaliser, TimedText, WindowCondition, generate, sample_window,
-};
 pub use sampler::{Denoiser, SamplerConfig, SamplerKind, gaussian, sample, sample_timesteps};
 pub use schedule::{CosineSchedule, DEFAULT_DIFFUSION_STEPS};

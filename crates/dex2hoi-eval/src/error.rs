@@ -43,11 +43,14 @@ pub enum EvalError {
     /// An error from the model crate.
     #[error(transparent)]
     Model(#[from] dex2hoi_model::ModelError),
-    /// An error from the training crate (boxed: it is large, and clippy's `result_large_err`
-    /// would flag every function returning this crate's `Result`; `?` still converts through
-    /// the `From` impl below).
+    /// An error from the inference crate: loading a run, generating (boxed: it is large, and
+    /// clippy's `result_large_err` would flag every function returning this crate's `Result`;
+    /// `?` still converts through the `From` impl below).
     #[error(transparent)]
-    Train(Box<dex2hoi_train::TrainError>),
+    Sample(Box<dex2hoi_sample::SampleError>),
+    /// An error from the optimiser.
+    #[error(transparent)]
+    Optim(#[from] dex2hoi_optim::OptimError),
     /// An error from the geometry crate.
     #[error(transparent)]
     Repr(#[from] dex2hoi_repr::ReprError),
@@ -59,9 +62,9 @@ pub enum EvalError {
     Tensor(#[from] candle_core::Error),
 }
 
-impl From<dex2hoi_train::TrainError> for EvalError {
-    fn from(error: dex2hoi_train::TrainError) -> Self {
-        Self::Train(Box::new(error))
+impl From<dex2hoi_sample::SampleError> for EvalError {
+    fn from(error: dex2hoi_sample::SampleError) -> Self {
+        Self::Sample(Box::new(error))
     }
 }
 

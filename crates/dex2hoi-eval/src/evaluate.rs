@@ -22,8 +22,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{OBJECT_FEATURE_SIZE, ProcessedSequence};
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::MeshQuery;
-use dex2hoi_train::TrainedRun;
-use dex2hoi_train::sampling::{Conditioning, GeneratedMotion, generate_motion};
+use dex2hoi_sample::{Conditioning, GeneratedMotion, TrainedRun, generate_motion};
 
 use crate::error::{EvalError, Result};
 use crate::evaluator::{Evaluator, MotionClip};

@@ -41,9 +41,7 @@ use dex2hoi_model::checkpoint::{
     FORMAT_KEY, assign_parameters, named_parameters, read_tensors, write_tensors,
 };
 use dex2hoi_model::text::{BuiltinTextConfig, BuiltinTextEncoder, UNKNOWN, Vocabulary, words};
-use dex2hoi_train::OptimizerConfig;
-use dex2hoi_train::optim::{AdamW, Parameter, learning_rate, parameters_of};
-use dex2hoi_train::trainer::step_rng;
+use dex2hoi_optim::{AdamW, OptimizerConfig, Parameter, learning_rate, parameters_of, step_rng};
 
 use crate::error::{EvalError, Result};
 
@@ -447,8 +445,8 @@ impl Evaluator {
 
     /// Every trained parameter, sorted by name: `motion.*` then `text.*`.
     pub fn parameters(&self) -> Vec<Parameter> {
-        let mut parameters = parameters_of(&self.motion_vars, "motion.");
-        parameters.extend(parameters_of(&self.text_vars, "text."));
+        let mut parameters = parameters_of(self.motion_vars.var_map(), "motion.");
+        parameters.extend(parameters_of(self.text_vars.var_map(), "text."));
         parameters
     }
 

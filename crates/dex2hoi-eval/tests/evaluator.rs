@@ -14,7 +14,7 @@ use dex2hoi_eval::EvalError;
 use dex2hoi_eval::evaluator::{
     EVALUATOR_FILE, Evaluator, EvaluatorConfig, MotionClip, STATS_FILE, train_evaluator,
 };
-use dex2hoi_train::trainer::step_rng;
+use dex2hoi_optim::step_rng;
 
 fn dataset() -> &'static Dataset {
     static DATA: OnceLock<Dataset> = OnceLock::new();

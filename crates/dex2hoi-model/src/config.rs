@@ -5,6 +5,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{ModelError, Result};
 
+/// The presets of `configs/` at the repository root, compiled in: the one source of every
+/// preset's numbers. Each is a whole training configuration; the model reads its `[model]`
+/// table ([`ModelConfig::preset`]) and `dex2hoi-train` the rest.
+pub const PRESETS: [(&str, &str); 4] = [
+    ("tiny", include_str!("../../../configs/tiny.toml")),
+    ("demo", include_str!("../../../configs/demo.toml")),
+    ("small", include_str!("../../../configs/small.toml")),
+    ("paper", include_str!("../../../configs/paper.toml")),
+];
+
 /// How object motion is represented (paper Sec. 3.1; Table 3 "w/o hand-relative").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -72,60 +82,39 @@ pub struct ModelConfig {
 }
 
 impl ModelConfig {
-    fn base(
-        latent: usize,
-        layers: usize,
-        heads: usize,
-        feed_forward: usize,
-        fusion_layers: usize,
-    ) -> Self {
-        Self {
-            joints: 52,
-            latent,
-            layers,
-            heads,
-            feed_forward,
-            fusion_layers,
-            dropout: 0.0,
-            prefix_frames: 20,
-            predicted_frames: 40,
-            text_embedding: 256,
-            bps_points: 1024,
-            object_representation: ObjectRepresentation::HandRelative,
-            stream_layout: StreamLayout::Dual,
-            body_fusion: BodyFusion::Network,
-        }
-    }
-
-    /// For tests: latent 32, 2 layers, 2 heads, ff 64, fusion 1 layer, short windows.
+    /// For tests: `configs/tiny.toml` (latent 32, 2 layers, short windows).
     pub fn tiny() -> Self {
-        Self {
-            prefix_frames: 4,
-            predicted_frames: 8,
-            text_embedding: 16,
-            bps_points: 16,
-            ..Self::base(32, 2, 2, 64, 1)
-        }
+        Self::compiled_in("tiny")
     }
 
-    /// The CPU default: latent 256, 4 layers, 4 heads, ff 512, fusion 2 layers.
+    /// The CPU default: `configs/small.toml` (latent 256, 4 layers).
     pub fn small() -> Self {
-        Self::base(256, 4, 4, 512, 2)
+        Self::compiled_in("small")
     }
 
-    /// The paper's size (MDM's): latent 512, 8 layers, 4 heads, ff 1024, fusion 4, dropout 0.1.
+    /// The paper's size (MDM's): `configs/paper.toml` (latent 512, 8 layers, dropout 0.1).
     pub fn paper() -> Self {
-        Self { dropout: 0.1, ..Self::base(512, 8, 4, 1024, 4) }
+        Self::compiled_in("paper")
     }
 
-    /// A preset by name: `tiny`, `small` or `paper`.
+    /// The `[model]` table of a preset of `configs/` by name (see [`PRESETS`]).
     pub fn preset(name: &str) -> Result<Self> {
-        match name {
-            "tiny" => Ok(Self::tiny()),
-            "small" => Ok(Self::small()),
-            "paper" => Ok(Self::paper()),
-            other => Err(ModelError::config("preset", "tiny, small or paper", other)),
+        let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+            let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
+            ModelError::config("preset", names.join(", "), name)
+        })?;
+        #[derive(Deserialize)]
+        struct ModelTable {
+            model: ModelConfig,
         }
+        let table: ModelTable = toml::from_str(text).map_err(|e| {
+            ModelError::config(&format!("configs/{name}.toml"), "a [model] table", e.message())
+        })?;
+        Ok(table.model)
+    }
+
+    fn compiled_in(name: &str) -> Self {
+        Self::preset(name).expect("the compiled-in presets parse (tested)")
     }
 
     /// Numbers per frame of the body part `[h, r]`.

@@ -12,7 +12,7 @@ pub mod text;
 pub mod text_bert;
 pub mod text_clip;
 
-pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
+pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, StreamLayout};
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
 pub use model::{Model, ModelInput};

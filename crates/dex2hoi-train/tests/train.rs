@@ -144,8 +144,7 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
     }
     // The log of the resumed run has each logged step once, with the same losses.
     let log = |dir: &Path| -> Vec<(usize, f64)> {
-        dex2hoi_train::RunFiles::new(dir)
-            .read_metrics()
+        dex2hoi_train::read_metrics(&dex2hoi_sample::RunFiles::new(dir))
             .unwrap()
             .into_iter()
             .map(|l| (l.step, l.loss))

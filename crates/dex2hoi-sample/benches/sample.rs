@@ -10,11 +10,9 @@ use candle_core::{DType, Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_diffusion::{
-    CosineSchedule, Generation, Normaliser, SamplerConfig, TimedText, WindowCondition, generate,
-    sample_window,
-};
+use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::{BodyFusion, Model, ModelConfig, SeededVarMap, StreamLayout};
+use dex2hoi_sample::{Generation, Normaliser, TimedText, WindowCondition, generate, sample_window};
 
 fn median(runs: usize, mut f: impl FnMut()) -> Duration {
     f();

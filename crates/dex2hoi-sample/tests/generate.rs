@@ -5,10 +5,9 @@ use candle_core::{DType, Device, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_diffusion::{
-    CosineSchedule, Generation, Normaliser, SamplerConfig, SamplerKind, TimedText, generate,
-};
+use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{Model, ModelConfig, SeededVarMap};
+use dex2hoi_sample::{Generation, Normaliser, TimedText, generate};
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
     let n: usize = shape.iter().product();

@@ -1,60 +1,11 @@
-//! AdamW (decoupled weight decay) with linear warm-up and cosine decay, global gradient-norm
-//! clipping, and an exponential moving average of the weights for sampling. The state is plain
-//! `f32` vectors per parameter so that a checkpoint holds it exactly and a resumed run continues
-//! bit for bit.
+//! AdamW with decoupled weight decay and global gradient-norm clipping.
 
 use candle_core::backprop::GradStore;
-use candle_core::{DType, Tensor, Var};
+use candle_core::{DType, Tensor};
 
 use crate::config::OptimizerConfig;
 use crate::error::Result;
-
-/// A trained parameter with its checkpoint name (`model.blocks.0...`, `text_encoder....`).
-#[derive(Debug, Clone)]
-pub struct Parameter {
-    /// The checkpoint name.
-    pub name: String,
-    /// The variable.
-    pub var: Var,
-}
-
-impl Parameter {
-    /// Matrices (rank >= 2) decay; biases and vectors do not.
-    fn decays(&self) -> bool {
-        self.var.rank() >= 2
-    }
-
-    fn values(&self) -> Result<Vec<f32>> {
-        Ok(self.var.as_tensor().flatten_all()?.to_dtype(DType::F32)?.to_vec1()?)
-    }
-}
-
-/// The variables of a var map as parameters named `prefix + name`, sorted by name (the order
-/// of optimiser state and checkpoints).
-pub fn parameters_of(vars: &dex2hoi_model::SeededVarMap, prefix: &str) -> Vec<Parameter> {
-    let data = vars.var_map().data().lock().expect("the var map lock is not poisoned");
-    let mut out: Vec<Parameter> = data
-        .iter()
-        .map(|(name, var)| Parameter { name: format!("{prefix}{name}"), var: var.clone() })
-        .collect();
-    out.sort_by(|a, b| a.name.cmp(&b.name));
-    out
-}
-
-/// The learning rate at a step (0-based): linear warm-up to the peak, then cosine decay to
-/// `final_learning_rate_ratio` of the peak at the last step.
-pub fn learning_rate(config: &OptimizerConfig, step: usize, total_steps: usize) -> f64 {
-    let warm = if config.warmup_steps == 0 {
-        1.0
-    } else {
-        ((step + 1) as f64 / config.warmup_steps as f64).min(1.0)
-    };
-    let decay_steps = total_steps.saturating_sub(config.warmup_steps).max(1);
-    let progress = (step.saturating_sub(config.warmup_steps) as f64 / decay_steps as f64).min(1.0);
-    let ratio = config.final_learning_rate_ratio;
-    let cosine = ratio + (1.0 - ratio) * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos());
-    config.learning_rate * warm * cosine
-}
+use crate::parameter::Parameter;
 
 /// What one update did.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -141,31 +92,5 @@ impl AdamW {
             parameter.var.set(&tensor)?;
         }
         Ok(UpdateReport { learning_rate, gradient_norm })
-    }
-}
-
-/// The exponential moving average of the parameters (the weights used for sampling).
-#[derive(Debug, Clone)]
-pub struct Ema {
-    /// Averaged values per parameter.
-    pub values: Vec<Vec<f32>>,
-}
-
-impl Ema {
-    /// Starts at the parameters' current values.
-    pub fn new(parameters: &[Parameter]) -> Result<Self> {
-        Ok(Self { values: parameters.iter().map(Parameter::values).collect::<Result<_>>()? })
-    }
-
-    /// `ema = d ema + (1 - d) theta` with `d = min(decay, (1 + step) / (10 + step))`.
-    pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
-        let d = decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32;
-        for (average, parameter) in self.values.iter_mut().zip(parameters) {
-            let values = parameter.values()?;
-            for (a, v) in average.iter_mut().zip(values) {
-                *a = d * *a + (1.0 - d) * v;
-            }
-        }
-        Ok(())
     }
 }

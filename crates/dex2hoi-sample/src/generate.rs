@@ -1,0 +1,252 @@
+//! Autoregressive generation of any length over prefix-conditioned windows (paper Sec. 3.2),
+//! with a timeline of prompts (a text per time span, beyond the paper), and decoding the
+//! generated features of a trained run into rotations, joint positions and object poses.
+//!
+//! Features are normalised with the dataset statistics before they reach the model and
+//! denormalised after. Generated frames keep the convention of the dataset: the root
+//! displacement is measured from the first frame of the whole generation, so a window's prefix
+//! is simply the last `T_p` generated frames, objects included.
+
+use std::time::Instant;
+
+use candle_core::{DType, Tensor};
+use glam::Vec3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::features::{DecodedMotion, OBJECT_FEATURE_SIZE, ObjectDecoding, decode_features};
+use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
+use dex2hoi_model::text::reject_empty;
+use dex2hoi_model::{Model, ObjectRepresentation};
+
+use crate::denoiser::{WindowCondition, sample_window};
+use crate::error::{Result, SampleError};
+use crate::run::TrainedRun;
+
+/// A prompt that applies from a frame on (frames counted from the first generated frame).
+#[derive(Debug, Clone)]
+pub struct TimedText {
+    /// First frame the prompt applies to.
+    pub start_frame: usize,
+    /// Its embedding, `[B, E]`.
+    pub embedding: Tensor,
+}
+
+/// Per-channel normalisation of stream features.
+#[derive(Debug, Clone)]
+pub struct Normaliser {
+    /// `[D]` means.
+    pub mean: Tensor,
+    /// `[D]` standard deviations.
+    pub std: Tensor,
+}
+
+impl Normaliser {
+    /// `(x - mean) / std` over the last dimension.
+    pub fn normalise(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.broadcast_sub(&self.mean)?.broadcast_div(&self.std)?)
+    }
+
+    /// `x * std + mean` over the last dimension.
+    pub fn denormalise(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.broadcast_mul(&self.std)?.broadcast_add(&self.mean)?)
+    }
+}
+
+/// What an autoregressive generation needs.
+#[derive(Debug, Clone)]
+pub struct Generation<'a> {
+    /// The network.
+    pub model: &'a Model,
+    /// The diffusion schedule it was trained with.
+    pub schedule: &'a CosineSchedule,
+    /// Feature statistics.
+    pub normaliser: &'a Normaliser,
+    /// The starting state: `T_p` clean frames, `[B, 2, T_p, D]` (unnormalised).
+    pub initial_prefix: Tensor,
+    /// Prompts by start frame; the first must start at frame 0.
+    pub timeline: Vec<TimedText>,
+    /// BPS features per object slot, `[B, 2, P * 3]`.
+    pub bps: Tensor,
+    /// Object presence, `[B, 2]`.
+    pub presence: Tensor,
+    /// Frames to generate after the initial prefix.
+    pub frames: usize,
+    /// Sampler settings.
+    pub sampler: SamplerConfig,
+}
+
+/// Generates `frames` frames after the initial prefix, window by window: each window's prefix
+/// is the last `T_p` frames so far, its prompt the timeline entry in force at its first frame.
+///
+/// # Shapes
+/// - returns `[B, 2, frames, D]` (unnormalised features)
+pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor> {
+    let c = request.model.config();
+    let (tp, tf) = (c.prefix_frames, c.predicted_frames);
+    if request.frames == 0 {
+        return Err(SampleError::invalid("generation", "frames to generate", "at least 1", 0));
+    }
+    if request.timeline.first().map(|t| t.start_frame) != Some(0) {
+        return Err(SampleError::invalid(
+            "generation",
+            "timeline",
+            "prompts by start frame, the first at frame 0",
+            format!("{} prompts", request.timeline.len()),
+        ));
+    }
+    if request.timeline.windows(2).any(|w| w[1].start_frame <= w[0].start_frame) {
+        return Err(SampleError::invalid(
+            "generation",
+            "timeline",
+            "increasing start frames",
+            "a repeated or decreasing start",
+        ));
+    }
+    let mut history = request.normaliser.normalise(
+        &request.initial_prefix.to_dtype(DType::F32)?.to_dtype(request.model.dtype())?,
+    )?;
+    if history.dims().get(2) != Some(&tp) {
+        return Err(SampleError::invalid(
+            "generation",
+            "initial prefix",
+            format!("{tp} frames"),
+            format!("{:?}", history.dims()),
+        ));
+    }
+    let mut produced = 0;
+    let mut windows = Vec::new();
+    while produced < request.frames {
+        let text = request
+            .timeline
+            .iter()
+            .rev()
+            .find(|t| t.start_frame <= produced)
+            .map(|t| t.embedding.clone())
+            .unwrap_or_else(|| request.timeline[0].embedding.clone());
+        let length = history.dims()[2];
+        let condition = WindowCondition {
+            prefix: history.narrow(2, length - tp, tp)?,
+            text: text.to_dtype(request.model.dtype())?,
+            bps: request.bps.to_dtype(request.model.dtype())?,
+            presence: request.presence.to_dtype(request.model.dtype())?,
+        };
+        let window =
+            sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;
+        let keep = tf.min(request.frames - produced);
+        let window = window.narrow(2, 0, keep)?;
+        history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
+        windows.push(window);
+        produced += keep;
+    }
+    request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)
+}
+/// What a generation is conditioned on besides the model.
+#[derive(Debug, Clone)]
+pub struct Conditioning<'a> {
+    /// The initial prefix, unnormalised features `[2, T_p, D]` flattened (stream A then B); its
+    /// root displacement is measured from the canonical start (`r = 0` stands at the origin).
+    pub prefix: Vec<f32>,
+    /// BPS per slot, `[2, P * 3]` flattened (zeros for an empty slot).
+    pub bps: Vec<f32>,
+    /// Which slots hold an object.
+    pub present: [bool; MAX_OBJECTS],
+    /// Prompts by start frame (the first at 0).
+    pub prompts: Vec<(usize, &'a str)>,
+    /// The root position the prefix's root displacement is measured from.
+    pub root_start: Vec3,
+}
+
+/// A generated motion with its features.
+#[derive(Debug, Clone)]
+pub struct GeneratedMotion {
+    /// Decoded rotations, FK and object poses.
+    pub motion: DecodedMotion,
+    /// The unnormalised features of both streams, `[2, frames, D]` flattened.
+    pub features: Vec<f32>,
+    /// Seconds the generation took.
+    pub seconds: f64,
+}
+
+/// Generates `frames` frames after a prefix with a trained run (the weights it was loaded
+/// with) and decodes them, the root measured from the conditioning's `root_start`.
+pub fn generate_motion(
+    run: &TrainedRun,
+    conditioning: &Conditioning<'_>,
+    frames: usize,
+    seed: u64,
+    sampler: SamplerConfig,
+) -> Result<GeneratedMotion> {
+    let started = Instant::now();
+    let device = &run.device;
+    let config = &run.config.model;
+    let (width, body) = (config.stream_features(), config.body_features());
+    let bps_width = config.bps_points * 3;
+    if conditioning.prefix.len() != MAX_OBJECTS * config.prefix_frames * width
+        || conditioning.bps.len() != MAX_OBJECTS * bps_width
+    {
+        return Err(SampleError::invalid(
+            "generation",
+            "conditioning",
+            format!("a [2, {}, {width}] prefix and [2, {bps_width}] BPS", config.prefix_frames),
+            format!("{} and {} numbers", conditioning.prefix.len(), conditioning.bps.len()),
+        ));
+    }
+    if frames == 0 {
+        return Err(SampleError::invalid("generation", "frames", "at least 1", 0));
+    }
+    let texts: Vec<&str> = conditioning.prompts.iter().map(|p| p.1).collect();
+    reject_empty(&texts)?;
+    let initial_prefix = Tensor::from_vec(
+        conditioning.prefix.clone(),
+        (1, MAX_OBJECTS, config.prefix_frames, width),
+        device,
+    )?;
+    let timeline = conditioning
+        .prompts
+        .iter()
+        .map(|&(start_frame, text)| {
+            Ok(TimedText { start_frame, embedding: run.text.encode(&[text])?.to_device(device)? })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let presence: Vec<f32> = conditioning.present.iter().map(|&p| f32::from(u8::from(p))).collect();
+    let schedule = CosineSchedule::new(run.config.diffusion_steps)?;
+    let normaliser = run.normaliser()?;
+    let generation = Generation {
+        model: &run.model,
+        schedule: &schedule,
+        normaliser: &normaliser,
+        initial_prefix,
+        timeline,
+        bps: Tensor::from_vec(conditioning.bps.clone(), (1, MAX_OBJECTS, bps_width), device)?,
+        presence: Tensor::from_vec(presence, (1, MAX_OBJECTS), device)?,
+        frames,
+        sampler,
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;
+    let mut body_features = Vec::with_capacity(frames * body);
+    let mut object_features = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
+    for t in 0..frames {
+        body_features.extend_from_slice(&features[t * width..t * width + body]);
+        for s in 0..MAX_OBJECTS {
+            let row = &features[(s * frames + t) * width..(s * frames + t + 1) * width];
+            object_features[(t * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE..][..OBJECT_FEATURE_SIZE]
+                .copy_from_slice(&row[body..]);
+        }
+    }
+    let decoding = match config.object_representation {
+        ObjectRepresentation::HandRelative => ObjectDecoding::Mixture,
+        ObjectRepresentation::GlobalOnly => ObjectDecoding::GlobalOnly,
+    };
+    let motion = decode_features(
+        &run.skeleton,
+        &body_features,
+        &object_features,
+        conditioning.present,
+        conditioning.root_start,
+        decoding,
+    )?;
+    Ok(GeneratedMotion { motion, features, seconds: started.elapsed().as_secs_f64() })
+}

@@ -1,0 +1,137 @@
+//! Loading a trained run on any device: its configuration, the dataset manifest, the
+//! normalisation statistics, the network with the chosen weights and the text encoder.
+
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+
+use dex2hoi_data::dataset::{FeatureStats, Manifest};
+use dex2hoi_model::checkpoint::{assign_parameters, config_from_metadata, read_tensors};
+use dex2hoi_model::text::{TextEncoder, Vocabulary};
+use dex2hoi_model::{Model, SeededVarMap};
+use dex2hoi_repr::{Skeleton, SkeletonKind};
+
+use crate::config::RunConfig;
+use crate::error::{Result, SampleError};
+use crate::files::{RunFiles, STEP_KEY, VOCABULARY_KEY};
+use crate::generate::Normaliser;
+use crate::text::TextModule;
+
+/// Which weights to load.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Weights {
+    /// The exponential moving average (what sampling uses).
+    Ema,
+    /// The raw optimised weights.
+    Raw,
+}
+
+impl Weights {
+    /// The prefix of these weights' names in the checkpoint.
+    fn checkpoint_prefix(self) -> &'static str {
+        match self {
+            Self::Ema => "ema.",
+            Self::Raw => "",
+        }
+    }
+}
+
+/// A trained run ready to sample: configuration, manifest, statistics, model, text encoder.
+pub struct TrainedRun {
+    /// What sampling needs of the training configuration.
+    pub config: RunConfig,
+    /// The dataset manifest (skeleton, fps, BPS settings).
+    pub manifest: Manifest,
+    /// Normalisation statistics.
+    pub stats: FeatureStats,
+    /// The skeleton.
+    pub skeleton: Skeleton,
+    /// The network.
+    pub model: Model,
+    /// Its parameters.
+    pub model_vars: SeededVarMap,
+    /// The text encoder (trained built-in one, or frozen).
+    pub text: Box<dyn TextEncoder>,
+    /// Steps the checkpoint was trained for.
+    pub step: usize,
+    /// The device the model lives on.
+    pub device: Device,
+}
+
+impl std::fmt::Debug for TrainedRun {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TrainedRun").field("step", &self.step).finish_non_exhaustive()
+    }
+}
+
+impl TrainedRun {
+    /// Loads a run directory onto `device`.
+    pub fn load(dir: &Path, weights: Weights, device: &Device) -> Result<Self> {
+        let files = RunFiles::new(dir);
+        if !dir.is_dir() {
+            return Err(SampleError::run(dir, "run", "a run directory", "no such directory"));
+        }
+        let config = RunConfig::load(&files.config)?;
+        let manifest = files.read_manifest()?;
+        let stats = files.read_stats(config.model.stream_features())?;
+        let (tensors, metadata) = read_tensors(&files.checkpoint, device)?;
+        let stored = config_from_metadata(&files.checkpoint, &metadata)?;
+        if stored != config.model {
+            return Err(SampleError::run(
+                &files.checkpoint,
+                "model configuration",
+                "the model of config.toml",
+                "another model",
+            ));
+        }
+        let prefix = weights.checkpoint_prefix();
+        let model_vars = SeededVarMap::new(0);
+        let model = Model::new(&config.model, model_vars.builder(DType::F32, device))?;
+        assign_parameters(&model_vars, &tensors, &format!("{prefix}model."), &files.checkpoint)?;
+        let words: Vec<String> = metadata
+            .get(VOCABULARY_KEY)
+            .map(|w| serde_json::from_str(w))
+            .transpose()
+            .map_err(|e| SampleError::run(&files.checkpoint, VOCABULARY_KEY, "a word list", e))?
+            .unwrap_or_default();
+        // The built-in encoder's initial parameters are replaced by the checkpoint's below, so
+        // their seed does not matter.
+        let text = TextModule::new(
+            &config.text,
+            config.model.text_embedding,
+            Vocabulary::from_words(words),
+            0,
+            device,
+        )?;
+        if let TextModule::Builtin { vars, .. } = &text {
+            assign_parameters(
+                vars,
+                &tensors,
+                &format!("{prefix}text_encoder."),
+                &files.checkpoint,
+            )?;
+        }
+        let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
+        let skeleton = Skeleton::builtin(SkeletonKind::from_name(&manifest.skeleton)?);
+        Ok(Self {
+            config,
+            manifest,
+            stats,
+            skeleton,
+            model,
+            model_vars,
+            text: text.into_encoder(),
+            step,
+            device: device.clone(),
+        })
+    }
+
+    /// The normaliser of the run's statistics, on the run's device.
+    pub fn normaliser(&self) -> Result<Normaliser> {
+        let width = self.stats.mean.len();
+        Ok(Normaliser {
+            mean: Tensor::from_vec(self.stats.mean.clone(), width, &self.device)?,
+            std: Tensor::from_vec(self.stats.std.clone(), width, &self.device)?,
+        })
+    }
+}

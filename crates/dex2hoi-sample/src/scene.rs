@@ -1,0 +1,88 @@
+//! The scene a motion is generated in: objects from the catalogue or the user's meshes, and
+//! where they stand at the start (on a table in front of the character unless placed).
+
+use std::path::Path;
+
+use glam::{Mat3, Vec3};
+
+use dex2hoi_data::synth::catalogue::{CATALOGUE, catalogue_object};
+use dex2hoi_repr::{Mesh, ObjectPose};
+
+use crate::error::{Result, SampleError};
+
+/// Height of the default table top (the middle of the procedural dataset's 0.86-0.94 m).
+pub const DEFAULT_TABLE_HEIGHT: f32 = 0.90;
+/// Distance of the default object places in front of the character (metres along +Z).
+pub const DEFAULT_OBJECT_DEPTH: f32 = 0.39;
+/// Sideways distance of each object when there are two (metres along X; the left hand is +X).
+pub const DEFAULT_OBJECT_SIDE: f32 = 0.16;
+/// The default table's near edge (metres along +Z), for previews.
+pub const DEFAULT_TABLE_NEAR_EDGE: f32 = 0.25;
+
+/// An object of the scene: a name, a mesh centred on its bounding box, and where it stands.
+#[derive(Debug, Clone)]
+pub struct SceneObject {
+    /// Name (catalogue name or file stem).
+    pub name: String,
+    /// Mesh, centred on its bounding box.
+    pub mesh: Mesh,
+    /// Where the object frame's origin is at the start; `None` puts it on the table.
+    pub position: Option<Vec3>,
+}
+
+impl SceneObject {
+    /// An object from a specification: a catalogue name (`mug`) or an OBJ/PLY file, optionally
+    /// followed by `@x,y,z` (metres, character frame: +Z ahead, +X to the left, +Y up).
+    pub fn parse(spec: &str) -> Result<Self> {
+        let (what, position) = match spec.split_once('@') {
+            Some((what, at)) => {
+                let values: Vec<f32> = at
+                    .split(',')
+                    .map(|v| v.trim().parse::<f32>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| SampleError::invalid("object", spec, "NAME@x,y,z in metres", e))?;
+                if values.len() != 3 || values.iter().any(|v| !v.is_finite()) {
+                    return Err(SampleError::invalid(
+                        "object",
+                        spec,
+                        "three finite numbers after @",
+                        at,
+                    ));
+                }
+                (what, Some(Vec3::new(values[0], values[1], values[2])))
+            }
+            None => (spec, None),
+        };
+        let what = what.trim();
+        if let Some(object) = catalogue_object(what) {
+            return Ok(Self { name: object.name.to_string(), mesh: object.mesh(), position });
+        }
+        let path = Path::new(what);
+        let is_mesh = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("obj") || e.eq_ignore_ascii_case("ply"));
+        if !is_mesh {
+            let names: Vec<&str> = CATALOGUE.iter().map(|o| o.name).collect();
+            return Err(SampleError::invalid(
+                "object",
+                what,
+                format!("a catalogue object ({}) or an .obj/.ply file", names.join(", ")),
+                "neither",
+            ));
+        }
+        let mut mesh = Mesh::load(path)?;
+        mesh.recenter();
+        let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object").to_string();
+        Ok(Self { name, mesh, position })
+    }
+
+    /// The starting pose: the given position, or standing on the table at `default_place`.
+    pub fn start_pose(&self, default_place: (f32, f32), table_height: f32) -> ObjectPose {
+        let (low, high) = self.mesh.bounding_box();
+        let position = self.position.unwrap_or_else(|| {
+            Vec3::new(default_place.0, table_height + (high.y - low.y) / 2.0, default_place.1)
+        });
+        ObjectPose { rotation: Mat3::IDENTITY, position }
+    }
+}
