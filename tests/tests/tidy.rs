@@ -1,5 +1,6 @@
 //! Tidy checks that keep the workspace honest, run as ordinary tests: lints opted into,
-//! dependencies pinned once, the crate layering of `docs/ARCHITECTURE.md`, no stubs, docs present.
+//! dependencies pinned once, the crate layering of `docs/ARCHITECTURE.md`, no stubs, docs present,
+//! conventions cited from `docs/CONVENTIONS.md` by existing headings.
 
 use std::path::{Path, PathBuf};
 
@@ -216,6 +217,69 @@ fn no_stubs_or_ignored_tests() {
             assert!(!text.contains(pattern), "{}: contains `{pattern}`", file.display());
         }
     }
+}
+
+/// The repository's source and documentation files (`.rs`, `.md`, `.py`, `.toml`, `.sh`),
+/// outside `target/` and hidden folders.
+fn text_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).expect("readable dir") {
+        let path = entry.expect("entry").path();
+        let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        if path.is_dir() {
+            if name != "target" && !name.starts_with('.') {
+                text_files(&path, out);
+            }
+        } else if path
+            .extension()
+            .is_some_and(|e| ["rs", "md", "py", "toml", "sh"].iter().any(|x| e == *x))
+        {
+            out.push(path);
+        }
+    }
+}
+
+#[test]
+fn conventions_are_cited_from_inside_the_repository() {
+    let root = workspace_root();
+    let conventions =
+        std::fs::read_to_string(root.join("docs/CONVENTIONS.md")).expect("docs/CONVENTIONS.md");
+    let headings: Vec<&str> = conventions
+        .lines()
+        .filter(|l| l.starts_with('#'))
+        .map(|l| l.trim_start_matches('#').trim())
+        .collect();
+    let mut files = vec![root.join("README.md")];
+    for dir in ["crates", "docs", "xtask", "tests", "scripts", "configs"] {
+        if root.join(dir).is_dir() {
+            text_files(&root.join(dir), &mut files);
+        }
+    }
+    // Built from pieces so that this file does not match itself.
+    let outside = [concat!("REFERENCE", " section"), concat!("REFERENCE", ".md")];
+    let pointer = concat!("CONVENTIONS", ".md, \"");
+    let mut pointers = 0;
+    for file in files {
+        let text = std::fs::read_to_string(&file).expect("readable file");
+        for pattern in outside {
+            assert!(
+                !text.contains(pattern),
+                "{}: cites `{pattern}`, a document outside the repository; point at a section of \
+                 docs/CONVENTIONS.md instead",
+                file.display()
+            );
+        }
+        for (at, _) in text.match_indices(pointer) {
+            let rest = &text[at + pointer.len()..];
+            let heading = rest.split(['"', '\n']).next().unwrap_or_default();
+            assert!(
+                rest[heading.len()..].starts_with('"') && headings.contains(&heading),
+                "{}: cites docs/CONVENTIONS.md, \"{heading}\", which is not a heading there",
+                file.display()
+            );
+            pointers += 1;
+        }
+    }
+    assert!(pointers > 0, "the code cites docs/CONVENTIONS.md by heading");
 }
 
 #[test]

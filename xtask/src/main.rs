@@ -7,9 +7,11 @@
 //!   preset, two prompts sampled, exported and rendered; what is up to date is reused.
 //! - `ablate [--preset NAME] [--steps N]`: the paper's Table 3 on the procedural dataset: the
 //!   full model, its variants and the MDM-style baseline trained with equal budgets, evaluated
-//!   with one evaluator, written to `docs/results/ablation.md`.
+//!   with one evaluator, written to `docs/results/ablation.md`; resumable (see [`ablate`]).
 //! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
 //!   through, so that a checkout drives everything through xtask.
+
+mod ablate;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -41,7 +43,7 @@ fn main() -> Result<()> {
         Some("ci") => ci(&root),
         Some("bench") => bench(&root, args.get(1).map(String::as_str)),
         Some("demo") => demo(&root),
-        Some("ablate") => ablate(&root, &args[1..]),
+        Some("ablate") => ablate::ablate(&root, &args[1..]),
         Some(command @ ("train" | "sample" | "evaluate")) => {
             let mut forwarded =
                 vec!["run", "--release", "--quiet", "--locked", "-p", "dex2hoi-cli", "--"];
@@ -278,160 +280,4 @@ fn read(path: &Path) -> String {
 
 fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
-}
-
-/// A variant of `cargo xtask ablate`: a label, TOML lines replaced in `[model]` (from, to),
-/// and lines added to `[loss]`.
-type Ablation = (&'static str, &'static [(&'static str, &'static str)], &'static [&'static str]);
-
-/// The variants of `cargo xtask ablate`.
-const ABLATIONS: [Ablation; 7] = [
-    ("Dex2HOI (full)", &[], &[]),
-    ("fusion -> average", &[("body_fusion = \"network\"", "body_fusion = \"average\"")], &[]),
-    ("single stream", &[("stream_layout = \"dual\"", "stream_layout = \"single\"")], &[]),
-    ("w/o mixture supervision", &[], &["mixture_supervision = false"]),
-    (
-        "w/o hand-relative representation",
-        &[("object_representation = \"hand_relative\"", "object_representation = \"global_only\"")],
-        &[],
-    ),
-    ("w/o L_dist", &[], &["distance_loss = false"]),
-    (
-        "MDM-style baseline (single stream, global objects, L_diff + velocity/foot/penetration)",
-        &[
-            ("stream_layout = \"dual\"", "stream_layout = \"single\""),
-            (
-                "object_representation = \"hand_relative\"",
-                "object_representation = \"global_only\"",
-            ),
-        ],
-        &["mixture_supervision = false", "distance_loss = false"],
-    ),
-];
-
-/// `cargo xtask ablate`: one dataset, one evaluator, every variant trained for the same number
-/// of steps from the same seed and evaluated the same way; the rows of their reports make one
-/// table.
-fn ablate(root: &Path, args: &[String]) -> Result<()> {
-    let mut preset = "demo".to_string();
-    let mut steps: Option<String> = None;
-    let mut rest = args.iter();
-    while let Some(flag) = rest.next() {
-        match flag.as_str() {
-            "--preset" => preset = rest.next().context("--preset NAME")?.clone(),
-            "--steps" => steps = Some(rest.next().context("--steps N")?.clone()),
-            other => bail!("unknown ablate option `{other}` (use --preset NAME, --steps N)"),
-        }
-    }
-    let config_path = root.join(format!("configs/{preset}.toml"));
-    let base = std::fs::read_to_string(&config_path)
-        .with_context(|| format!("reading {}", config_path.display()))?;
-    cargo(root, &["build", "--release", "--locked", "-p", "dex2hoi-cli"])?;
-    let dir = root.join("target/ablate").join(&preset);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let path = |p: &Path| p.to_str().map(str::to_owned).context("a UTF-8 path");
-    let data = dir.join("data");
-    if !data.join("manifest.json").is_file() {
-        dex2hoi(
-            root,
-            &["data", "synth", "--out", &path(&data)?, "--sequences", "800", "--seed", "0"],
-        )?;
-    }
-    let evaluator = dir.join("evaluator");
-    if !evaluator.join("evaluator.safetensors").is_file() {
-        dex2hoi(
-            root,
-            &[
-                "evaluator",
-                "train",
-                "--data",
-                &path(&data)?,
-                "--out",
-                &path(&evaluator)?,
-                "--steps",
-                "300",
-            ],
-        )?;
-    }
-    let mut header = String::new();
-    let mut rows = Vec::new();
-    for (k, (label, model_changes, loss_lines)) in ABLATIONS.iter().enumerate() {
-        let mut config = base.clone();
-        for (from, to) in *model_changes {
-            if !config.contains(from) {
-                bail!("{}: expected the line `{from}` to change it", config_path.display());
-            }
-            config = config.replace(from, to);
-        }
-        if !loss_lines.is_empty() {
-            config.push_str(&format!("\n[loss]\n{}\n", loss_lines.join("\n")));
-        }
-        let variant = dir.join(format!("variant-{k}"));
-        let run = variant.join("run");
-        if variant.exists() {
-            std::fs::remove_dir_all(&variant)
-                .with_context(|| format!("removing {}", variant.display()))?;
-        }
-        std::fs::create_dir_all(&variant)?;
-        let variant_config = variant.join("config.toml");
-        write(&variant_config, &config)?;
-        let (config_arg, run_arg, data_arg) = (path(&variant_config)?, path(&run)?, path(&data)?);
-        let mut train =
-            vec!["train", "--config", &config_arg, "--data", &data_arg, "--out", &run_arg];
-        if let Some(steps) = &steps {
-            train.extend(["--steps", steps.as_str()]);
-        }
-        dex2hoi(root, &train)?;
-        let report = variant.join("report");
-        let (evaluator_arg, report_arg) = (path(&evaluator)?, path(&report)?);
-        dex2hoi(
-            root,
-            &[
-                "evaluate",
-                "--run",
-                &run_arg,
-                "--data",
-                &data_arg,
-                "--evaluator",
-                &evaluator_arg,
-                "--out",
-                &report_arg,
-                "--replications",
-                "2",
-                "--sequences",
-                "32",
-                "--ddim-steps",
-                "20",
-                "--multimodality",
-                "4,3,2",
-            ],
-        )?;
-        let text = read(&report.join("report.md"));
-        let table: Vec<&str> = text.lines().filter(|l| l.starts_with('|')).collect();
-        if table.len() < 4 {
-            bail!("{}: expected a table with a header, ground truth and the run", report.display());
-        }
-        if header.is_empty() {
-            header = format!("{}\n{}\n{}\n", table[0], table[1], table[2]);
-        }
-        let cells: Vec<&str> = table[3].split('|').collect();
-        rows.push(format!("| {label} |{}", cells[2..].join("|")));
-    }
-    let command = format!(
-        "cargo xtask ablate --preset {preset}{}",
-        steps.as_ref().map(|s| format!(" --steps {s}")).unwrap_or_default()
-    );
-    let table = format!(
-        "# Ablation on the procedural dataset (paper Table 3)\n\nMade by `{command}`: 800 \
-         procedural sequences (seed 0), every variant trained from the same seed for the same \
-         steps with the `{preset}` preset, all evaluated with one evaluator (300 steps) trained on \
-         the same data: 32 test sequences, 2 replications, 20 DDIM steps, MultiModality 4 x 3 x 2. \
-         Values are means with 95% intervals over the replications.\n\n{header}{}\n",
-        rows.join("\n")
-    );
-    let out = root.join("docs/results/ablation.md");
-    std::fs::create_dir_all(out.parent().context("docs/results")?)?;
-    write(&out, &table)?;
-    println!("{table}\nwritten to {}", out.display());
-    Ok(())
 }

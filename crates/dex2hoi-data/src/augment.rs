@@ -1,5 +1,6 @@
 //! Augmentation on extracted features: swapping the two streams and mirroring left/right
-//! (InterGen's augmentations, REFERENCE section 2). Both are exact and their own inverse.
+//! (InterGen's augmentations, docs/CONVENTIONS.md, "Augmentation"). Both are exact and their own
+//! inverse.
 //!
 //! Mirroring reflects the scene in the sagittal plane (`x -> -x`): joints trade places with their
 //! mirror joints (the skeleton's symmetry map), rotations `R -> M R M` with `M = diag(-1, 1, 1)`,

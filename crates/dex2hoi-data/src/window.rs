@@ -1,5 +1,6 @@
 //! Resampling to the target frame rate and cutting sequences into training windows of
-//! `T_p + T_f` frames (a clean prefix and the predicted frames; REFERENCE section 1).
+//! `T_p + T_f` frames (a clean prefix and the predicted frames;
+//! docs/CONVENTIONS.md, "Frame rate and windows").
 
 use glam::{Mat3, Quat, Vec3};
 

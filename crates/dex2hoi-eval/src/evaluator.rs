@@ -1,5 +1,5 @@
-//! Learned evaluators (REFERENCE section 6): a contrastive text-motion model and an action
-//! classifier, trained together on the training split of a dataset.
+//! Learned evaluators (docs/CONVENTIONS.md, "Embedding metrics"): a contrastive text-motion model
+//! and an action classifier, trained together on the training split of a dataset.
 //!
 //! - **Motion encoder** ([`MotionEncoder`]): a masked transformer over per-frame features of a
 //!   clip (joint positions relative to the first frame's root on the floor, both objects' 6D

@@ -1,5 +1,5 @@
 //! Metrics of the paper's tables: distribution metrics on embeddings and physical metrics on
-//! motions (paper Sec. 4.2; REFERENCE sections 5 and 6).
+//! motions (paper Sec. 4.2; docs/CONVENTIONS.md, "Evaluation protocols").
 //!
 //! **Embedding metrics** follow the MDM / T2M evaluation protocol: [`fid`], [`diversity`],
 //! [`multimodality`], [`r_precision`] and [`matching_distance`] (MMdist), all computed in `f64`
@@ -1176,7 +1176,7 @@ impl ContactCounts {
 }
 
 /// Contact precision, recall and F1 and the mean hand-object distance on ground-truth contact
-/// frames (CHOIS, REFERENCE section 5).
+/// frames (CHOIS, docs/CONVENTIONS.md, "Physical metrics").
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ContactScores {
     /// `TP / (TP + FP)`; 0 when nothing is predicted in contact.
@@ -1292,14 +1292,14 @@ pub fn contact_scores(
 // Foot sliding.
 // ---------------------------------------------------------------------------------------------
 
-/// Foot sliding in mm per frame (Zhang et al. 2018, MANN; REFERENCE section 5). The foot
-/// joints are the first (ankle) and the last (toe) joint of the skeleton groups `left_foot`
-/// and `right_foot` (one joint if a group has only one). For each foot joint and each pair of
-/// consecutive frames, with `h` the joint's mean height over the two frames and `H` its
-/// threshold ([`ANKLE_HEIGHT_M`] = 0.08 m, [`TOE_HEIGHT_M`] = 0.04 m): when `h < H` the
-/// horizontal (XZ) displacement `s` counts with weight `2 - 2^(h/H)` (1 on the floor, 0 at the
-/// threshold, up to 2 below the floor). The result is the weighted displacement averaged over
-/// all foot joints and frame pairs, in mm.
+/// Foot sliding in mm per frame (Zhang et al. 2018, MANN; docs/CONVENTIONS.md, "Physical metrics").
+/// The foot joints are the first (ankle) and the last (toe) joint of the skeleton groups
+/// `left_foot` and `right_foot` (one joint if a group has only one). For each foot joint and each
+/// pair of consecutive frames, with `h` the joint's mean height over the two frames and `H` its
+/// threshold ([`ANKLE_HEIGHT_M`] = 0.08 m, [`TOE_HEIGHT_M`] = 0.04 m): when `h < H` the horizontal
+/// (XZ) displacement `s` counts with weight `2 - 2^(h/H)` (1 on the floor, 0 at the threshold, up
+/// to 2 below the floor). The result is the weighted displacement averaged over all foot joints and
+/// frame pairs, in mm.
 ///
 /// # Shapes
 /// - `joints`: `[T, J, 3]`, `T >= 2`, metres, Y up, floor at `y = 0`.

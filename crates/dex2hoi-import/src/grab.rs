@@ -1,4 +1,4 @@
-//! GRAB (REFERENCE section 4): `grab/s{1..10}/{object}_{intent}[_{n}][_Retake].npz`, every
+//! GRAB (docs/CONVENTIONS.md, "GRAB"): `grab/s{1..10}/{object}_{intent}[_{n}][_Retake].npz`, every
 //! top-level entry a 0-d object array (pickled dicts of ndarrays); SMPL-X bodies with the
 //! subject's betas from `tools/subject_meshes/{gender}/s{n}_betas.npy`; one object whose mesh
 //! is a PLY under the GRAB root, posed in GRAB's transposed convention

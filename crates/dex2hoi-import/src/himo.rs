@@ -1,4 +1,4 @@
-//! HIMO (REFERENCE section 4): `data/smplx/<seq>.npz` (`betas (10)`, `global_orient`,
+//! HIMO (docs/CONVENTIONS.md, "HIMO"): `data/smplx/<seq>.npz` (`betas (10)`, `global_orient`,
 //! `body_pose`, `lhand_pose`, `rhand_pose` (full 45-D), `transl`), `data/object_pose/<seq>.npy`
 //! (a pickled dict `{name: {'transl': (T, 3), 'rot': (T, 3, 3)}}`, `v_world = rot @ v + transl`),
 //! `data/text/<seq>.txt` (one description per line) and `data/object_mesh/<Name>.obj`; Z up;

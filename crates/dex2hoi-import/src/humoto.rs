@@ -1,5 +1,5 @@
-//! HUMOTO (REFERENCE section 4): per sequence a folder `<seq>/` with the pickle `<seq>.pkl`
-//! (`armature`: per frame `{bone: [qw,qx,qy,qz, lx,ly,lz]}`; `objects`:
+//! HUMOTO (docs/CONVENTIONS.md, "HUMOTO"): per sequence a folder `<seq>/` with the pickle
+//! `<seq>.pkl` (`armature`: per frame `{bone: [qw,qx,qy,qz, lx,ly,lz]}`; `objects`:
 //! `{name: [[qw,qx,qy,qz, x,y,z] per frame]}`; optional `object_models`:
 //! `{name: {'mesh': (V, F)}}`) and the text `<seq>.yaml` (`short_script`); object meshes in
 //! `humoto_objects/<name>/<name>.obj`; the Mixamo 65-joint rig; Z up; 30 fps.
@@ -7,7 +7,8 @@
 //! The paper keeps clips with at most two moving objects; static objects (furniture the
 //! person never moves) are left out of the sequence.
 //!
-//! Reading of the armature (REFERENCE is silent on the frames, so this is the convention
+//! Reading of the armature (it differs from HUMOTO's own description of the bone frames in
+//! docs/CONVENTIONS.md, "HUMOTO", and is unchecked against a real file; this is the convention
 //! assumed and documented in `docs/FORMATS.md`): each bone's quaternion is its rotation
 //! relative to its parent with rest frames aligned to the Z-up world, and the `Hips` location
 //! is the root joint's world position in metres; the other bones' locations are their rest

@@ -1,5 +1,5 @@
 //! Native readers for the published GRAB, HUMOTO and HIMO datasets and their conversion into
-//! dex2hoi datasets (`dex2hoi data prepare`). REFERENCE section 4 describes the formats.
+//! dex2hoi datasets (`dex2hoi data prepare`). docs/CONVENTIONS.md, "Datasets", describes them.
 //!
 //! Everything is read as published, with no Python step: numpy `.npy`/`.npz` files including
 //! pickled object arrays ([`npy`], through the bounded, data-only [`pickle`] reader), Python

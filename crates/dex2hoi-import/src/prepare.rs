@@ -63,7 +63,7 @@ impl SourceFormat {
         }
     }
 
-    /// The up axis of the format's capture world (REFERENCE sections 1 and 4).
+    /// The up axis of the format's capture world (docs/CONVENTIONS.md, "Datasets").
     pub fn default_up_axis(self) -> UpAxis {
         UpAxis::Z
     }

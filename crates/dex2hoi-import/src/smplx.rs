@@ -1,6 +1,6 @@
-//! SMPL-X bodies of GRAB and HIMO: rest skeletons from a user-supplied model file and body
-//! shape (REFERENCE section 3: `J = J_regressor @ (v_template + shapedirs . betas)`), the hand
-//! PCA components of the model, and axis-angle parameters to the local rotations of the
+//! SMPL-X bodies of GRAB and HIMO: rest skeletons from a user-supplied model file and body shape
+//! (docs/CONVENTIONS.md, "Rest offsets": `J = J_regressor @ (v_template + shapedirs . betas)`), the
+//! hand PCA components of the model, and axis-angle parameters to the local rotations of the
 //! 52-joint skeleton.
 //!
 //! SMPL-X rotates the body about the rest pelvis `J_0`: the posed pelvis is `J_0 + transl`.
@@ -255,8 +255,8 @@ pub enum UpAxis {
 
 impl UpAxis {
     /// The rotation from the dataset's world to the project's Y-up world: for Z up the rows
-    /// `(1,0,0), (0,0,1), (0,-1,0)` (REFERENCE section 4, HUMOTO), which takes +Z to +Y and a
-    /// character facing -Y to facing +Z.
+    /// `(1,0,0), (0,0,1), (0,-1,0)` (docs/CONVENTIONS.md, "Coordinate frames and units"), which
+    /// takes +Z to +Y and a character facing -Y to facing +Z.
     pub fn to_y_up(self) -> Mat3 {
         match self {
             Self::Y => Mat3::IDENTITY,

@@ -1,7 +1,7 @@
 //! Forward kinematics: local joint rotations and a root position to global joint positions and
-//! rotations, `G_i = G_parent(i) [R_i | offset_i]` (REFERENCE section 3). The CPU version works
-//! on `glam` types; [`tensor_forward_kinematics`] is the batched, differentiable candle version
-//! that the training losses go through (paper Sec. 3.3).
+//! rotations, `G_i = G_parent(i) [R_i | offset_i]` (docs/CONVENTIONS.md, "Forward kinematics"). The
+//! CPU version works on `glam` types; [`tensor_forward_kinematics`] is the batched, differentiable
+//! candle version that the training losses go through (paper Sec. 3.3).
 //!
 //! The root position is the world position of the root joint (the pelvis), not a displacement
 //! from the rest pose: the identity pose with `root = rest_offsets[0]` gives the rest joints.

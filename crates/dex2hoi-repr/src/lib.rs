@@ -6,9 +6,9 @@
 //! over leading dimensions, differentiable) serve everything the training losses touch. Both
 //! agree to 1e-5 in `f32`.
 //!
-//! Conventions (REFERENCE section 1): metres, right-handed, Y up, the character facing +Z in its
-//! rest pose; rotation matrices act on column vectors; the 6D form is the first two rows
-//! (PyTorch3D).
+//! Conventions (docs/CONVENTIONS.md, "Coordinate frames and units"): metres, right-handed, Y up,
+//! the character facing +Z in its rest pose; rotation matrices act on column vectors; the 6D form
+//! is the first two rows (PyTorch3D).
 
 pub mod bps;
 pub mod error;

@@ -171,8 +171,8 @@ impl Mesh {
     }
 
     /// Moves the mesh so that its bounding-box centre is the origin (the object frame of
-    /// REFERENCE section 1) and returns the old centre, so that a pose given for the original
-    /// frame can be corrected: `p_centred = p_original + R c`.
+    /// docs/CONVENTIONS.md, "Object frame") and returns the old centre, so that a pose given for
+    /// the original frame can be corrected: `p_centred = p_original + R c`.
     pub fn recenter(&mut self) -> Vec3 {
         let (lo, hi) = self.bounding_box();
         let centre = (lo + hi) * 0.5;

@@ -71,7 +71,8 @@ pub struct Skeleton {
     groups: JointGroups,
 }
 
-/// SMPL-X joint names in the 52-joint order (REFERENCE section 3 without jaw and eyes).
+/// SMPL-X joint names in the 52-joint order (docs/CONVENTIONS.md, "SMPL-X 52": SMPL-X without jaw
+/// and eyes).
 const SMPLX52_BODY_NAMES: [&str; 22] = [
     "pelvis",
     "left_hip",
@@ -121,7 +122,7 @@ pub fn smplx52_to_55() -> [usize; 52] {
 }
 
 /// The public SMPL body offsets (child minus parent, metres, Y up) for joints 1-21
-/// (REFERENCE section 3).
+/// (docs/CONVENTIONS.md, "Rest offsets").
 const SMPL_BODY_OFFSETS: [[f32; 3]; 21] = [
     [0.0586, -0.0823, -0.0177],
     [-0.0603, -0.0905, -0.0135],
@@ -190,7 +191,7 @@ fn mixamo_names() -> Vec<String> {
 /// The prefix of every Mixamo bone name in the published files.
 pub const MIXAMO_PREFIX: &str = "mixamorig:";
 
-/// Parents of the 65 Mixamo joints (REFERENCE section 3).
+/// Parents of the 65 Mixamo joints (docs/CONVENTIONS.md, "Mixamo 65").
 pub const MIXAMO65_PARENTS: [i32; 65] = [
     -1, 0, 1, 2, 3, 4, 5, 3, 7, 8, 9, 10, 11, 12, 13, 10, 15, 16, 17, 10, 19, 20, 21, 10, 23, 24,
     25, 10, 27, 28, 29, 3, 31, 32, 33, 34, 35, 36, 37, 34, 39, 40, 41, 34, 43, 44, 45, 34, 47, 48,

@@ -1,5 +1,5 @@
-//! Real meshes that nobody here wrote (REFERENCE section 8), installed by `scripts/setup.sh`:
-//! pybullet's OBJ files (PyPI `pybullet`) and assimp's PLY files (Debian
+//! Real meshes that nobody here wrote (docs/CONVENTIONS.md, "Test assets"), installed by
+//! `scripts/setup.sh`: pybullet's OBJ files (PyPI `pybullet`) and assimp's PLY files (Debian
 //! `assimp-testmodels`). They load, their counts match the files, and their bounding boxes and
 //! signed distances are sane.
 
