@@ -171,81 +171,10 @@ impl LossContext {
         batch: &Batch,
         timesteps: &[usize],
     ) -> Result<Objective> {
-        let (b, _, tf, d) = prediction.dims4()?;
-        let (dtype, device) = (prediction.dtype(), prediction.device().clone());
-        let tp = self.prefix_frames;
-        let t_all = tp + tf;
-        let joints = self.skeleton.joint_count();
-        let body = 6 * joints + 3;
-        let constant = |values: Vec<f32>, shape: &[usize]| -> Result<Tensor> {
-            Ok(Tensor::from_vec(values, shape, &device)?.to_dtype(dtype)?)
-        };
-        let frame_valid = |i: usize, k: usize| batch.frame_mask_values[i * t_all + tp + k];
-        let gate: Vec<f32> = timesteps
-            .iter()
-            .map(|&t| match self.config.geometric_max_timestep {
-                Some(limit) if t > limit => 0.0,
-                _ => 1.0,
-            })
-            .collect();
-        let target = batch.features.narrow(2, tp, tf)?.to_dtype(dtype)?;
+        let window = Window::new(self, prediction, batch, timesteps)?;
+        let target = batch.features.narrow(2, window.tp, window.tf)?.to_dtype(window.dtype)?;
         let mut terms: Vec<(Term, Tensor)> = Vec::new();
-
-        // L_diff and the feature part of L_vel: the body once (both streams carry the fused
-        // body), each present object's channels in its own stream.
-        let object_channel: Vec<f32> = (0..OBJECT_FEATURE_SIZE)
-            .map(|c| {
-                let hand_relative_only = LEFT_OFFSET_RANGE.contains(&c)
-                    || RIGHT_OFFSET_RANGE.contains(&c)
-                    || MIXTURE_RANGE.contains(&c);
-                if self.representation == ObjectRepresentation::GlobalOnly && hand_relative_only {
-                    0.0
-                } else {
-                    1.0
-                }
-            })
-            .collect();
-        let mut channels = vec![0.0f32; b * 2 * d];
-        for i in 0..b {
-            for s in 0..MAX_OBJECTS {
-                let row = &mut channels[(i * 2 + s) * d..(i * 2 + s + 1) * d];
-                if s == 0 {
-                    row[..body].fill(1.0);
-                }
-                if batch.presence_values[i][s] {
-                    row[body..].copy_from_slice(&object_channel);
-                }
-            }
-        }
-        let channel_sum: Vec<f32> =
-            (0..b).map(|i| channels[i * 2 * d..(i + 1) * 2 * d].iter().sum()).collect();
-        let diff = (prediction - &target)?;
-        if self.active(Term::Diffusion) {
-            let frames: Vec<f32> = (0..b * tf).map(|n| frame_valid(n / tf, n % tf)).collect();
-            let count: f32 = (0..b * tf).map(|n| frames[n] * channel_sum[n / tf]).sum();
-            let weight = constant(channels.clone(), &[b, 2, 1, d])?
-                .broadcast_mul(&constant(frames, &[b, 1, tf, 1])?)?;
-            let value =
-                (diff.sqr()? * weight)?.sum_all()?.affine(1.0 / f64::from(count.max(1.0)), 0.0)?;
-            terms.push((Term::Diffusion, value));
-        }
-        if self.active(Term::FeatureVelocity) && tf > 1 {
-            let pairs: Vec<f32> = (0..b * (tf - 1))
-                .map(|n| {
-                    let (i, k) = (n / (tf - 1), n % (tf - 1));
-                    frame_valid(i, k) * frame_valid(i, k + 1)
-                })
-                .collect();
-            let count: f32 = (0..b * (tf - 1)).map(|n| pairs[n] * channel_sum[n / (tf - 1)]).sum();
-            let weight = constant(channels.clone(), &[b, 2, 1, d])?
-                .broadcast_mul(&constant(pairs, &[b, 1, tf - 1, 1])?)?;
-            let velocity = (diff.narrow(2, 1, tf - 1)? - diff.narrow(2, 0, tf - 1)?)?;
-            let value = (velocity.sqr()? * weight)?
-                .sum_all()?
-                .affine(1.0 / f64::from(count.max(1.0)), 0.0)?;
-            terms.push((Term::FeatureVelocity, value));
-        }
-
+        self.feature_terms(&window, prediction, &target, &mut terms)?;
         let geometric = [
             Term::JointVelocity,
             Term::FootContact,
@@ -258,9 +187,8 @@ impl LossContext {
         .iter()
         .any(|&t| self.active(t));
         if geometric {
-            self.geometric_terms(prediction, &target, batch, &gate, &mut terms)?;
+            self.geometric_terms(&window, prediction, &target, &mut terms)?;
         }
-
         let mut total: Option<Tensor> = None;
         for (term, value) in &terms {
             let weighted = value.affine(term.weight(&self.config), 0.0)?;
@@ -271,120 +199,102 @@ impl LossContext {
         }
         let total = match total {
             Some(t) => t,
-            None => Tensor::zeros((), dtype, &device)?,
+            None => Tensor::zeros((), window.dtype, &window.device)?,
         };
         Ok(Objective { total, terms })
     }
 
-    fn geometric_terms(
+    /// `L_diff` and the feature part of `L_vel` on normalised features: the body once (both
+    /// streams carry the fused body), each present object's channels in its own stream.
+    fn feature_terms(
         &self,
+        window: &Window<'_>,
         prediction: &Tensor,
         target: &Tensor,
-        batch: &Batch,
-        gate: &[f32],
         terms: &mut Vec<(Term, Tensor)>,
     ) -> Result<()> {
-        let (b, _, tf, d) = prediction.dims4()?;
-        let (dtype, device) = (prediction.dtype(), prediction.device().clone());
-        let tp = self.prefix_frames;
-        let t_all = tp + tf;
-        let joints = self.skeleton.joint_count();
-        let body = 6 * joints + 3;
-        let cm = CENTIMETRES;
-        let constant = |values: Vec<f32>, shape: &[usize]| -> Result<Tensor> {
-            Ok(Tensor::from_vec(values, shape, &device)?.to_dtype(dtype)?)
-        };
-        let frame_valid = |i: usize, k: usize| batch.frame_mask_values[i * t_all + tp + k];
-        let mean = constant(self.mean.clone(), &[d])?;
-        let std = constant(self.std.clone(), &[d])?;
-        let raw = prediction.broadcast_mul(&std)?.broadcast_add(&mean)?;
-        let target_raw = target.broadcast_mul(&std)?.broadcast_add(&mean)?;
-
-        // Body: 6D -> matrices -> FK, roots measured from the sequence's first frame.
-        let body_raw = raw.narrow(1, 0, 1)?.squeeze(1)?.narrow(2, 0, body)?;
-        let rotations =
-            sixd_to_matrix(&body_raw.narrow(2, 0, 6 * joints)?.reshape((b, tf, joints, 6))?)?;
-        let root =
-            body_raw.narrow(2, 6 * joints, 3)?.broadcast_add(&batch.root_start.to_dtype(dtype)?)?;
-        let (positions, world_rotations) =
-            tensor_forward_kinematics(&self.skeleton, &rotations, &root)?;
-
-        if self.active(Term::JointVelocity) && tf > 1 {
-            let weights: Vec<f32> = (0..b * (tf - 1))
-                .map(|n| {
-                    let (i, k) = (n / (tf - 1), n % (tf - 1));
-                    frame_valid(i, k) * frame_valid(i, k + 1) * gate[i]
-                })
-                .collect();
-            let count = weights.iter().sum::<f32>() * (joints * 3) as f32;
-            let error = (&positions - batch.joints.to_dtype(dtype)?)?.affine(cm, 0.0)?;
-            let velocity = (error.narrow(1, 1, tf - 1)? - error.narrow(1, 0, tf - 1)?)?;
-            let value = velocity
-                .sqr()?
-                .broadcast_mul(&constant(weights, &[b, tf - 1, 1, 1])?)?
-                .sum_all()?
-                .affine(1.0 / f64::from(count.max(1.0)), 0.0)?;
-            terms.push((Term::JointVelocity, value));
-        }
-
-        if self.active(Term::FootContact) && tf > 1 {
-            let groups = self.skeleton.groups();
-            let feet = [
-                groups.left_foot[0],
-                groups.left_foot[groups.left_foot.len() - 1],
-                groups.right_foot[0],
-                groups.right_foot[groups.right_foot.len() - 1],
-            ];
-            let weights: Vec<f32> = (0..b * (tf - 1) * 4)
-                .map(|n| {
-                    let (i, k, f) = (n / ((tf - 1) * 4), (n / 4) % (tf - 1), n % 4);
-                    batch.foot_contact_values[(i * tf + k) * 4 + f]
-                        * frame_valid(i, k)
-                        * frame_valid(i, k + 1)
-                        * gate[i]
-                })
-                .collect();
-            let count: f32 = weights.iter().sum();
-            let index = Tensor::from_vec(feet.map(|j| j as u32).to_vec(), 4, &device)?;
-            let foot = positions.index_select(&index, 2)?.affine(cm, 0.0)?; // [B, T_f, 4, 3]
-            let velocity = (foot.narrow(1, 1, tf - 1)? - foot.narrow(1, 0, tf - 1)?)?;
-            let value = velocity
-                .sqr()?
-                .broadcast_mul(&constant(weights, &[b, tf - 1, 4, 1])?)?
-                .sum_all()?
-                .affine(1.0 / f64::from(count.max(1.0)), 0.0)?;
-            terms.push((Term::FootContact, value));
-        }
-
-        // Objects: the prediction's 18 numbers per slot, decoded with the predicted wrists.
-        let objects = raw.narrow(3, body, OBJECT_FEATURE_SIZE)?; // [B, 2, T_f, 18]
-        let target_objects = target_raw.narrow(3, body, OBJECT_FEATURE_SIZE)?;
-        let mut slot_frames = vec![0.0f32; b * 2 * tf];
-        let mut slot_frames_gated = vec![0.0f32; b * 2 * tf];
+        let (b, tf, d, body) = (window.batch, window.tf, window.width, window.body);
+        let object_channel: Vec<f32> = (0..OBJECT_FEATURE_SIZE)
+            .map(|c| {
+                let hand_relative_only = LEFT_OFFSET_RANGE.contains(&c)
+                    || RIGHT_OFFSET_RANGE.contains(&c)
+                    || MIXTURE_RANGE.contains(&c);
+                let supervised = self.representation == ObjectRepresentation::HandRelative
+                    || !hand_relative_only;
+                f32::from(u8::from(supervised))
+            })
+            .collect();
+        let mut channels = vec![0.0f32; b * 2 * d];
         for i in 0..b {
             for s in 0..MAX_OBJECTS {
-                if batch.presence_values[i][s] {
-                    for k in 0..tf {
-                        slot_frames[(i * 2 + s) * tf + k] = frame_valid(i, k);
-                        slot_frames_gated[(i * 2 + s) * tf + k] = frame_valid(i, k) * gate[i];
-                    }
+                let row = &mut channels[(i * 2 + s) * d..(i * 2 + s + 1) * d];
+                if s == 0 {
+                    row[..body].fill(1.0);
+                }
+                if window.batch_data.presence_values[i][s] {
+                    row[body..].copy_from_slice(&object_channel);
                 }
             }
         }
-        let slot_count = slot_frames.iter().sum::<f32>().max(1.0);
-        let slot_count_gated = slot_frames_gated.iter().sum::<f32>().max(1.0);
-        let slot_mask = constant(slot_frames.clone(), &[b, 2, tf, 1])?;
-        let slot_mask_gated = constant(slot_frames_gated.clone(), &[b, 2, tf, 1])?;
+        let channel_sum: Vec<f32> =
+            (0..b).map(|i| channels[i * 2 * d..(i + 1) * 2 * d].iter().sum()).collect();
+        let channels = window.constant(channels, &[b, 2, 1, d])?;
+        let diff = (prediction - target)?;
+        if self.active(Term::Diffusion) {
+            let frames: Vec<f32> =
+                (0..b * tf).map(|n| window.frame_valid(n / tf, n % tf)).collect();
+            let count: f32 = (0..b * tf).map(|n| frames[n] * channel_sum[n / tf]).sum();
+            let mask = Mask {
+                weight: channels.broadcast_mul(&window.constant(frames, &[b, 1, tf, 1])?)?,
+                count,
+            };
+            terms.push((Term::Diffusion, mask.mean(&diff.sqr()?, 1.0)?));
+        }
+        if self.active(Term::FeatureVelocity) && tf > 1 {
+            let pairs = window.frame_pairs(|_| 1.0);
+            let count: f32 = (0..b * (tf - 1)).map(|n| pairs[n] * channel_sum[n / (tf - 1)]).sum();
+            let mask = Mask {
+                weight: channels.broadcast_mul(&window.constant(pairs, &[b, 1, tf - 1, 1])?)?,
+                count,
+            };
+            terms.push((
+                Term::FeatureVelocity,
+                mask.mean(&frame_differences(&diff, 2)?.sqr()?, 1.0)?,
+            ));
+        }
+        Ok(())
+    }
 
+    /// The terms that decode the prediction: through FK (joint velocity, foot contact), the
+    /// object channels (Eq. 8, 10), the decoded object positions (Eq. 9) and the signed
+    /// distances of the joints to the predicted-pose objects (penetration, Eq. 11).
+    fn geometric_terms(
+        &self,
+        window: &Window<'_>,
+        prediction: &Tensor,
+        target: &Tensor,
+        terms: &mut Vec<(Term, Tensor)>,
+    ) -> Result<()> {
+        let (b, tf) = (window.batch, window.tf);
+        let raw = window.denormalise(prediction)?;
+        let target_raw = window.denormalise(target)?;
+        let body = self.body_kinematics(window, &raw)?;
+        if self.active(Term::JointVelocity) && tf > 1 {
+            terms.push((Term::JointVelocity, self.joint_velocity(window, &body)?));
+        }
+        if self.active(Term::FootContact) && tf > 1 {
+            terms.push((Term::FootContact, self.foot_contact(window, &body)?));
+        }
+
+        // Objects: the prediction's 18 numbers per slot, decoded with the predicted wrists.
+        let objects = raw.narrow(3, window.body, OBJECT_FEATURE_SIZE)?; // [B, 2, T_f, 18]
+        let target_objects = target_raw.narrow(3, window.body, OBJECT_FEATURE_SIZE)?;
+        let slots = window.slot_mask(false)?;
+        let gated_slots = window.slot_mask(true)?;
         if self.active(Term::Mixture) {
             let predicted = tensor_mixture_weights(&objects)?;
             let wanted = tensor_softmax(&target_objects.narrow(3, MIXTURE_RANGE.start, 3)?)?;
-            let value = (predicted - wanted)?
-                .sqr()?
-                .broadcast_mul(&slot_mask)?
-                .sum_all()?
-                .affine(1.0 / f64::from(slot_count), 0.0)?;
-            terms.push((Term::Mixture, value));
+            terms.push((Term::Mixture, slots.mean(&(predicted - wanted)?.sqr()?, 1.0)?));
         }
         if self.active(Term::Offset) {
             let part = |t: &Tensor, r: std::ops::Range<usize>| t.narrow(3, r.start, r.len());
@@ -392,24 +302,110 @@ impl LossContext {
                 (part(&objects, LEFT_OFFSET_RANGE)? - part(&target_objects, LEFT_OFFSET_RANGE)?)?;
             let right =
                 (part(&objects, RIGHT_OFFSET_RANGE)? - part(&target_objects, RIGHT_OFFSET_RANGE)?)?;
-            let value = (left.sqr()? + right.sqr()?)?
-                .broadcast_mul(&slot_mask)?
-                .sum_all()?
-                .affine(0.5 * cm * cm / f64::from(slot_count), 0.0)?;
-            terms.push((Term::Offset, value));
+            let cm2 = CENTIMETRES * CENTIMETRES;
+            terms.push((Term::Offset, slots.mean(&(left.sqr()? + right.sqr()?)?, 0.5 * cm2)?));
         }
-
         let needs_position = self.active(Term::Translation)
             || self.active(Term::Penetration)
             || self.active(Term::Distance);
         if !needs_position {
             return Ok(());
         }
-        let object_positions = match self.representation {
+        let object_positions = self.object_positions(&objects, &body, b, tf)?;
+        if self.active(Term::Translation) {
+            let error =
+                (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
+            let cm2 = CENTIMETRES * CENTIMETRES;
+            terms.push((Term::Translation, gated_slots.mean(&error.sqr()?, cm2)?));
+        }
+        if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
+            return Ok(());
+        }
+        let distances = self.signed_distances(window, &objects, &object_positions, &body)?;
+        if self.active(Term::Penetration) {
+            let joints = Mask {
+                weight: gated_slots.weight.clone(),
+                count: gated_slots.count * window.joints as f32,
+            };
+            terms.push((Term::Penetration, joints.mean(&distances.neg()?.relu()?, 1.0)?));
+        }
+        if self.active(Term::Distance) {
+            terms.push((Term::Distance, self.distance(window, &distances)?));
+        }
+        Ok(())
+    }
+
+    /// The predicted body through FK, roots measured from the sequence's first frame.
+    ///
+    /// # Shapes
+    /// - `raw`: `[B, 2, T_f, D]` denormalised; positions `[B, T_f, J, 3]`, rotations
+    ///   `[B, T_f, J, 3, 3]`
+    fn body_kinematics(&self, window: &Window<'_>, raw: &Tensor) -> Result<BodyKinematics> {
+        let (b, tf, joints) = (window.batch, window.tf, window.joints);
+        let body_raw = raw.narrow(1, 0, 1)?.squeeze(1)?.narrow(2, 0, window.body)?;
+        let rotations =
+            sixd_to_matrix(&body_raw.narrow(2, 0, 6 * joints)?.reshape((b, tf, joints, 6))?)?;
+        let root = body_raw
+            .narrow(2, 6 * joints, 3)?
+            .broadcast_add(&window.batch_data.root_start.to_dtype(window.dtype)?)?;
+        let (positions, world_rotations) =
+            tensor_forward_kinematics(&self.skeleton, &rotations, &root)?;
+        Ok(BodyKinematics { positions, world_rotations })
+    }
+
+    /// `L_vel` on joint positions: MSE of the error's frame-to-frame change, in cm.
+    fn joint_velocity(&self, window: &Window<'_>, body: &BodyKinematics) -> Result<Tensor> {
+        let (b, tf) = (window.batch, window.tf);
+        let weights = window.frame_pairs(|i| window.gate[i]);
+        let mask = Mask::new(window, weights, &[b, tf - 1, 1, 1], window.joints * 3)?;
+        let error = (&body.positions - window.batch_data.joints.to_dtype(window.dtype)?)?
+            .affine(CENTIMETRES, 0.0)?;
+        mask.mean(&frame_differences(&error, 1)?.sqr()?, 1.0)
+    }
+
+    /// Foot skating: the squared velocity (cm per frame) of the ankle and toe joints on frames
+    /// where the ground truth has them in contact.
+    fn foot_contact(&self, window: &Window<'_>, body: &BodyKinematics) -> Result<Tensor> {
+        let (b, tf) = (window.batch, window.tf);
+        let groups = self.skeleton.groups();
+        let feet = [
+            groups.left_foot[0],
+            groups.left_foot[groups.left_foot.len() - 1],
+            groups.right_foot[0],
+            groups.right_foot[groups.right_foot.len() - 1],
+        ];
+        let weights: Vec<f32> = (0..b * (tf - 1) * 4)
+            .map(|n| {
+                let (i, k, f) = (n / ((tf - 1) * 4), (n / 4) % (tf - 1), n % 4);
+                window.batch_data.foot_contact_values[(i * tf + k) * 4 + f]
+                    * window.frame_valid(i, k)
+                    * window.frame_valid(i, k + 1)
+                    * window.gate[i]
+            })
+            .collect();
+        let mask = Mask::new(window, weights, &[b, tf - 1, 4, 1], 1)?;
+        let index = Tensor::from_vec(feet.map(|j| j as u32).to_vec(), 4, &window.device)?;
+        let foot = body.positions.index_select(&index, 2)?.affine(CENTIMETRES, 0.0)?; // [B, T_f, 4, 3]
+        mask.mean(&frame_differences(&foot, 1)?.sqr()?, 1.0)
+    }
+
+    /// Object positions decoded from the prediction: the softmax mixture of Eq. 4 with the
+    /// predicted wrists, or the global branch alone for the `global_only` variant.
+    ///
+    /// # Shapes
+    /// - `objects`: `[B, 2, T_f, 18]`; returns `[B, 2, T_f, 3]`
+    fn object_positions(
+        &self,
+        objects: &Tensor,
+        body: &BodyKinematics,
+        b: usize,
+        tf: usize,
+    ) -> Result<Tensor> {
+        Ok(match self.representation {
             ObjectRepresentation::HandRelative => {
                 let wrists = TensorWrists::from_fk(
-                    &positions,
-                    &world_rotations,
+                    &body.positions,
+                    &body.world_rotations,
                     self.skeleton.groups().left_wrist,
                     self.skeleton.groups().right_wrist,
                 )?;
@@ -421,71 +417,213 @@ impl LossContext {
                     right_position: spread3(&wrists.right_position)?,
                     right_rotation: spread33(&wrists.right_rotation)?,
                 };
-                tensor_decode_position(&objects, &wrists)?
+                tensor_decode_position(objects, &wrists)?
             }
             ObjectRepresentation::GlobalOnly => {
                 objects.narrow(3, GLOBAL_POSITION_RANGE.start, 3)?
             }
-        };
-        if self.active(Term::Translation) {
-            let value = (&object_positions - batch.object_positions.to_dtype(dtype)?)?
-                .sqr()?
-                .broadcast_mul(&slot_mask_gated)?
-                .sum_all()?
-                .affine(cm * cm / f64::from(slot_count_gated), 0.0)?;
-            terms.push((Term::Translation, value));
-        }
-        if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
-            return Ok(());
-        }
+        })
+    }
 
-        // Signed distances of every joint to each predicted-pose object, [B, 2, T_f, J].
-        let object_rotations = tensor_decode_rotation(&objects)?; // [B, 2, T_f, 3, 3]
-        let relative = positions.unsqueeze(1)?.broadcast_sub(&object_positions.unsqueeze(3)?)?; // [B, 2, T_f, J, 3]
+    /// Signed distances in cm of every joint to each predicted-pose object (see the module
+    /// documentation for the surface-sample approximation).
+    ///
+    /// # Shapes
+    /// - returns `[B, 2, T_f, J]`
+    fn signed_distances(
+        &self,
+        window: &Window<'_>,
+        objects: &Tensor,
+        object_positions: &Tensor,
+        body: &BodyKinematics,
+    ) -> Result<Tensor> {
+        let (b, tf, joints) = (window.batch, window.tf, window.joints);
+        let object_rotations = tensor_decode_rotation(objects)?; // [B, 2, T_f, 3, 3]
+        let relative =
+            body.positions.unsqueeze(1)?.broadcast_sub(&object_positions.unsqueeze(3)?)?; // [B, 2, T_f, J, 3]
         let local = rotate_inverse(&object_rotations.unsqueeze(3)?, &relative)?;
         let local_values: Vec<f32> =
             local.detach().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         let (nearest, normals) =
-            nearest_samples(&local_values, &batch.clouds, &self.clouds, b, tf * joints);
-        let distances = ((local - constant(nearest, &[b, 2, tf, joints, 3])?)?
-            * constant(normals, &[b, 2, tf, joints, 3])?)?
+            nearest_samples(&local_values, &window.batch_data.clouds, &self.clouds, b, tf * joints);
+        Ok(((local - window.constant(nearest, &[b, 2, tf, joints, 3])?)?
+            * window.constant(normals, &[b, 2, tf, joints, 3])?)?
         .sum(D::Minus1)?
-        .affine(cm, 0.0)?;
-
-        if self.active(Term::Penetration) {
-            let value = distances
-                .neg()?
-                .relu()?
-                .broadcast_mul(&slot_mask_gated)?
-                .sum_all()?
-                .affine(1.0 / f64::from(slot_count_gated * joints as f32), 0.0)?;
-            terms.push((Term::Penetration, value));
-        }
-        if self.active(Term::Distance) {
-            let groups = self.skeleton.groups();
-            let hand: Vec<u32> =
-                groups.left_hand.iter().chain(&groups.right_hand).map(|&j| j as u32).collect();
-            let h = hand.len();
-            let radius = self.config.approach_radius as f32;
-            let within: Vec<f32> = (0..b * 2 * tf * h)
-                .map(|n| {
-                    let row = n / h;
-                    let near = batch.hand_distance_values[n] < radius;
-                    f32::from(u8::from(near)) * slot_frames_gated[row]
-                })
-                .collect();
-            let count = within.iter().sum::<f32>().max(1.0);
-            let index = Tensor::from_vec(hand, h, &device)?;
-            let predicted = distances.index_select(&index, 3)?;
-            let error = (predicted - batch.hand_distances.to_dtype(dtype)?.affine(cm, 0.0)?)?;
-            let value = huber(&error, self.config.huber_delta_cm)?
-                .broadcast_mul(&constant(within, &[b, 2, tf, h])?)?
-                .sum_all()?
-                .affine(1.0 / f64::from(count), 0.0)?;
-            terms.push((Term::Distance, value));
-        }
-        Ok(())
+        .affine(CENTIMETRES, 0.0)?)
     }
+
+    /// `L_dist` (Eq. 11): Huber on the hand joints' signed distances where the ground truth has
+    /// them within the approach radius `d_min`.
+    fn distance(&self, window: &Window<'_>, distances: &Tensor) -> Result<Tensor> {
+        let (b, tf) = (window.batch, window.tf);
+        let groups = self.skeleton.groups();
+        let hand: Vec<u32> =
+            groups.left_hand.iter().chain(&groups.right_hand).map(|&j| j as u32).collect();
+        let h = hand.len();
+        let radius = self.config.approach_radius as f32;
+        let slot_frames = window.slot_frames(true);
+        let within: Vec<f32> = (0..b * 2 * tf * h)
+            .map(|n| {
+                let near = window.batch_data.hand_distance_values[n] < radius;
+                f32::from(u8::from(near)) * slot_frames[n / h]
+            })
+            .collect();
+        let mask = Mask::new(window, within, &[b, 2, tf, h], 1)?;
+        let index = Tensor::from_vec(hand, h, &window.device)?;
+        let predicted = distances.index_select(&index, 3)?;
+        let wanted =
+            window.batch_data.hand_distances.to_dtype(window.dtype)?.affine(CENTIMETRES, 0.0)?;
+        mask.mean(&huber(&(predicted - wanted)?, self.config.huber_delta_cm)?, 1.0)
+    }
+}
+
+/// The predicted body after FK.
+struct BodyKinematics {
+    /// `[B, T_f, J, 3]` joint positions in metres.
+    positions: Tensor,
+    /// `[B, T_f, J, 3, 3]` world rotations.
+    world_rotations: Tensor,
+}
+
+/// A batch's predicted window with what every term needs: sizes, which frames are real, the
+/// gate of the geometric terms and the statistics.
+struct Window<'a> {
+    batch_data: &'a Batch,
+    batch: usize,
+    tp: usize,
+    tf: usize,
+    width: usize,
+    body: usize,
+    joints: usize,
+    dtype: DType,
+    device: candle_core::Device,
+    /// Per sample, 1 when its diffusion step is at most `geometric_max_timestep`.
+    gate: Vec<f32>,
+    mean: Tensor,
+    std: Tensor,
+}
+
+impl<'a> Window<'a> {
+    fn new(
+        context: &LossContext,
+        prediction: &Tensor,
+        batch_data: &'a Batch,
+        timesteps: &[usize],
+    ) -> Result<Self> {
+        let (batch, _, tf, width) = prediction.dims4()?;
+        let (dtype, device) = (prediction.dtype(), prediction.device().clone());
+        let joints = context.skeleton.joint_count();
+        let gate = timesteps
+            .iter()
+            .map(|&t| match context.config.geometric_max_timestep {
+                Some(limit) if t > limit => 0.0,
+                _ => 1.0,
+            })
+            .collect();
+        let statistic = |values: &[f32]| -> Result<Tensor> {
+            Ok(Tensor::from_vec(values.to_vec(), width, &device)?.to_dtype(dtype)?)
+        };
+        Ok(Self {
+            batch_data,
+            batch,
+            tp: context.prefix_frames,
+            tf,
+            width,
+            body: 6 * joints + 3,
+            joints,
+            dtype,
+            gate,
+            mean: statistic(&context.mean)?,
+            std: statistic(&context.std)?,
+            device,
+        })
+    }
+
+    /// A constant tensor of the prediction's dtype and device.
+    fn constant(&self, values: Vec<f32>, shape: &[usize]) -> Result<Tensor> {
+        Ok(Tensor::from_vec(values, shape, &self.device)?.to_dtype(self.dtype)?)
+    }
+
+    /// 1 when predicted frame `k` of sample `i` is real (not padding).
+    fn frame_valid(&self, i: usize, k: usize) -> f32 {
+        let t_all = self.tp + self.tf;
+        self.batch_data.frame_mask_values[i * t_all + self.tp + k]
+    }
+
+    /// Per sample and pair of consecutive predicted frames `[B, T_f - 1]`: both real, times
+    /// `per_sample(i)`.
+    fn frame_pairs(&self, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
+        let pairs = self.tf - 1;
+        (0..self.batch * pairs)
+            .map(|n| {
+                let (i, k) = (n / pairs, n % pairs);
+                self.frame_valid(i, k) * self.frame_valid(i, k + 1) * per_sample(i)
+            })
+            .collect()
+    }
+
+    /// `[B, 2, T_f]`: real frames of slots that hold an object (and, `gated`, of samples whose
+    /// step passes the gate).
+    fn slot_frames(&self, gated: bool) -> Vec<f32> {
+        let tf = self.tf;
+        let mut frames = vec![0.0f32; self.batch * 2 * tf];
+        for i in 0..self.batch {
+            let gate = if gated { self.gate[i] } else { 1.0 };
+            for s in 0..MAX_OBJECTS {
+                if self.batch_data.presence_values[i][s] {
+                    for k in 0..tf {
+                        frames[(i * 2 + s) * tf + k] = self.frame_valid(i, k) * gate;
+                    }
+                }
+            }
+        }
+        frames
+    }
+
+    /// [`Window::slot_frames`] as a mask over `[B, 2, T_f, 1]`.
+    fn slot_mask(&self, gated: bool) -> Result<Mask> {
+        let shape = [self.batch, 2, self.tf, 1];
+        Mask::new(self, self.slot_frames(gated), &shape, 1)
+    }
+
+    /// Normalised features back to raw ones (`x std + mean`).
+    fn denormalise(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.broadcast_mul(&self.std)?.broadcast_add(&self.mean)?)
+    }
+}
+
+/// A masked mean: the weights broadcast over the values, and how many values they count.
+struct Mask {
+    weight: Tensor,
+    count: f32,
+}
+
+impl Mask {
+    /// Weights of shape `shape`, each covering `values_per_weight` values of the term.
+    fn new(
+        window: &Window<'_>,
+        weights: Vec<f32>,
+        shape: &[usize],
+        values_per_weight: usize,
+    ) -> Result<Self> {
+        let count = weights.iter().sum::<f32>() * values_per_weight as f32;
+        Ok(Self { weight: window.constant(weights, shape)?, count })
+    }
+
+    /// `scale * sum(values * weight) / count` (a count below 1 counts as 1: an empty mask
+    /// gives 0).
+    fn mean(&self, values: &Tensor, scale: f64) -> Result<Tensor> {
+        Ok(values
+            .broadcast_mul(&self.weight)?
+            .sum_all()?
+            .affine(scale / f64::from(self.count.max(1.0)), 0.0)?)
+    }
+}
+
+/// Frame-to-frame differences along `dim`.
+fn frame_differences(x: &Tensor, dim: usize) -> Result<Tensor> {
+    let frames = x.dim(dim)?;
+    Ok((x.narrow(dim, 1, frames - 1)? - x.narrow(dim, 0, frames - 1)?)?)
 }
 
 /// The Huber function `rho_delta` elementwise: `e^2 / 2` within `delta`, `delta (|e| - delta/2)`
