@@ -1,7 +1,8 @@
 //! Building blocks, all made of operations with a backward pass (candle's fused `layer_norm` and
 //! `softmax_last_dim` have none): layer norm without affine parameters, AdaLN modulation,
 //! multi-head attention, feed-forward, dropout from an explicit random stream, and the
-//! sinusoidal timestep embedding.
+//! sinusoidal timestep embedding. The transformer block built from them is in
+//! [`crate::transformer`].
 
 use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{VarBuilder, init::Init};

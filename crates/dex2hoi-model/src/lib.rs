@@ -11,6 +11,7 @@ pub mod model;
 pub mod text;
 pub mod text_bert;
 pub mod text_clip;
+pub mod transformer;
 
 pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, StreamLayout};
 pub use error::{ModelError, Result};

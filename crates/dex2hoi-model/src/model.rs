@@ -1,6 +1,12 @@
 //! The Dex2HOI networks (paper Sec. 3.2): the dual-stream denoiser `D_theta` (Eq. 5) with
 //! InterGen-style blocks shared by both streams, and the Motion Fusion Network `D_h` (Eq. 7),
 //! plus the ablation variants of Table 3 selected by [`ModelConfig`].
+//!
+//! The module tree: [`Model`] holds one `Layout` (dual or single stream), each a
+//! `Conditioning`, a `Denoiser` (frame tokens, [`TransformerBlock`]s with AdaLN, the output
+//! head) and, for the dual layout, a `Fusion` of the two bodies. Parameter names mirror it,
+//! except that the denoiser's parameters sit at the root (`blocks.3.cross_attention.query`,
+//! `head.weight`), as in every checkpoint so far.
 
 use candle_core::{D, DType, Tensor};
 use candle_nn::{VarBuilder, init::Init};
@@ -12,10 +18,8 @@ use dex2hoi_repr::object_repr::{
 
 use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 use crate::error::{ModelError, Result};
-use crate::layers::{
-    Attention, Dense, FeedForward, Modulation, dense, dropout, layer_norm, timestep_embedding,
-    zero_dense,
-};
+use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
+use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, TransformerEncoder};
 
 /// What the model reads for one batch.
 #[derive(Debug, Clone, Copy)]
@@ -82,71 +86,135 @@ impl Conditioning {
     }
 }
 
-/// One InterGen block: AdaLN self-attention, cross-attention to the other stream's
-/// previous-layer state (dual layout only), AdaLN feed-forward, each with a residual.
+/// The denoiser shared by both layouts: frame tokens (projection, positions, prefix/noisy
+/// type), AdaLN blocks, a final AdaLN and a zero-initialised head, so that the model starts
+/// predicting zeros.
 #[derive(Debug, Clone)]
-struct Block {
-    self_modulation: Modulation,
-    self_attention: Attention,
-    cross: Option<(Modulation, Modulation, Attention)>,
-    ff_modulation: Modulation,
-    feed_forward: FeedForward,
-    dropout: f64,
+struct Denoiser {
+    input: Dense,
+    positions: Tensor,
+    frame_types: Tensor,
+    blocks: Vec<TransformerBlock>,
+    final_modulation: Modulation,
+    head: Dense,
+    /// Per-channel input mask (zeros the hand-relative channels for `GlobalOnly`).
+    channel_mask: Option<Tensor>,
+    prefix_frames: usize,
+    predicted_frames: usize,
 }
 
-impl Block {
-    fn new(cfg: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
+impl Denoiser {
+    /// A denoiser of frames holding the body and `objects` objects; the blocks cross-attend to
+    /// the other stream in the dual layout.
+    fn new(cfg: &ModelConfig, objects: usize, vb: VarBuilder<'_>) -> Result<Self> {
         let l = cfg.latent;
-        let cross = match cfg.stream_layout {
-            StreamLayout::Dual => Some((
-                Modulation::new(l, vb.pp("cross_modulation"))?,
-                Modulation::new(l, vb.pp("cross_other_modulation"))?,
-                Attention::new(l, cfg.heads, vb.pp("cross_attention"))?,
-            )),
-            StreamLayout::Single => None,
-        };
-        Ok(Self {
-            self_modulation: Modulation::new(l, vb.pp("self_modulation"))?,
-            self_attention: Attention::new(l, cfg.heads, vb.pp("self_attention"))?,
-            cross,
-            ff_modulation: Modulation::new(l, vb.pp("ff_modulation"))?,
-            feed_forward: FeedForward::new(l, cfg.feed_forward, vb.pp("feed_forward"))?,
+        let frame_features = cfg.body_features() + objects * OBJECT_FEATURE_SIZE;
+        let block = BlockConfig {
+            latent: l,
+            heads: cfg.heads,
+            feed_forward: cfg.feed_forward,
             dropout: cfg.dropout,
+            norm: Norm::Adaptive,
+            cross_attention: cfg.stream_layout == StreamLayout::Dual,
+        };
+        let blocks = (0..cfg.layers)
+            .map(|i| TransformerBlock::new(&block, vb.pp(format!("blocks.{i}"))))
+            .collect::<Result<_>>()?;
+        let channel_mask = match cfg.object_representation {
+            ObjectRepresentation::HandRelative => None,
+            ObjectRepresentation::GlobalOnly => {
+                let mut mask = vec![1.0f32; frame_features];
+                for k in 0..objects {
+                    let base = cfg.body_features() + k * OBJECT_FEATURE_SIZE;
+                    for range in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
+                        mask[base + range.start..base + range.end].fill(0.0);
+                    }
+                }
+                Some(Tensor::from_vec(mask, frame_features, vb.device())?.to_dtype(vb.dtype())?)
+            }
+        };
+        let small_normal = Init::Randn { mean: 0.0, stdev: 0.02 };
+        Ok(Self {
+            input: dense(frame_features, l, vb.pp("input"))?,
+            positions: vb.get_with_hints((cfg.window_frames(), l), "positions", small_normal)?,
+            frame_types: vb.get_with_hints((2, l), "frame_types", small_normal)?,
+            blocks,
+            final_modulation: Modulation::new(l, vb.pp("final_modulation"))?,
+            head: zero_dense(l, frame_features, vb.pp("head"))?,
+            channel_mask,
+            prefix_frames: cfg.prefix_frames,
+            predicted_frames: cfg.predicted_frames,
         })
     }
 
-    /// `other` and `other_emb` are the other stream's previous-layer state and condition (the
-    /// dual layout swaps the halves of the batch to get them).
+    /// Frame tokens: projection, positions, prefix/noisy type.
+    ///
+    /// # Shapes
+    /// - `frames`: `[batch, T_p + T_f, features]`; returns `[batch, T_p + T_f, latent]`
+    fn tokens(&self, frames: &Tensor) -> Result<Tensor> {
+        let latent = self.positions.dims()[1];
+        let frames = match &self.channel_mask {
+            Some(mask) => frames.broadcast_mul(mask)?,
+            None => frames.clone(),
+        };
+        let kind = |k: usize, count: usize| -> Result<Tensor> {
+            Ok(self.frame_types.get(k)?.unsqueeze(0)?.broadcast_as((count, latent))?)
+        };
+        let types =
+            Tensor::cat(&[kind(0, self.prefix_frames)?, kind(1, self.predicted_frames)?], 0)?;
+        let position = (self.positions.clone() + types)?;
+        Ok(self.input.forward(&frames)?.broadcast_add(&position)?)
+    }
+
+    /// The clean predicted frames (x0). With `other_condition` the batch stacks both streams
+    /// (rows `0..B` stream A, `B..2B` stream B) and each block's cross-attention reads the
+    /// other stream's previous-layer state, found by swapping the halves (Eq. 5).
+    ///
+    /// # Shapes
+    /// - `frames`: `[batch, T_p + T_f, features]`; `condition`, `other_condition`:
+    ///   `[batch, latent]`; `mask`: `[batch, T_p + T_f]`
+    /// - returns `[batch, T_f, features]`
     fn forward(
         &self,
-        x: &Tensor,
-        emb: &Tensor,
-        other: Option<(&Tensor, &Tensor)>,
+        frames: &Tensor,
+        condition: &Tensor,
+        other_condition: Option<&Tensor>,
         mask: Option<&Tensor>,
         mut rng: Option<&mut ChaCha8Rng>,
     ) -> Result<Tensor> {
-        let h = self.self_modulation.forward(x, emb)?;
-        let attended = self.self_attention.forward(&h, &h, mask)?;
-        let mut x = (x + dropout(&attended, self.dropout, rng.as_deref_mut())?)?;
-        if let (Some((modulation, other_modulation, attention)), Some((other, other_emb))) =
-            (&self.cross, other)
-        {
-            let queries = modulation.forward(&x, emb)?;
-            let keys = other_modulation.forward(other, other_emb)?;
-            let attended = attention.forward(&queries, &keys, mask)?;
-            x = (x + dropout(&attended, self.dropout, rng.as_deref_mut())?)?;
+        let mut x = self.tokens(frames)?;
+        for block in &self.blocks {
+            let other_tokens = other_condition.map(|_| swap_streams(&x)).transpose()?;
+            let other =
+                other_tokens.as_ref().map(|tokens| Other { tokens, condition: other_condition });
+            x = block.forward(&x, Some(condition), other, mask, rng.as_deref_mut())?;
         }
-        let h = self.ff_modulation.forward(&x, emb)?;
-        let out = self.feed_forward.forward(&h, self.dropout, rng.as_deref_mut())?;
-        Ok((x + dropout(&out, self.dropout, rng)?)?)
+        let out = self.head.forward(&self.final_modulation.forward(&x, condition)?)?;
+        Ok(out.narrow(1, self.prefix_frames, self.predicted_frames)?)
     }
 }
 
-/// A pre-norm transformer layer without conditioning, for the fusion network.
-#[derive(Debug, Clone)]
-struct FusionLayer {
-    attention: Attention,
-    feed_forward: FeedForward,
+/// Swaps the halves of a batch that stacks both streams (`[A; B] -> [B; A]`).
+fn swap_streams(t: &Tensor) -> Result<Tensor> {
+    let half = t.dim(0)? / 2;
+    Ok(Tensor::cat(&[t.narrow(0, half, half)?, t.narrow(0, 0, half)?], 0)?)
+}
+
+/// Moves the stream axis into the batch: `[B, 2, ...] -> [2B, ...]`, stream A first.
+fn streams_into_batch(t: &Tensor) -> Result<Tensor> {
+    let mut shape = t.dims()[1..].to_vec();
+    shape[0] *= t.dim(0)?;
+    Ok(t.transpose(0, 1)?.contiguous()?.reshape(shape)?)
+}
+
+/// The average of the bodies of the streams that hold an object, `(a + p_B b) / (1 + p_B)`
+/// (stream A always holds one).
+///
+/// # Shapes
+/// - `body_a`, `masked_b` (`p_B b`): `[batch, T_f, 6J + 3]`; `present`: `[batch, 1, 1]`
+/// - returns `[batch, T_f, 6J + 3]`
+fn body_average(body_a: &Tensor, masked_b: &Tensor, present: &Tensor) -> Result<Tensor> {
+    Ok((body_a + masked_b)?.broadcast_div(&(present + 1.0)?)?)
 }
 
 /// The Motion Fusion Network `D_h` (Eq. 7): self-attention over frames of both streams' body
@@ -156,23 +224,14 @@ struct FusionLayer {
 struct FusionNetwork {
     input: Dense,
     positions: Tensor,
-    layers: Vec<FusionLayer>,
+    layers: TransformerEncoder,
     output: Dense,
-    dropout: f64,
 }
 
 impl FusionNetwork {
     fn new(cfg: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
         let l = cfg.latent;
-        let layers = (0..cfg.fusion_layers)
-            .map(|i| {
-                let vb = vb.pp(format!("layers.{i}"));
-                Ok(FusionLayer {
-                    attention: Attention::new(l, cfg.heads, vb.pp("attention"))?,
-                    feed_forward: FeedForward::new(l, cfg.feed_forward, vb.pp("feed_forward"))?,
-                })
-            })
-            .collect::<Result<_>>()?;
+        let block = BlockConfig::plain(l, cfg.heads, cfg.feed_forward, cfg.dropout);
         Ok(Self {
             input: dense(2 * cfg.body_features() + 1, l, vb.pp("input"))?,
             positions: vb.get_with_hints(
@@ -180,9 +239,8 @@ impl FusionNetwork {
                 "positions",
                 Init::Randn { mean: 0.0, stdev: 0.02 },
             )?,
-            layers,
+            layers: TransformerEncoder::new(&block, cfg.fusion_layers, vb.pp("layers"))?,
             output: zero_dense(l, cfg.body_features(), vb.pp("output"))?,
-            dropout: cfg.dropout,
         })
     }
 
@@ -194,106 +252,185 @@ impl FusionNetwork {
         body_a: &Tensor,
         body_b: &Tensor,
         presence_b: &Tensor,
-        mut rng: Option<&mut ChaCha8Rng>,
+        rng: Option<&mut ChaCha8Rng>,
     ) -> Result<Tensor> {
         let (batch, frames, _) = body_a.dims3()?;
         let present = presence_b.reshape((batch, 1, 1))?;
         let masked_b = body_b.broadcast_mul(&present)?;
         let flag = present.broadcast_as((batch, frames, 1))?.contiguous()?;
-        let average = ((body_a + &masked_b)?.broadcast_div(&(present.clone() + 1.0)?))?;
+        let average = body_average(body_a, &masked_b, &present)?;
         let tokens = self.input.forward(&Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
-        let mut x = tokens.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        for layer in &self.layers {
-            let h = layer_norm(&x)?;
-            x = (&x
-                + dropout(
-                    &layer.attention.forward(&h, &h, None)?,
-                    self.dropout,
-                    rng.as_deref_mut(),
-                )?)?;
-            let h = layer_norm(&x)?;
-            x = (&x
-                + dropout(
-                    &layer.feed_forward.forward(&h, self.dropout, rng.as_deref_mut())?,
-                    self.dropout,
-                    rng.as_deref_mut(),
-                )?)?;
-        }
-        Ok((average + self.output.forward(&layer_norm(&x)?)?)?)
+        let x = tokens.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
+        Ok((average + self.output.forward(&self.layers.forward(&x, None, rng)?)?)?)
     }
+}
+
+/// How the dual layout makes one body of the two streams' (Table 3 "fusion -> average").
+#[derive(Debug, Clone)]
+enum Fusion {
+    Network(FusionNetwork),
+    Average,
+}
+
+impl Fusion {
+    /// # Shapes
+    /// - `body_a`, `body_b`: `[batch, T_f, 6J + 3]`; `presence_b`: `[batch]`
+    /// - returns the fused body `[batch, T_f, 6J + 3]`
+    fn forward(
+        &self,
+        body_a: &Tensor,
+        body_b: &Tensor,
+        presence_b: &Tensor,
+        rng: Option<&mut ChaCha8Rng>,
+    ) -> Result<Tensor> {
+        match self {
+            Self::Network(network) => network.forward(body_a, body_b, presence_b, rng),
+            Self::Average => {
+                let present = presence_b.reshape((presence_b.dim(0)?, 1, 1))?;
+                body_average(body_a, &body_b.broadcast_mul(&present)?, &present)
+            }
+        }
+    }
+}
+
+/// The dual layout (Eq. 5): one stream per object through the same denoiser, cross-attending
+/// to each other, then one body from both (Eq. 7).
+#[derive(Debug, Clone)]
+struct DualStream {
+    conditioning: Conditioning,
+    denoiser: Denoiser,
+    fusion: Fusion,
+    body: usize,
+}
+
+impl DualStream {
+    fn new(cfg: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
+        let fusion = match cfg.body_fusion {
+            BodyFusion::Network => Fusion::Network(FusionNetwork::new(cfg, vb.pp("fusion"))?),
+            BodyFusion::Average => Fusion::Average,
+        };
+        Ok(Self {
+            conditioning: Conditioning::new(cfg, cfg.bps_points * 3, vb.pp("conditioning"))?,
+            denoiser: Denoiser::new(cfg, 1, vb)?,
+            fusion,
+            body: cfg.body_features(),
+        })
+    }
+
+    /// Each stream's condition `c^A`, `c^B` sees its own object's BPS and both presence flags.
+    ///
+    /// # Shapes
+    /// - see [`ModelInput`]; returns `[2 batch, latent]`, stream A first
+    fn condition(&self, input: &ModelInput<'_>, dtype: DType) -> Result<Tensor> {
+        let own = streams_into_batch(&input.presence.to_dtype(dtype)?.unsqueeze(2)?)?;
+        let flags = Tensor::cat(&[&own, &swap_streams(&own)?], 1)?;
+        let bps = streams_into_batch(input.bps)?.broadcast_mul(&own)?;
+        let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
+        let text = input.text.to_dtype(dtype)?;
+        self.conditioning.forward(&timesteps, &Tensor::cat(&[&text, &text], 0)?, &bps, &flags)
+    }
+
+    /// # Shapes
+    /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
+    fn forward(&self, input: &ModelInput<'_>, mut rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
+        let frames = streams_into_batch(&Tensor::cat(&[input.prefix, input.noisy], 2)?)?;
+        let condition = self.condition(input, frames.dtype())?;
+        let mask = input
+            .frame_mask
+            .map(|m| Tensor::cat(&[m, m], 0)?.to_dtype(frames.dtype()))
+            .transpose()?;
+        let out = self.denoiser.forward(
+            &frames,
+            &condition,
+            Some(&swap_streams(&condition)?),
+            mask.as_ref(),
+            rng.as_deref_mut(),
+        )?; // [2B, T_f, D]
+        // Eq. 6: each stream's prediction splits into body and object.
+        let batch = out.dim(0)? / 2;
+        let stream = |s: usize| out.narrow(0, s * batch, batch);
+        let (body_a, body_b) =
+            (stream(0)?.narrow(2, 0, self.body)?, stream(1)?.narrow(2, 0, self.body)?);
+        let presence_b = input.presence.to_dtype(frames.dtype())?.narrow(1, 1, 1)?.squeeze(1)?;
+        let body = self.fusion.forward(&body_a, &body_b, &presence_b, rng)?;
+        let with_body = |s: usize| -> Result<Tensor> {
+            let object = stream(s)?.narrow(2, self.body, OBJECT_FEATURE_SIZE)?;
+            Ok(Tensor::cat(&[&body, &object], 2)?)
+        };
+        Ok(Tensor::stack(&[with_body(0)?, with_body(1)?], 1)?)
+    }
+}
+
+/// The single-stream layout (Table 3 "single stream", also the MDM-style baseline): one
+/// sequence of frames `[h, r, o^A, o^B]`, no cross-attention and no fusion.
+#[derive(Debug, Clone)]
+struct SingleStream {
+    conditioning: Conditioning,
+    denoiser: Denoiser,
+    body: usize,
+}
+
+impl SingleStream {
+    fn new(cfg: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Self {
+            conditioning: Conditioning::new(cfg, 2 * cfg.bps_points * 3, vb.pp("conditioning"))?,
+            denoiser: Denoiser::new(cfg, 2, vb)?,
+            body: cfg.body_features(),
+        })
+    }
+
+    /// # Shapes
+    /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
+    fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
+        let (batch, _, _, _) = input.noisy.dims4()?;
+        let frames = Tensor::cat(&[input.prefix, input.noisy], 2)?; // [B, 2, T, D]
+        let dtype = frames.dtype();
+        let of_stream = |s: usize| frames.narrow(1, s, 1)?.squeeze(1);
+        let object = |s: usize| of_stream(s)?.narrow(2, self.body, OBJECT_FEATURE_SIZE);
+        let body = of_stream(0)?.narrow(2, 0, self.body)?;
+        let single = Tensor::cat(&[&body, &object(0)?, &object(1)?], 2)?;
+        let presence = input.presence.to_dtype(dtype)?;
+        let bps = input.bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
+        let condition = self.conditioning.forward(
+            input.timesteps,
+            &input.text.to_dtype(dtype)?,
+            &bps,
+            &presence,
+        )?;
+        let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
+        let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
+        let body = out.narrow(2, 0, self.body)?;
+        let stream = |s: usize| -> Result<Tensor> {
+            let object = out.narrow(2, self.body + s * OBJECT_FEATURE_SIZE, OBJECT_FEATURE_SIZE)?;
+            Ok(Tensor::cat(&[&body, &object], 2)?)
+        };
+        Ok(Tensor::stack(&[stream(0)?, stream(1)?], 1)?)
+    }
+}
+
+/// The stream layouts, each a module with its own `forward` (like candle's `UNetDownBlock`).
+#[derive(Debug, Clone)]
+enum Layout {
+    Dual(DualStream),
+    Single(SingleStream),
 }
 
 /// The whole model: conditioning, the (dual- or single-) stream denoiser and the body fusion.
 #[derive(Debug, Clone)]
 pub struct Model {
     config: ModelConfig,
-    conditioning: Conditioning,
-    input: Dense,
-    positions: Tensor,
-    frame_types: Tensor,
-    blocks: Vec<Block>,
-    final_modulation: Modulation,
-    head: Dense,
-    fusion: Option<FusionNetwork>,
-    /// Per-channel input mask (zeros the hand-relative channels for `GlobalOnly`).
-    channel_mask: Option<Tensor>,
+    layout: Layout,
 }
 
 impl Model {
     /// Builds the model; parameter names mirror the module tree (`blocks.3.cross_attention.query`).
     pub fn new(config: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
         config.validate()?;
-        let l = config.latent;
-        let single = config.stream_layout == StreamLayout::Single;
-        let frame_features = if single {
-            config.stream_features() + OBJECT_FEATURE_SIZE
-        } else {
-            config.stream_features()
+        let layout = match config.stream_layout {
+            StreamLayout::Dual => Layout::Dual(DualStream::new(config, vb)?),
+            StreamLayout::Single => Layout::Single(SingleStream::new(config, vb)?),
         };
-        let bps_inputs = config.bps_points * 3 * if single { 2 } else { 1 };
-        let blocks = (0..config.layers)
-            .map(|i| Block::new(config, vb.pp(format!("blocks.{i}"))))
-            .collect::<Result<_>>()?;
-        let fusion = match (config.stream_layout, config.body_fusion) {
-            (StreamLayout::Dual, BodyFusion::Network) => {
-                Some(FusionNetwork::new(config, vb.pp("fusion"))?)
-            }
-            _ => None,
-        };
-        let channel_mask = match config.object_representation {
-            ObjectRepresentation::HandRelative => None,
-            ObjectRepresentation::GlobalOnly => {
-                let mut mask = vec![1.0f32; frame_features];
-                let objects = if single { 2 } else { 1 };
-                for k in 0..objects {
-                    let base = config.body_features() + k * OBJECT_FEATURE_SIZE;
-                    for range in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
-                        mask[base + range.start..base + range.end].fill(0.0);
-                    }
-                }
-                Some(Tensor::from_vec(mask, frame_features, vb.device())?.to_dtype(vb.dtype())?)
-            }
-        };
-        Ok(Self {
-            config: config.clone(),
-            conditioning: Conditioning::new(config, bps_inputs, vb.pp("conditioning"))?,
-            input: dense(frame_features, l, vb.pp("input"))?,
-            positions: vb.get_with_hints(
-                (config.window_frames(), l),
-                "positions",
-                Init::Randn { mean: 0.0, stdev: 0.02 },
-            )?,
-            frame_types: vb.get_with_hints(
-                (2, l),
-                "frame_types",
-                Init::Randn { mean: 0.0, stdev: 0.02 },
-            )?,
-            blocks,
-            final_modulation: Modulation::new(l, vb.pp("final_modulation"))?,
-            head: zero_dense(l, frame_features, vb.pp("head"))?,
-            fusion,
-            channel_mask,
-        })
+        Ok(Self { config: config.clone(), layout })
     }
 
     /// The configuration.
@@ -301,7 +438,7 @@ impl Model {
         &self.config
     }
 
-    fn check_input(&self, input: &ModelInput<'_>) -> Result<usize> {
+    fn check_input(&self, input: &ModelInput<'_>) -> Result<()> {
         let c = &self.config;
         let batch = input.noisy.dims().first().copied().unwrap_or(0);
         let expect = |name: &str, t: &Tensor, shape: Vec<usize>| -> Result<()> {
@@ -320,28 +457,7 @@ impl Model {
         if let Some(mask) = input.frame_mask {
             expect("frame_mask", mask, vec![batch, c.window_frames()])?;
         }
-        Ok(batch)
-    }
-
-    /// Frame tokens: projection, positions, prefix/noisy type.
-    fn tokens(&self, frames: &Tensor) -> Result<Tensor> {
-        let c = &self.config;
-        let frames = match &self.channel_mask {
-            Some(mask) => frames.broadcast_mul(mask)?,
-            None => frames.clone(),
-        };
-        let types = Tensor::cat(
-            &[
-                self.frame_types.get(0)?.unsqueeze(0)?.broadcast_as((c.prefix_frames, c.latent))?,
-                self.frame_types
-                    .get(1)?
-                    .unsqueeze(0)?
-                    .broadcast_as((c.predicted_frames, c.latent))?,
-            ],
-            0,
-        )?;
-        let position = (self.positions.clone() + types)?;
-        Ok(self.input.forward(&frames)?.broadcast_add(&position)?)
+        Ok(())
     }
 
     /// Predicts the clean predicted frames of both streams (x0): the object parts from each
@@ -351,121 +467,19 @@ impl Model {
     ///
     /// # Shapes
     /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
-    pub fn forward(
-        &self,
-        input: &ModelInput<'_>,
-        mut rng: Option<&mut ChaCha8Rng>,
-    ) -> Result<Tensor> {
-        let batch = self.check_input(input)?;
-        let c = &self.config;
-        let (tf, body) = (c.predicted_frames, c.body_features());
-        let frames = Tensor::cat(&[input.prefix, input.noisy], 2)?; // [B, 2, T, D]
-        let presence = input.presence.to_dtype(frames.dtype())?;
-        let text = input.text.to_dtype(frames.dtype())?;
-        match c.stream_layout {
-            StreamLayout::Dual => {
-                // Streams into the batch: rows 0..B are stream A, B..2B stream B.
-                let stacked = frames.transpose(0, 1)?.contiguous()?.reshape((
-                    2 * batch,
-                    c.window_frames(),
-                    c.stream_features(),
-                ))?;
-                let bps = input
-                    .bps
-                    .transpose(0, 1)?
-                    .contiguous()?
-                    .reshape((2 * batch, c.bps_points * 3))?;
-                let own = presence.transpose(0, 1)?.contiguous()?.reshape((2 * batch, 1))?;
-                let other_presence =
-                    Tensor::cat(&[own.narrow(0, batch, batch)?, own.narrow(0, 0, batch)?], 0)?;
-                let flags = Tensor::cat(&[&own, &other_presence], 1)?;
-                let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
-                let text = Tensor::cat(&[&text, &text], 0)?;
-                let emb = self.conditioning.forward(
-                    &timesteps,
-                    &text,
-                    &bps.broadcast_mul(&own)?,
-                    &flags,
-                )?;
-                let mask = input
-                    .frame_mask
-                    .map(|m| Tensor::cat(&[m, m], 0))
-                    .transpose()?
-                    .map(|m| m.to_dtype(frames.dtype()))
-                    .transpose()?;
-                let swap = |t: &Tensor| -> Result<Tensor> {
-                    Ok(Tensor::cat(&[t.narrow(0, batch, batch)?, t.narrow(0, 0, batch)?], 0)?)
-                };
-                let other_emb = swap(&emb)?;
-                let mut x = self.tokens(&stacked)?;
-                for block in &self.blocks {
-                    let other = swap(&x)?;
-                    x = block.forward(
-                        &x,
-                        &emb,
-                        Some((&other, &other_emb)),
-                        mask.as_ref(),
-                        rng.as_deref_mut(),
-                    )?;
-                }
-                let out = self.head.forward(&self.final_modulation.forward(&x, &emb)?)?;
-                let out = out.narrow(1, c.prefix_frames, tf)?; // [2B, T_f, D]
-                let body_a = out.narrow(0, 0, batch)?.narrow(2, 0, body)?;
-                let body_b = out.narrow(0, batch, batch)?.narrow(2, 0, body)?;
-                let presence_b = presence.narrow(1, 1, 1)?.squeeze(1)?;
-                let fused = match &self.fusion {
-                    Some(fusion) => fusion.forward(&body_a, &body_b, &presence_b, rng)?,
-                    None => {
-                        let present = presence_b.reshape((batch, 1, 1))?;
-                        (&body_a + body_b.broadcast_mul(&present)?)?
-                            .broadcast_div(&(present + 1.0)?)?
-                    }
-                };
-                let object = |s: usize| {
-                    out.narrow(0, s * batch, batch)?.narrow(2, body, OBJECT_FEATURE_SIZE)
-                };
-                let stream_a = Tensor::cat(&[&fused, &object(0)?], 2)?;
-                let stream_b = Tensor::cat(&[&fused, &object(1)?], 2)?;
-                Ok(Tensor::stack(&[stream_a, stream_b], 1)?)
-            }
-            StreamLayout::Single => {
-                let body_part = frames.narrow(1, 0, 1)?.squeeze(1)?.narrow(2, 0, body)?;
-                let object = |s: usize| {
-                    frames.narrow(1, s, 1)?.squeeze(1)?.narrow(2, body, OBJECT_FEATURE_SIZE)
-                };
-                let single = Tensor::cat(&[&body_part, &object(0)?, &object(1)?], 2)?;
-                let bps = input
-                    .bps
-                    .broadcast_mul(&presence.unsqueeze(2)?)?
-                    .reshape((batch, 2 * c.bps_points * 3))?;
-                let emb = self.conditioning.forward(input.timesteps, &text, &bps, &presence)?;
-                let mask = input.frame_mask.map(|m| m.to_dtype(frames.dtype())).transpose()?;
-                let mut x = self.tokens(&single)?;
-                for block in &self.blocks {
-                    x = block.forward(&x, &emb, None, mask.as_ref(), rng.as_deref_mut())?;
-                }
-                let out = self.head.forward(&self.final_modulation.forward(&x, &emb)?)?.narrow(
-                    1,
-                    c.prefix_frames,
-                    tf,
-                )?;
-                let fused = out.narrow(2, 0, body)?;
-                let stream = |s: usize| -> Result<Tensor> {
-                    Ok(Tensor::cat(
-                        &[
-                            &fused,
-                            &out.narrow(2, body + s * OBJECT_FEATURE_SIZE, OBJECT_FEATURE_SIZE)?,
-                        ],
-                        2,
-                    )?)
-                };
-                Ok(Tensor::stack(&[stream(0)?, stream(1)?], 1)?)
-            }
+    pub fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
+        self.check_input(input)?;
+        match &self.layout {
+            Layout::Dual(dual) => dual.forward(input, rng),
+            Layout::Single(single) => single.forward(input, rng),
         }
     }
 
     /// The floating-point type of the parameters.
     pub fn dtype(&self) -> DType {
-        self.positions.dtype()
+        match &self.layout {
+            Layout::Dual(dual) => dual.denoiser.positions.dtype(),
+            Layout::Single(single) => single.denoiser.positions.dtype(),
+        }
     }
 }

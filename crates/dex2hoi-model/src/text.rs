@@ -11,11 +11,12 @@
 use std::collections::{BTreeSet, HashMap};
 use std::sync::Mutex;
 
-use candle_core::{D, DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, init::Init};
 
 use crate::error::{ModelError, Result};
-use crate::layers::{Attention, Dense, FeedForward, dense, layer_norm};
+use crate::layers::{Dense, dense};
+use crate::transformer::{BlockConfig, TransformerEncoder, masked_mean};
 
 /// What every text encoder offers the model.
 pub trait TextEncoder {
@@ -130,18 +131,13 @@ impl Default for BuiltinTextConfig {
     }
 }
 
-struct EncoderLayer {
-    attention: Attention,
-    feed_forward: FeedForward,
-}
-
 /// The built-in encoder (see the module documentation); trained with the denoiser.
 pub struct BuiltinTextEncoder {
     vocabulary: Vocabulary,
     config: BuiltinTextConfig,
     tokens: Tensor,
     positions: Tensor,
-    layers: Vec<EncoderLayer>,
+    layers: TransformerEncoder,
     output: Dense,
     device: Device,
     dtype: DType,
@@ -165,19 +161,10 @@ impl BuiltinTextEncoder {
                 format!("{config:?}"),
             ));
         }
-        let layers = (0..config.layers)
-            .map(|i| {
-                let vb = vb.pp(format!("layers.{i}"));
-                Ok(EncoderLayer {
-                    attention: Attention::new(config.width, config.heads, vb.pp("attention"))?,
-                    feed_forward: FeedForward::new(
-                        config.width,
-                        2 * config.width,
-                        vb.pp("feed_forward"),
-                    )?,
-                })
-            })
-            .collect::<Result<_>>()?;
+        // No dropout inside the encoder (word dropout is its training noise), so encoding needs
+        // no random stream.
+        let block = BlockConfig::plain(config.width, config.heads, 2 * config.width, 0.0);
+        let layers = TransformerEncoder::new(&block, config.layers, vb.pp("layers"))?;
         Ok(Self {
             tokens: vb.get_with_hints(
                 (vocabulary.len(), config.width),
@@ -229,17 +216,9 @@ impl BuiltinTextEncoder {
         let mask = Tensor::from_vec(mask, (batch, length), &self.device)?.to_dtype(self.dtype)?;
         let embedded =
             self.tokens.index_select(&ids, 0)?.reshape((batch, length, self.config.width))?;
-        let mut x = embedded.broadcast_add(&self.positions.narrow(0, 0, length)?)?;
-        for layer in &self.layers {
-            let h = layer_norm(&x)?;
-            x = (&x + layer.attention.forward(&h, &h, Some(&mask))?)?;
-            let h = layer_norm(&x)?;
-            x = (&x + layer.feed_forward.forward(&h, 0.0, None)?)?;
-        }
+        let x = embedded.broadcast_add(&self.positions.narrow(0, 0, length)?)?;
         // Mean over the words of each text.
-        let weights = mask.unsqueeze(D::Minus1)?;
-        let pooled =
-            layer_norm(&x)?.broadcast_mul(&weights)?.sum(1)?.broadcast_div(&weights.sum(1)?)?;
+        let pooled = masked_mean(&self.layers.forward(&x, Some(&mask), None)?, &mask)?;
         self.output.forward(&pooled)
     }
 }

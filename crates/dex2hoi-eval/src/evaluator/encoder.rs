@@ -2,29 +2,26 @@
 //!
 //! The motion encoder projects each frame's features to the latent width, adds a learned
 //! position embedding, runs pre-norm transformer blocks whose attention ignores padding frames,
-//! and mean-pools the normalised tokens of the valid frames. Its pooled vector feeds both the
+//! and mean-pools the normalised tokens of the valid frames (the model crate's
+//! [`TransformerEncoder`] and [`masked_mean`], shared with the built-in text encoder). Its pooled vector feeds both the
 //! contrastive projection and the action head (one shared trunk: a second encoder would double
 //! the cost on the CPU for little gain on datasets of this size).
 
-use candle_core::{D, Tensor};
+use candle_core::Tensor;
 use candle_nn::{VarBuilder, init::Init};
 
-use dex2hoi_model::layers::{Attention, Dense, FeedForward, dense, layer_norm};
+use dex2hoi_model::layers::{Dense, dense};
+use dex2hoi_model::transformer::{BlockConfig, TransformerEncoder, masked_mean};
 
 use crate::error::{EvalError, Result};
 
 use super::EvaluatorConfig;
 
-struct Block {
-    attention: Attention,
-    feed_forward: FeedForward,
-}
-
 /// The motion encoder (see the module documentation).
 pub struct MotionEncoder {
     input: Dense,
     positions: Tensor,
-    blocks: Vec<Block>,
+    blocks: TransformerEncoder,
     projection: Dense,
     action: Option<ActionHead>,
 }
@@ -48,15 +45,8 @@ impl MotionEncoder {
         vb: VarBuilder<'_>,
     ) -> Result<Self> {
         let latent = config.latent;
-        let blocks = (0..config.layers)
-            .map(|i| {
-                let vb = vb.pp(format!("blocks.{i}"));
-                Ok(Block {
-                    attention: Attention::new(latent, config.heads, vb.pp("attention"))?,
-                    feed_forward: FeedForward::new(latent, 2 * latent, vb.pp("feed_forward"))?,
-                })
-            })
-            .collect::<Result<_>>()?;
+        let block = BlockConfig::plain(latent, config.heads, 2 * latent, 0.0);
+        let blocks = TransformerEncoder::new(&block, config.layers, vb.pp("blocks"))?;
         Ok(Self {
             input: dense(feature_size, latent, vb.pp("input"))?,
             positions: vb.get_with_hints(
@@ -90,16 +80,9 @@ impl MotionEncoder {
                 frames,
             ));
         }
-        let mut x =
+        let x =
             self.input.forward(features)?.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        for block in &self.blocks {
-            let h = layer_norm(&x)?;
-            x = (&x + block.attention.forward(&h, &h, Some(mask))?)?;
-            let h = layer_norm(&x)?;
-            x = (&x + block.feed_forward.forward(&h, 0.0, None)?)?;
-        }
-        let weights = mask.unsqueeze(D::Minus1)?;
-        Ok(layer_norm(&x)?.broadcast_mul(&weights)?.sum(1)?.broadcast_div(&weights.sum(1)?)?)
+        Ok(masked_mean(&self.blocks.forward(&x, Some(mask), None)?, mask)?)
     }
 
     /// The contrastive embedding (before L2 normalisation) of pooled representations.
