@@ -151,21 +151,19 @@ pub fn assign_parameters(
 }
 
 impl Model {
-    /// Saves the parameters (under `model.`) and the configuration.
-    pub fn save(&self, vars: &SeededVarMap, path: &Path) -> Result<()> {
-        write_tensors(path, &named_parameters(vars, "model."), &model_metadata(self.config()))
-    }
-
-    /// Loads a model saved by [`Model::save`] (or a training checkpoint holding `model.`
-    /// parameters). With `expected`, a checkpoint of another configuration is refused.
-    pub fn load(
+    /// Builds the model stored under `prefix` (`model.`, `ema.model.`) in a checkpoint's
+    /// tensors and metadata, read from `path` by [`read_tensors`]. With `expected`, a
+    /// checkpoint of another configuration is refused.
+    pub fn from_checkpoint(
         path: &Path,
+        tensors: &BTreeMap<String, Tensor>,
+        metadata: &BTreeMap<String, String>,
+        prefix: &str,
         expected: Option<&ModelConfig>,
         dtype: DType,
         device: &Device,
     ) -> Result<(Model, SeededVarMap)> {
-        let (tensors, metadata) = read_tensors(path, device)?;
-        let config = config_from_metadata(path, &metadata)?;
+        let config = config_from_metadata(path, metadata)?;
         if let Some(expected) = expected
             && expected != &config
         {
@@ -178,7 +176,7 @@ impl Model {
         }
         let vars = SeededVarMap::new(0);
         let model = Model::new(&config, vars.builder(dtype, device))?;
-        assign_parameters(&vars, &tensors, "model.", path)?;
+        assign_parameters(&vars, tensors, prefix, path)?;
         Ok((model, vars))
     }
 }

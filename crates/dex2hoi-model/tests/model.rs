@@ -269,6 +269,15 @@ fn gradients_of_every_parameter_match_finite_differences() {
     }
 }
 
+/// Reads a checkpoint file and builds the model stored under `model.`.
+fn load_file(
+    path: &std::path::Path,
+    expected: Option<&ModelConfig>,
+) -> dex2hoi_model::Result<(Model, SeededVarMap)> {
+    let (tensors, metadata) = dex2hoi_model::checkpoint::read_tensors(path, &Device::Cpu)?;
+    Model::from_checkpoint(path, &tensors, &metadata, "model.", expected, DType::F32, &Device::Cpu)
+}
+
 #[test]
 fn checkpoints_round_trip_and_refuse_mismatches() {
     use dex2hoi_model::checkpoint::{
@@ -280,8 +289,8 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     let (model, vars) = build(&cfg, 0, DType::F32);
     randomise(&vars, 21);
     let path = dir.join("model.safetensors");
-    model.save(&vars, &path).unwrap();
-    let (loaded, _) = Model::load(&path, Some(&cfg), DType::F32, &Device::Cpu).unwrap();
+    write_tensors(&path, &named_parameters(&vars, "model."), &model_metadata(&cfg)).unwrap();
+    let (loaded, _) = load_file(&path, Some(&cfg)).unwrap();
     let inputs = Inputs::random(&cfg, 2, DType::F32, 22);
     let output = |m: &Model| {
         m.forward(&inputs.view(), None).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
@@ -290,7 +299,7 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     assert_eq!(a, b);
     // Another configuration is refused, naming the file.
     let other = ModelConfig { layers: 3, ..cfg.clone() };
-    let error = Model::load(&path, Some(&other), DType::F32, &Device::Cpu).unwrap_err().to_string();
+    let error = load_file(&path, Some(&other)).unwrap_err().to_string();
     assert!(
         error.contains("model.safetensors") && error.contains("model configuration"),
         "{error}"
@@ -301,36 +310,24 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     let original = tensors[&key].clone();
     tensors.insert(key.clone(), Tensor::zeros((3, 3), DType::F32, &Device::Cpu).unwrap());
     write_tensors(&path, &tensors, &metadata).unwrap();
-    let error = Model::load(&path, None, DType::F32, &Device::Cpu).unwrap_err().to_string();
+    let error = load_file(&path, None).unwrap_err().to_string();
     assert!(error.contains(&key) && error.contains("shape"), "{error}");
     tensors.remove(&key);
     write_tensors(&path, &tensors, &metadata).unwrap();
-    assert!(
-        Model::load(&path, None, DType::F32, &Device::Cpu).unwrap_err().to_string().contains(&key)
-    );
+    assert!(load_file(&path, None).unwrap_err().to_string().contains(&key));
     tensors.insert(key, original);
     tensors
         .insert("model.blocks.9.extra".into(), Tensor::zeros(2, DType::F32, &Device::Cpu).unwrap());
     write_tensors(&path, &tensors, &metadata).unwrap();
-    assert!(
-        Model::load(&path, None, DType::F32, &Device::Cpu)
-            .unwrap_err()
-            .to_string()
-            .contains("blocks.9.extra")
-    );
+    assert!(load_file(&path, None).unwrap_err().to_string().contains("blocks.9.extra"));
     // No configuration in the metadata, or a corrupt file.
     write_tensors(&path, &named_parameters(&vars, "model."), &Default::default()).unwrap();
-    assert!(Model::load(&path, None, DType::F32, &Device::Cpu).is_err());
+    assert!(load_file(&path, None).is_err());
     let mut broken = model_metadata(&cfg);
     broken.insert(dex2hoi_model::checkpoint::CONFIG_KEY.into(), "{\"latent\": 3}".into());
     write_tensors(&path, &named_parameters(&vars, "model."), &broken).unwrap();
-    assert!(Model::load(&path, None, DType::F32, &Device::Cpu).is_err());
+    assert!(load_file(&path, None).is_err());
     std::fs::write(&path, b"not a checkpoint").unwrap();
-    assert!(
-        Model::load(&path, None, DType::F32, &Device::Cpu)
-            .unwrap_err()
-            .to_string()
-            .contains("model.safetensors")
-    );
+    assert!(load_file(&path, None).unwrap_err().to_string().contains("model.safetensors"));
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -6,7 +6,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor};
 
 use dex2hoi_data::dataset::{FeatureStats, Manifest};
-use dex2hoi_model::checkpoint::{assign_parameters, config_from_metadata, read_tensors};
+use dex2hoi_model::checkpoint::{assign_parameters, read_tensors};
 use dex2hoi_model::text::{TextEncoder, Vocabulary};
 use dex2hoi_model::{Model, SeededVarMap};
 use dex2hoi_repr::{Skeleton, SkeletonKind};
@@ -75,19 +75,16 @@ impl TrainedRun {
         let manifest = files.read_manifest()?;
         let stats = files.read_stats(config.model.stream_features())?;
         let (tensors, metadata) = read_tensors(&files.checkpoint, device)?;
-        let stored = config_from_metadata(&files.checkpoint, &metadata)?;
-        if stored != config.model {
-            return Err(SampleError::run(
-                &files.checkpoint,
-                "model configuration",
-                "the model of config.toml",
-                "another model",
-            ));
-        }
         let prefix = weights.checkpoint_prefix();
-        let model_vars = SeededVarMap::new(0);
-        let model = Model::new(&config.model, model_vars.builder(DType::F32, device))?;
-        assign_parameters(&model_vars, &tensors, &format!("{prefix}model."), &files.checkpoint)?;
+        let (model, model_vars) = Model::from_checkpoint(
+            &files.checkpoint,
+            &tensors,
+            &metadata,
+            &format!("{prefix}model."),
+            Some(&config.model),
+            DType::F32,
+            device,
+        )?;
         let words: Vec<String> = metadata
             .get(VOCABULARY_KEY)
             .map(|w| serde_json::from_str(w))

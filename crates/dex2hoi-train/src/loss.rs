@@ -90,6 +90,12 @@ impl Term {
         }
     }
 
+    /// Whether the term decodes the prediction (FK, the object channels, signed distances)
+    /// rather than comparing normalised features.
+    pub fn decodes_prediction(self) -> bool {
+        !matches!(self, Term::Diffusion | Term::FeatureVelocity)
+    }
+
     /// The weight of the term in a configuration.
     pub fn weight(self, config: &LossConfig) -> f64 {
         match self {
@@ -175,17 +181,7 @@ impl LossContext {
         let target = batch.features.narrow(2, window.tp, window.tf)?.to_dtype(window.dtype)?;
         let mut terms: Vec<(Term, Tensor)> = Vec::new();
         self.feature_terms(&window, prediction, &target, &mut terms)?;
-        let geometric = [
-            Term::JointVelocity,
-            Term::FootContact,
-            Term::Penetration,
-            Term::Mixture,
-            Term::Translation,
-            Term::Offset,
-            Term::Distance,
-        ]
-        .iter()
-        .any(|&t| self.active(t));
+        let geometric = Term::ALL.iter().any(|&t| t.decodes_prediction() && self.active(t));
         if geometric {
             self.geometric_terms(&window, prediction, &target, &mut terms)?;
         }
