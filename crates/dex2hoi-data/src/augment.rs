@@ -18,6 +18,7 @@ use dex2hoi_repr::object_repr::{
 use dex2hoi_repr::{Mesh, Skeleton};
 
 use crate::features::ProcessedSequence;
+use crate::layout::{slot_frames, slot_range};
 use crate::sequence::{MAX_OBJECTS, Sequence};
 
 /// Swaps the object slots: stream A becomes stream B and back.
@@ -26,7 +27,7 @@ pub fn swap_streams(sequence: &ProcessedSequence) -> ProcessedSequence {
     let frames = sequence.frames;
     let swap = |values: &mut Vec<f32>, per_slot: usize| {
         for t in 0..frames {
-            let row = &mut values[t * MAX_OBJECTS * per_slot..(t + 1) * MAX_OBJECTS * per_slot];
+            let row = &mut values[slot_frames(t..t + 1, per_slot)];
             let (a, b) = row.split_at_mut(per_slot);
             a.swap_with_slice(b);
         }
@@ -82,34 +83,34 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
     let frames = sequence.frames;
     let joints = sequence.joints;
     let symmetry = skeleton.symmetry();
-    let body = 6 * joints + 3;
+    let layout = sequence.layout();
     let m3 = |v: &[f32]| [-v[0], v[1], v[2]];
     for t in 0..frames {
-        let row = &sequence.body[t * body..(t + 1) * body];
-        let new = &mut out.body[t * body..(t + 1) * body];
+        let row = &sequence.body[layout.body_row(t)];
+        let new = &mut out.body[layout.body_row(t)];
         for j in 0..joints {
             let m = symmetry[j];
-            new[6 * j..6 * j + 6].copy_from_slice(&mirror_sixd(&row[6 * m..6 * m + 6]));
+            new[layout.joint_rotation_range(j)]
+                .copy_from_slice(&mirror_sixd(&row[layout.joint_rotation_range(m)]));
             let p = &sequence.joint_positions[(t * joints + m) * 3..(t * joints + m) * 3 + 3];
             out.joint_positions[(t * joints + j) * 3..(t * joints + j) * 3 + 3]
                 .copy_from_slice(&m3(p));
         }
-        new[6 * joints..].copy_from_slice(&m3(&row[6 * joints..]));
+        new[layout.root_range()].copy_from_slice(&m3(&row[layout.root_range()]));
         for slot in 0..MAX_OBJECTS {
-            let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
-            let o = &sequence.objects[base..base + OBJECT_FEATURE_SIZE];
-            let n = &mut out.objects[base..base + OBJECT_FEATURE_SIZE];
+            let o = &sequence.objects[layout.object_row(t, slot)];
+            let n = &mut out.objects[layout.object_row(t, slot)];
             n[ROTATION_RANGE].copy_from_slice(&mirror_sixd(&o[ROTATION_RANGE]));
             n[LEFT_OFFSET_RANGE].copy_from_slice(&m3(&o[RIGHT_OFFSET_RANGE]));
             n[RIGHT_OFFSET_RANGE].copy_from_slice(&m3(&o[LEFT_OFFSET_RANGE]));
             n[GLOBAL_POSITION_RANGE].copy_from_slice(&m3(&o[GLOBAL_POSITION_RANGE]));
             let alpha = &o[MIXTURE_RANGE];
             n[MIXTURE_RANGE].copy_from_slice(&[alpha[1], alpha[0], alpha[2]]);
-            let c = (t * MAX_OBJECTS + slot) * 2;
+            let c = slot_range(t, slot, 2).start;
             out.hand_contact[c] = sequence.hand_contact[c + 1];
             out.hand_contact[c + 1] = sequence.hand_contact[c];
-            let r = (t * MAX_OBJECTS + slot) * 9;
-            let rot = &sequence.object_rotations[r..r + 9];
+            let r = slot_range(t, slot, 9).start;
+            let rot = &sequence.object_rotations[slot_range(t, slot, 9)];
             // (M R M)_ik = m_i R_ik m_k with m = (-1, 1, 1).
             for i in 0..3 {
                 for k in 0..3 {
@@ -117,9 +118,8 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
                     out.object_rotations[r + 3 * i + k] = sign * rot[3 * i + k];
                 }
             }
-            let p = (t * MAX_OBJECTS + slot) * 3;
-            out.object_positions[p..p + 3]
-                .copy_from_slice(&m3(&sequence.object_positions[p..p + 3]));
+            out.object_positions[slot_range(t, slot, 3)]
+                .copy_from_slice(&m3(&sequence.object_positions[slot_range(t, slot, 3)]));
         }
         let f = &sequence.foot_contact[t * 4..t * 4 + 4];
         out.foot_contact[t * 4..t * 4 + 4].copy_from_slice(&[f[2], f[3], f[0], f[1]]);

@@ -13,8 +13,8 @@ use dex2hoi_repr::object_repr::MIXTURE_RANGE;
 use dex2hoi_repr::{Mesh, SkeletonKind, SurfaceSamples};
 
 use crate::error::{DataError, Result};
-use crate::features::OBJECT_FEATURE_SIZE;
-use crate::features::{ObjectAsset, ProcessedSequence, body_feature_size, stream_feature_size};
+use crate::features::{ObjectAsset, ProcessedSequence};
+use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
 
 /// The version of the format this code writes and reads.
@@ -130,14 +130,15 @@ impl FeatureStats {
     /// logarithms in a fixed range, read through a softmax, and that way the normalised
     /// features keep them as logits.
     pub fn compute(sequences: &[ProcessedSequence], joints: usize) -> Self {
-        let body = body_feature_size(joints);
-        let width = stream_feature_size(joints);
+        let layout = FeatureLayout::new(joints);
+        let body = layout.body_width();
+        let width = layout.stream_width();
         let mut sum = vec![0.0f64; width];
         let mut sum_sq = vec![0.0f64; width];
         let mut count = vec![0.0f64; width];
         for s in sequences {
             for t in 0..s.frames {
-                for (k, &v) in s.body[t * body..(t + 1) * body].iter().enumerate() {
+                for (k, &v) in s.body[layout.body_row(t)].iter().enumerate() {
                     sum[k] += f64::from(v);
                     sum_sq[k] += f64::from(v) * f64::from(v);
                     count[k] += 1.0;
@@ -146,8 +147,7 @@ impl FeatureStats {
                     if !s.object_present[slot] {
                         continue;
                     }
-                    let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
-                    for (k, &v) in s.objects[base..base + OBJECT_FEATURE_SIZE].iter().enumerate() {
+                    for (k, &v) in s.objects[layout.object_row(t, slot)].iter().enumerate() {
                         sum[body + k] += f64::from(v);
                         sum_sq[body + k] += f64::from(v) * f64::from(v);
                         count[body + k] += 1.0;
@@ -157,8 +157,9 @@ impl FeatureStats {
         }
         let mut mean = vec![0.0f32; width];
         let mut std = vec![1.0f32; width];
+        let mixture_channels = layout.object_part_range(MIXTURE_RANGE);
         for k in 0..width {
-            let mixture = (body + MIXTURE_RANGE.start..body + MIXTURE_RANGE.end).contains(&k);
+            let mixture = mixture_channels.contains(&k);
             if count[k] > 0.0 && !mixture {
                 let m = sum[k] / count[k];
                 mean[k] = m as f32;
@@ -225,15 +226,16 @@ impl Dataset {
             })
             .collect();
         let groups = skeleton.groups();
+        let layout = FeatureLayout::new(joints);
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
             source: source.into(),
             skeleton: skeleton.kind().name().into(),
             joints,
             fps,
-            body_feature_size: body_feature_size(joints),
-            object_feature_size: OBJECT_FEATURE_SIZE,
-            stream_feature_size: stream_feature_size(joints),
+            body_feature_size: layout.body_width(),
+            object_feature_size: layout.object_width(),
+            stream_feature_size: layout.stream_width(),
             hand_joints: groups.left_hand.len() + groups.right_hand.len(),
             bps,
             objects: objects.iter().map(|a| a.name.clone()).collect(),
@@ -241,6 +243,32 @@ impl Dataset {
             seed,
         };
         Ok(Self { manifest, splits, objects, stats })
+    }
+
+    /// The layout of the dataset's features.
+    pub fn layout(&self) -> FeatureLayout {
+        self.manifest.layout()
+    }
+
+    /// The asset of the object named `name` (see [`asset_index`]).
+    pub fn asset(&self, name: &str) -> Option<&ObjectAsset> {
+        asset_index(&self.objects, name).map(|index| &self.objects[index])
+    }
+
+    /// The index into [`Dataset::objects`] of each object slot of a sequence (see
+    /// [`slot_assets`]).
+    pub fn slot_assets(
+        &self,
+        sequence: &ProcessedSequence,
+    ) -> Result<[Option<usize>; MAX_OBJECTS]> {
+        slot_assets(&self.objects, sequence)
+    }
+}
+
+impl Manifest {
+    /// The layout of the dataset's features (from its joint count).
+    pub fn layout(&self) -> FeatureLayout {
+        FeatureLayout::new(self.joints)
     }
 }
 
@@ -425,6 +453,23 @@ impl Dataset {
         }
         SkeletonKind::from_name(&manifest.skeleton)
             .map_err(|e| DataError::format(&path, "skeleton", "smplx52 or mixamo65", e))?;
+        // Every reader indexes features through the layout of the joint count, so widths that
+        // disagree with it would be read wrongly rather than fail.
+        let layout = manifest.layout();
+        let widths = (
+            manifest.body_feature_size,
+            manifest.object_feature_size,
+            manifest.stream_feature_size,
+        );
+        let expected = (layout.body_width(), layout.object_width(), layout.stream_width());
+        if widths != expected {
+            return Err(DataError::format(
+                &path,
+                "feature sizes (body, object, stream)",
+                format!("{expected:?} for {} joints", manifest.joints),
+                format!("{widths:?}"),
+            ));
+        }
         Ok(manifest)
     }
 
@@ -510,7 +555,7 @@ impl Dataset {
                     frames: b - a,
                     joints: m.joints,
                     body: slice(&body, m.body_feature_size),
-                    objects: slice(&objects, MAX_OBJECTS * OBJECT_FEATURE_SIZE),
+                    objects: slice(&objects, m.layout().objects_width()),
                     object_present,
                     object_names: info.objects,
                     joint_positions: slice(&joints, m.joints * 3),

@@ -4,7 +4,8 @@
 //! Per frame the body part is `[h (6J), r (3)]`: each joint's local rotation in the 6D form and
 //! the root's displacement from the first frame's pelvis. Each object slot `s` adds
 //! `o^s (18)`, the hand-relative object representation (Eq. 2-4) with ground-truth mixture
-//! logits. Stream A is `[h, r, o^A]`, stream B `[h, r, o^B]`.
+//! logits. Stream A is `[h, r, o^A]`, stream B `[h, r, o^B]`. [`crate::layout`] owns the
+//! widths, the slices and the reshapes between this frame-major layout and the model's streams.
 //!
 //! Every sequence is first put in a canonical frame: turned about +Y so that the root faces +Z
 //! at the first frame, and moved horizontally so that the first frame's pelvis is above the
@@ -20,6 +21,7 @@ use dex2hoi_repr::rotation::{axis_angle_to_matrix, matrix_to_sixd};
 use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SurfaceSamples, forward_kinematics};
 
 use crate::error::{DataError, Result};
+use crate::layout::{FeatureLayout, slot_range};
 use crate::sequence::{MAX_OBJECTS, Sequence};
 
 pub use dex2hoi_repr::object_repr::OBJECT_FEATURE_SIZE;
@@ -27,14 +29,15 @@ pub use dex2hoi_repr::object_repr::OBJECT_FEATURE_SIZE;
 /// Hand-joint distance to an absent object (metres): far beyond every threshold.
 pub const ABSENT_DISTANCE: f32 = 10.0;
 
-/// Numbers per frame of the body part `[h, r]` for `joints` joints.
+/// Numbers per frame of the body part `[h, r]` for `joints` joints
+/// ([`FeatureLayout::body_width`]).
 pub fn body_feature_size(joints: usize) -> usize {
-    6 * joints + 3
+    FeatureLayout::new(joints).body_width()
 }
 
-/// Numbers per frame of one stream `[h, r, o]`.
+/// Numbers per frame of one stream `[h, r, o]` ([`FeatureLayout::stream_width`]).
 pub fn stream_feature_size(joints: usize) -> usize {
-    body_feature_size(joints) + OBJECT_FEATURE_SIZE
+    FeatureLayout::new(joints).stream_width()
 }
 
 /// Thresholds of the targets.
@@ -179,21 +182,22 @@ pub fn process_sequence(
     let fk = forward_kinematics(skeleton, &sequence.local_rotations, &sequence.root_positions)?;
     let root_start = sequence.root_positions[0];
 
-    let body_size = body_feature_size(joints);
-    let mut body = vec![0.0f32; frames * body_size];
-    body.par_chunks_mut(body_size).enumerate().for_each(|(t, row)| {
+    let layout = FeatureLayout::new(joints);
+    let mut body = vec![0.0f32; frames * layout.body_width()];
+    body.par_chunks_mut(layout.body_width()).enumerate().for_each(|(t, row)| {
         for j in 0..joints {
-            row[6 * j..6 * j + 6]
+            row[layout.joint_rotation_range(j)]
                 .copy_from_slice(&matrix_to_sixd(sequence.local_rotations[t * joints + j]));
         }
-        row[6 * joints..].copy_from_slice(&(sequence.root_positions[t] - root_start).to_array());
+        row[layout.root_range()]
+            .copy_from_slice(&(sequence.root_positions[t] - root_start).to_array());
     });
 
     let hand_joints: Vec<usize> =
         groups.left_hand.iter().chain(&groups.right_hand).copied().collect();
     let hand_count = hand_joints.len();
     let wrists = |t: usize| Wrists::from_fk(&fk, t, groups);
-    let mut objects = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
+    let mut objects = vec![0.0f32; frames * layout.objects_width()];
     let mut hand_distance = vec![ABSENT_DISTANCE; frames * MAX_OBJECTS * hand_count];
     let mut hand_contact = vec![0.0f32; frames * MAX_OBJECTS * 2];
     let mut object_rotations = vec![0.0f32; frames * MAX_OBJECTS * 9];
@@ -203,8 +207,8 @@ pub fn process_sequence(
     for t in 0..frames {
         for slot in 0..MAX_OBJECTS {
             let rotation = sequence.objects.get(slot).map_or(Mat3::IDENTITY, |o| o.rotations[t]);
-            let base = (t * MAX_OBJECTS + slot) * 9;
-            object_rotations[base..base + 9].copy_from_slice(&rotation.transpose().to_cols_array());
+            object_rotations[slot_range(t, slot, 9)]
+                .copy_from_slice(&rotation.transpose().to_cols_array());
         }
     }
     for (slot, (object, query)) in sequence.objects.iter().zip(object_queries).enumerate() {
@@ -232,15 +236,13 @@ pub fn process_sequence(
             let pose =
                 ObjectPose { rotation: object.rotations[t], position: object.translations[t] };
             let encoded = HandRelativeObject::encode(pose, wrists(t), logits[t]);
-            let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
-            objects[base..base + OBJECT_FEATURE_SIZE].copy_from_slice(&encoded.to_array());
-            let base = (t * MAX_OBJECTS + slot) * hand_count;
-            hand_distance[base..base + hand_count].copy_from_slice(&distances);
-            let base = (t * MAX_OBJECTS + slot) * 2;
-            hand_contact[base] = f32::from(u8::from(l <= config.hand_contact_distance));
-            hand_contact[base + 1] = f32::from(u8::from(r <= config.hand_contact_distance));
-            let base = (t * MAX_OBJECTS + slot) * 3;
-            object_positions[base..base + 3].copy_from_slice(&pose.position.to_array());
+            objects[layout.object_row(t, slot)].copy_from_slice(&encoded.to_array());
+            hand_distance[slot_range(t, slot, hand_count)].copy_from_slice(&distances);
+            hand_contact[slot_range(t, slot, 2)].copy_from_slice(&[
+                f32::from(u8::from(l <= config.hand_contact_distance)),
+                f32::from(u8::from(r <= config.hand_contact_distance)),
+            ]);
+            object_positions[slot_range(t, slot, 3)].copy_from_slice(&pose.position.to_array());
         }
     }
 
@@ -317,15 +319,8 @@ pub fn decode_features(
     decoding: ObjectDecoding,
 ) -> Result<DecodedMotion> {
     let joints = skeleton.joint_count();
-    let width = body_feature_size(joints);
-    let frames = body.len() / width;
-    if body.len() != frames * width || objects.len() != frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE {
-        return Err(DataError::invalid(
-            "features to decode",
-            format!("[frames, {width}] body and [frames, 2, 18] object features"),
-            format!("{} and {} numbers", body.len(), objects.len()),
-        ));
-    }
+    let layout = FeatureLayout::new(joints);
+    let frames = layout.frames_of(body, objects)?;
     if let Some(i) = body.iter().chain(objects).position(|v| !v.is_finite()) {
         return Err(DataError::invalid(
             "features to decode",
@@ -335,13 +330,13 @@ pub fn decode_features(
     }
     let mut local_rotations = Vec::with_capacity(frames * joints);
     let mut root_positions = Vec::with_capacity(frames);
-    for row in body.chunks_exact(width) {
+    for row in body.chunks_exact(layout.body_width()) {
         for j in 0..joints {
             local_rotations.push(dex2hoi_repr::rotation::sixd_to_matrix(
-                row[6 * j..6 * j + 6].try_into().expect("six numbers"),
+                row[layout.joint_rotation_range(j)].try_into().expect("six numbers"),
             ));
         }
-        root_positions.push(root_start + Vec3::from_slice(&row[6 * joints..]));
+        root_positions.push(root_start + Vec3::from_slice(&row[layout.root_range()]));
     }
     let fk = forward_kinematics(skeleton, &local_rotations, &root_positions)?;
     let groups = skeleton.groups();
@@ -349,10 +344,8 @@ pub fn decode_features(
         present[slot].then(|| {
             (0..frames)
                 .map(|t| {
-                    let base = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
-                    let o =
-                        HandRelativeObject::from_slice(&objects[base..base + OBJECT_FEATURE_SIZE])
-                            .expect("18 numbers");
+                    let o = HandRelativeObject::from_slice(&objects[layout.object_row(t, slot)])
+                        .expect("18 numbers");
                     let position = match decoding {
                         ObjectDecoding::GlobalOnly => o.global_position,
                         ObjectDecoding::Mixture => {

@@ -5,10 +5,12 @@ pub mod augment;
 pub mod dataset;
 pub mod error;
 pub mod features;
+pub mod layout;
 pub mod npz;
 pub mod sequence;
 pub mod synth;
 pub mod window;
 
 pub use error::{DataError, Result};
+pub use layout::FeatureLayout;
 pub use sequence::{MAX_OBJECTS, Sequence, SequenceObject};

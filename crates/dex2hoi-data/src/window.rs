@@ -5,6 +5,7 @@
 use glam::{Mat3, Quat, Vec3};
 
 use crate::error::{DataError, Result};
+use crate::features::ProcessedSequence;
 use crate::sequence::Sequence;
 
 /// Window sizes.
@@ -52,6 +53,38 @@ impl Window {
     /// The frame of the sequence to read at window position `k` (padding repeats the last).
     pub fn frame(&self, k: usize) -> usize {
         self.start + k.min(self.valid_frames.saturating_sub(1))
+    }
+
+    /// The window's `length` frames of a processed sequence (padding repeats the last real
+    /// frame), every per-frame array cut alike.
+    ///
+    /// # Shapes
+    /// - every frame-major array `[T, ...]` of `sequence` becomes `[length, ...]`
+    pub fn cut(&self, sequence: &ProcessedSequence, length: usize) -> ProcessedSequence {
+        // Every per-frame array is frame-major, so a frame is a contiguous run of
+        // `len / frames` numbers whatever its inner shape.
+        let per_frame = |values: &[f32]| -> Vec<f32> {
+            let width = values.len() / sequence.frames.max(1);
+            (0..length).flat_map(|k| &values[self.frame(k) * width..][..width]).copied().collect()
+        };
+        ProcessedSequence {
+            frames: length,
+            joints: sequence.joints,
+            body: per_frame(&sequence.body),
+            objects: per_frame(&sequence.objects),
+            object_present: sequence.object_present,
+            object_names: sequence.object_names.clone(),
+            joint_positions: per_frame(&sequence.joint_positions),
+            hand_distances: per_frame(&sequence.hand_distances),
+            hand_contact: per_frame(&sequence.hand_contact),
+            foot_contact: per_frame(&sequence.foot_contact),
+            object_rotations: per_frame(&sequence.object_rotations),
+            object_positions: per_frame(&sequence.object_positions),
+            root_start: sequence.root_start,
+            texts: sequence.texts.clone(),
+            action: sequence.action.clone(),
+            source_id: sequence.source_id.clone(),
+        }
     }
 }
 

@@ -185,3 +185,71 @@ fn feature_mirroring_equals_mirroring_the_raw_motion() {
         assert_eq!(a.texts, b.texts);
     }
 }
+
+#[test]
+fn the_layout_serves_sequences_assets_and_windows() {
+    use dex2hoi_data::layout::{slot_bps, slot_frames};
+    use dex2hoi_data::window::Window;
+
+    let dataset = build_dataset(9, 2, 20.0, &|_| {}).unwrap();
+    let layout = dataset.layout();
+    assert_eq!(layout.body_width(), dataset.manifest.body_feature_size);
+    assert_eq!(layout.stream_width(), dataset.manifest.stream_feature_size);
+    assert_eq!(layout.stream_width(), dataset.stats.mean.len());
+    let sequence = &dataset.splits[&Split::Train][1];
+    let frames = sequence.frames;
+
+    // A prefix as the model reads it, and back.
+    let streams = sequence.stream_features(0..5).unwrap();
+    let (body, objects) = layout.streams_to_frames(&streams).unwrap();
+    assert_eq!(body, sequence.body[layout.body_frames(0..5)]);
+    assert_eq!(objects, sequence.objects[layout.object_frames(0..5)]);
+    assert!(sequence.stream_features(0..frames + 1).is_err());
+
+    // Object names to assets and BPS.
+    let slots = dataset.slot_assets(sequence).unwrap();
+    for (slot, name) in sequence.object_names.iter().enumerate() {
+        assert_eq!(slots[slot].map(|k| dataset.objects[k].name.as_str()), name.as_deref());
+    }
+    let points = dataset.manifest.bps.points;
+    let bps = slot_bps(&dataset.objects, slots, points).unwrap();
+    assert_eq!(bps.len(), 2 * points * 3);
+    let first = slots[0].expect("every sequence has an object in slot A");
+    assert_eq!(bps[..points * 3], dataset.objects[first].bps_features());
+    assert!(slot_bps(&dataset.objects, slots, points + 1).is_err());
+    assert_eq!(
+        dataset.asset(&dataset.objects[first].name).unwrap().name,
+        dataset.objects[first].name
+    );
+    let mut stranger = sequence.clone();
+    stranger.object_names[0] = Some("anvil".into());
+    assert!(dataset.asset("anvil").is_none());
+    assert!(dataset.slot_assets(&stranger).unwrap_err().to_string().contains("anvil"));
+
+    // A padded window repeats the last frame of every per-frame array.
+    let window = Window { sequence: 1, start: frames - 3, valid_frames: 3 };
+    let cut = window.cut(sequence, 5);
+    assert_eq!(cut.frames, 5);
+    assert_eq!(
+        cut.body[layout.body_frames(0..3)],
+        sequence.body[layout.body_frames(frames - 3..frames)]
+    );
+    assert_eq!(cut.body[layout.body_row(4)], sequence.body[layout.body_row(frames - 1)]);
+    assert_eq!(
+        cut.hand_contact[slot_frames(4..5, 2)],
+        sequence.hand_contact[slot_frames(frames - 1..frames, 2)]
+    );
+    assert_eq!(cut.foot_contact.len(), 5 * 4);
+
+    // A manifest whose widths disagree with its joint count is refused.
+    let dir = temp_dir("widths");
+    dataset.save(&dir).unwrap();
+    let manifest = std::fs::read_to_string(dir.join("manifest.json")).unwrap();
+    let wrong = format!("\"body_feature_size\": {}", layout.body_width() + 1);
+    let right = format!("\"body_feature_size\": {}", layout.body_width());
+    assert!(manifest.contains(&right));
+    std::fs::write(dir.join("manifest.json"), manifest.replace(&right, &wrong)).unwrap();
+    let error = Dataset::load(&dir).unwrap_err().to_string();
+    assert!(error.contains("feature sizes"), "{error}");
+    std::fs::remove_dir_all(dir).ok();
+}

@@ -469,23 +469,24 @@ pub fn standing_features(
     let idle = [poser.idle_hand(Hand::Left), poser.idle_hand(Hand::Right)];
     let local = poser.pose(0.0, 0.0, &idle);
     let skeleton = poser.skeleton();
-    let joints = skeleton.joint_count();
+    let layout = crate::layout::FeatureLayout::of_skeleton(skeleton);
     let root = Vec3::new(0.0, PELVIS_HEIGHT, 0.0);
     let fk = forward_kinematics(skeleton, &local, &[root])?;
+    // One frame: the joint rotations, then a zero root displacement (the frame is the start).
     let mut body: Vec<f32> =
         local.iter().flat_map(|r| dex2hoi_repr::rotation::matrix_to_sixd(*r)).collect();
-    body.extend([0.0; 3]);
-    debug_assert_eq!(body.len(), 6 * joints + 3);
+    body.extend([0.0; crate::layout::ROOT_FEATURE_SIZE]);
+    debug_assert_eq!(body.len(), layout.body_width());
     let g = skeleton.groups();
     let wrists = Wrists::from_fk(&fk, 0, g);
     // Nobody holds anything: the mixture target of "neither hand".
     let free =
         mixture_targets(&[f32::INFINITY], &[f32::INFINITY], &MixtureTargetConfig::default())?[0];
-    let mut rows = vec![0.0f32; crate::MAX_OBJECTS * crate::features::OBJECT_FEATURE_SIZE];
+    let mut rows = vec![0.0f32; layout.objects_width()];
     for (slot, pose) in objects.iter().enumerate() {
         if let Some(pose) = pose {
             let encoded = HandRelativeObject::encode(*pose, wrists, free).to_array();
-            rows[slot * 18..slot * 18 + 18].copy_from_slice(&encoded);
+            rows[layout.object_row(0, slot)].copy_from_slice(&encoded);
         }
     }
     Ok((body, rows))

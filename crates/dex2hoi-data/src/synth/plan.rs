@@ -197,21 +197,111 @@ fn pool(filter: impl Fn(&CatalogueObject) -> bool) -> Vec<&'static CatalogueObje
     CATALOGUE.iter().filter(|o| filter(o)).collect()
 }
 
+/// One-handed objects that are easy to pass and hold two of: the plate and the book are
+/// one-handed but too flat and wide to hand over or to hold one in each hand.
+fn small_one_handed() -> Vec<&'static CatalogueObject> {
+    pool(|o| o.one_handed && o.name != "plate" && o.name != "book")
+}
+
 /// The lifted waypoint between two resting poses.
 fn apex(a: &Pose, b: &Pose, lift: f32) -> Pose {
     Pose { rotation: a.rotation, position: (a.position + b.position) * 0.5 + Vec3::Y * lift }
 }
 
-struct Builder<'r> {
+/// An object on the table, its index in the plan, and when the hand that fetches it arrives.
+struct Placed {
+    object: &'static CatalogueObject,
+    rest: Pose,
+    index: usize,
+    grasp: f32,
+}
+
+/// Two one-handed objects side by side, the left one for the left hand.
+struct Pair {
+    left: &'static CatalogueObject,
+    right: &'static CatalogueObject,
+    left_rest: Pose,
+    right_rest: Pose,
+    left_index: usize,
+    right_index: usize,
+}
+
+/// A plan being built: the scene every task starts from (table, idle time, main hand), the
+/// clock of the next reach, the object tracks and who holds what.
+///
+/// Every number is drawn from `rng`, and the order of the draws is part of the dataset: the
+/// same seed gives the same sequences only while every task draws the same numbers in the same
+/// order. That is why the methods below draw into named variables one at a time, in the order
+/// they always have; a new draw changes every later number of the sequence.
+struct Planner<'r> {
     rng: &'r mut ChaCha8Rng,
+    table: Table,
+    /// Seconds the person stands still before the first reach.
+    idle: f32,
+    /// The hand of the one-handed tasks (the pouring hand, the giving hand).
+    hand: Hand,
+    /// When the next reach starts.
     t: f32,
     objects: Vec<(&'static CatalogueObject, Track)>,
     attachments: Vec<Attachment>,
 }
 
-impl Builder<'_> {
+impl<'r> Planner<'r> {
+    /// Draws the scene: the table's height and near edge, the idle time, the main hand.
+    fn start(rng: &'r mut ChaCha8Rng) -> Self {
+        let height = rng.random_range(0.86..0.94);
+        let near = rng.random_range(0.20..0.26);
+        let idle = rng.random_range(0.4..0.9);
+        let hand = if rng.random_bool(0.5) { Hand::Left } else { Hand::Right };
+        Self {
+            rng,
+            table: Table { height, near },
+            idle,
+            hand,
+            t: idle,
+            objects: Vec::new(),
+            attachments: Vec::new(),
+        }
+    }
+
+    /// The finished plan: it lasts until the last hand is back at rest and a moment more.
+    fn finish(self, task: Task, texts: Vec<String>) -> Plan {
+        let duration = self.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
+            + self.rng.random_range(0.3..0.7);
+        Plan {
+            task,
+            duration,
+            table_height: self.table.height,
+            objects: self.objects,
+            attachments: self.attachments,
+            texts,
+        }
+    }
+
     fn duration(&mut self, range: std::ops::Range<f32>) -> f32 {
         self.rng.random_range(range)
+    }
+
+    /// A small turn of an object about the vertical.
+    fn yaw(&mut self) -> f32 {
+        self.rng.random_range(-0.3..0.3)
+    }
+
+    /// A place across the table on `hand`'s side, within its comfortable reach.
+    fn side_x(&mut self, hand: Hand) -> f32 {
+        hand.side() * self.rng.random_range(0.10..0.22)
+    }
+
+    fn depth(&mut self) -> f32 {
+        self.table.depth(self.rng)
+    }
+
+    /// A resting pose for `object` on `hand`'s side of the table.
+    fn spot_beside(&mut self, object: &CatalogueObject, hand: Hand) -> Pose {
+        let x = self.side_x(hand);
+        let z = self.depth();
+        let yaw = self.yaw();
+        self.table.rest(object, x, z, yaw)
     }
 
     fn add_object(&mut self, object: &'static CatalogueObject, rest: Pose) -> usize {
@@ -245,6 +335,14 @@ impl Builder<'_> {
         t
     }
 
+    /// Carries `object` from `from` over a point `lift` above the middle down onto `to`: the
+    /// path of every move across the table top (objects never slide).
+    fn carry_over(&mut self, object: usize, start: f32, from: &Pose, to: Pose, lift: f32) -> f32 {
+        self.carry(object, start, &[apex(from, &to, lift), to])
+    }
+
+    /// `hand` holds `object` from `start` to `end`, reaching from `reach_start`; returns when
+    /// the hand is back at rest (0.6-0.9 s after letting go).
     fn attach(
         &mut self,
         hand: Hand,
@@ -266,397 +364,370 @@ impl Builder<'_> {
         });
         retract_end
     }
+
+    /// An object from `pool` on the main hand's side, and the main hand reaching for it after
+    /// the idle time.
+    fn place_for_main_hand(&mut self, pool: &[&'static CatalogueObject]) -> Placed {
+        let object = pick(self.rng, pool);
+        let rest = self.spot_beside(object, self.hand);
+        let index = self.add_object(object, rest);
+        let grasp = self.reach();
+        Placed { object, rest, index, grasp }
+    }
+
+    /// Two different small objects side by side, `spread` from the middle, the left one on
+    /// the left. Objects that will be swapped cross the body, so they stay close to the near
+    /// edge (`near_edge`).
+    fn place_pair(&mut self, spread: std::ops::Range<f32>, near_edge: bool) -> Pair {
+        let one = small_one_handed();
+        let left = pick(self.rng, &one);
+        let others: Vec<_> = one.iter().copied().filter(|o| o.name != left.name).collect();
+        let right = pick(self.rng, &others);
+        let depth = |planner: &mut Self| {
+            if near_edge {
+                planner.table.near + planner.rng.random_range(0.07..0.12)
+            } else {
+                planner.depth()
+            }
+        };
+        let left_depth = depth(self);
+        let right_depth = depth(self);
+        let left_x = self.rng.random_range(spread.clone());
+        let left_yaw = self.yaw();
+        let left_rest = self.table.rest(left, left_x, left_depth, left_yaw);
+        let right_x = -self.rng.random_range(spread);
+        let right_yaw = self.yaw();
+        let right_rest = self.table.rest(right, right_x, right_depth, right_yaw);
+        let left_index = self.add_object(left, left_rest);
+        let right_index = self.add_object(right, right_rest);
+        Pair { left, right, left_rest, right_rest, left_index, right_index }
+    }
+
+    /// [`Task::PickPlace`]: the main hand moves an object a little to the side.
+    fn pick_place(&mut self) -> Vec<String> {
+        let hand = self.hand;
+        let o = self.place_for_main_hand(&pool(|o| o.one_handed));
+        let distance: f32 = self.rng.random_range(0.10..0.16);
+        let direction = if self.rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        let dx = hand.side() * distance * direction;
+        let x = (o.rest.position.x + dx).clamp(-0.25, 0.25);
+        let z = self.depth();
+        let yaw = self.yaw();
+        let target = self.table.rest(o.object, x, z, yaw);
+        // From the person's point of view: +X is their left.
+        let towards = if target.position.x > o.rest.position.x { "left" } else { "right" };
+        let lift = self.duration(0.12..0.2);
+        let arrive = self.carry_over(o.index, o.grasp, &o.rest, target, lift);
+        self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
+        let (name, hand) = (o.object.name, hand.word());
+        vec![
+            format!(
+                "The person picks up the {name} with the {hand} hand and puts it down to the {towards}."
+            ),
+            format!(
+                "Using the {hand} hand, someone lifts the {name} and sets it down a little to the {towards}."
+            ),
+            format!("A person moves the {name} to the {towards} with the {hand} hand."),
+        ]
+    }
+
+    /// [`Task::Inspect`]: the main hand brings an object up in front of the chest, turns it
+    /// one way and the other, and puts it back where it was.
+    fn inspect(&mut self) -> Vec<String> {
+        let hand = self.hand;
+        let o = self.place_for_main_hand(&pool(|o| o.one_handed));
+        let held = Pose {
+            rotation: o.rest.rotation,
+            position: Vec3::new(hand.side() * 0.12, 1.18, self.table.near + 0.12),
+        };
+        let turn = |angles: Vec3| Pose {
+            rotation: axis_angle_to_matrix(angles) * o.rest.rotation,
+            position: held.position,
+        };
+        let spin = self.duration(0.8..1.3);
+        let tilt = self.duration(0.3..0.6);
+        let looks = [
+            held,
+            turn(Vec3::new(tilt, spin, 0.0)),
+            turn(Vec3::new(-tilt, -spin * 0.5, tilt * 0.5)),
+            held,
+            o.rest,
+        ];
+        let arrive = self.carry(o.index, o.grasp, &looks);
+        self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
+        let (name, hand) = (o.object.name, hand.word());
+        vec![
+            format!(
+                "The person picks up the {name} with the {hand} hand, turns it around to look at it and puts it back."
+            ),
+            format!(
+                "Someone inspects the {name} held in the {hand} hand and then returns it to the table."
+            ),
+            format!(
+                "A person lifts the {name} with the {hand} hand, examines it from several sides and sets it down."
+            ),
+        ]
+    }
+
+    /// [`Task::LiftBoth`]: both hands lift a wide object straight up, hold it, put it back.
+    fn lift_both(&mut self) -> Vec<String> {
+        let object = pick(self.rng, &pool(|o| o.two_handed));
+        let x = self.rng.random_range(-0.04..0.04);
+        // In the middle, just far enough from the edge for both hands to get around it.
+        let z = self.table.near + footprint(object) + 0.05;
+        let yaw = self.yaw() * 0.3;
+        let rest = self.table.rest(object, x, z, yaw);
+        let o = self.add_object(object, rest);
+        let start = self.reach();
+        let lift = self.duration(0.15..0.3);
+        let up = Pose { rotation: rest.rotation, position: rest.position + Vec3::Y * lift };
+        let arrive = self.carry(o, start, &[up, up, rest]);
+        let end = arrive + CLOSE_TIME;
+        self.attach(Hand::Left, o, GraspStyle::Side, self.idle, start, end);
+        self.attach(Hand::Right, o, GraspStyle::Side, self.idle, start, end);
+        let name = object.name;
+        vec![
+            format!("The person lifts the {name} with both hands and puts it back down."),
+            format!(
+                "Someone raises the {name} using both hands, holds it for a moment and lowers it again."
+            ),
+            format!("A person picks up the {name} with two hands and sets it back on the table."),
+        ]
+    }
+
+    /// [`Task::Handover`]: the main hand brings an object to the middle, the other hand takes
+    /// it there and puts it down on its own side.
+    fn handover(&mut self) -> Vec<String> {
+        let (hand, other) = (self.hand, self.hand.other());
+        let o = self.place_for_main_hand(&small_one_handed());
+        let middle = Pose {
+            rotation: o.rest.rotation,
+            position: Vec3::new(0.0, self.table.height + 0.25, self.table.near + 0.14),
+        };
+        let arrive = self.carry(o.index, o.grasp, &[middle]);
+        // The other hand reaches while the object comes to the middle and takes it; both
+        // hold it a moment before the giving hand lets go.
+        let take = arrive + 0.1;
+        let give_end = take + CLOSE_TIME + 0.3;
+        self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, give_end);
+        self.key(o.index, give_end, middle);
+        let target = self.spot_beside(o.object, other);
+        let lift = self.duration(0.08..0.15);
+        // The taking hand's fingers closed while both held it: it carries on from `give_end`.
+        let place = self.carry_over(o.index, give_end - CLOSE_TIME, &middle, target, lift);
+        let reach_start = take - self.duration(0.8..1.1);
+        self.attach(other, o.index, GraspStyle::Side, reach_start, take, place + CLOSE_TIME);
+        let (name, hand, other) = (o.object.name, hand.word(), other.word());
+        vec![
+            format!(
+                "The person picks up the {name} with the {hand} hand, passes it to the {other} hand and puts it down on the {other} side."
+            ),
+            format!("Someone hands the {name} over from the {hand} hand to the {other} hand."),
+            format!(
+                "A person lifts the {name} with the {hand} hand, gives it to the other hand and places it to the {other}."
+            ),
+        ]
+    }
+
+    /// [`Task::HoldTwo`]: each hand lifts one object (the right a little later), both are
+    /// held up together, then put back.
+    fn hold_two(&mut self) -> Vec<String> {
+        let p = self.place_pair(0.09..0.16, false);
+        let start_left = self.reach();
+        let delay = self.duration(0.0..0.4);
+        let start_right = start_left + delay;
+        let lift_left = self.duration(0.12..0.25);
+        let lift_right = self.duration(0.12..0.25);
+        let hold = self.duration(0.8..1.4);
+        let up_left = Pose { position: p.left_rest.position + Vec3::Y * lift_left, ..p.left_rest };
+        let up_right =
+            Pose { position: p.right_rest.position + Vec3::Y * lift_right, ..p.right_rest };
+        let left_up = self.carry(p.left_index, start_left, &[up_left]);
+        let right_up = self.carry(p.right_index, start_right, &[up_right]);
+        // Both come down together once the later one has been up for `hold`.
+        let down_at = left_up.max(right_up) + hold;
+        self.key(p.left_index, down_at, up_left);
+        self.key(p.right_index, down_at, up_right);
+        let left_done = self.carry(p.left_index, down_at - CLOSE_TIME, &[p.left_rest]);
+        let right_done = self.carry(p.right_index, down_at - CLOSE_TIME, &[p.right_rest]);
+        let idle = self.idle;
+        let left_end = left_done + CLOSE_TIME;
+        self.attach(Hand::Left, p.left_index, GraspStyle::Top, idle, start_left, left_end);
+        let right_end = right_done + CLOSE_TIME;
+        let right_reach = idle + delay;
+        self.attach(
+            Hand::Right,
+            p.right_index,
+            GraspStyle::Top,
+            right_reach,
+            start_right,
+            right_end,
+        );
+        let (left, right) = (p.left.name, p.right.name);
+        vec![
+            format!(
+                "The person picks up the {left} with the left hand and the {right} with the right hand, holds both and puts them back."
+            ),
+            format!(
+                "Someone lifts the {left} in the left hand and the {right} in the right hand at the same time and sets them down again."
+            ),
+            format!(
+                "A person holds the {left} and the {right}, one in each hand, then returns them to the table."
+            ),
+        ]
+    }
+
+    /// [`Task::Swap`]: the right hand parks its object far to the right, the left hand moves
+    /// its object to the right spot, the right hand brings the parked object to the left spot,
+    /// high over the object now standing in the middle. Each reach starts 0.9 s before the
+    /// previous hand lets go, so the hands overlap a little.
+    fn swap(&mut self) -> Vec<String> {
+        let p = self.place_pair(0.06..0.11, true);
+        let park_yaw = self.yaw();
+        let park = self.table.rest(p.right, -0.30, self.table.near + 0.10, park_yaw);
+        let (left_spot, right_spot) = (p.left_rest.position, p.right_rest.position);
+        let left_yaw = self.yaw();
+        let left_to = self.table.rest(p.left, right_spot.x, right_spot.z, left_yaw);
+        let right_yaw = self.yaw();
+        let right_to = self.table.rest(p.right, left_spot.x, left_spot.z, right_yaw);
+        let idle = self.idle;
+
+        let start1 = self.reach();
+        let parked = self.carry_over(p.right_index, start1, &p.right_rest, park, 0.12);
+        let end1 = parked + CLOSE_TIME;
+        let right_back =
+            self.attach(Hand::Right, p.right_index, GraspStyle::Top, idle, start1, end1);
+
+        self.t = end1 - 0.9;
+        let reach2 = self.t;
+        let start2 = self.reach();
+        let moved = self.carry_over(p.left_index, start2, &p.left_rest, left_to, 0.14);
+        let end2 = moved + CLOSE_TIME;
+        self.attach(Hand::Left, p.left_index, GraspStyle::Top, reach2, start2, end2);
+
+        // The right hand cannot reach again before it is back from parking.
+        self.t = (end2 - 0.9).max(right_back);
+        let reach3 = self.t;
+        let start3 = self.reach();
+        let placed = self.carry_over(p.right_index, start3, &park, right_to, 0.30);
+        let end3 = placed + CLOSE_TIME;
+        self.attach(Hand::Right, p.right_index, GraspStyle::Top, reach3, start3, end3);
+        let (left, right) = (p.left.name, p.right.name);
+        vec![
+            format!("The person swaps the places of the {left} and the {right}."),
+            format!(
+                "Someone exchanges the positions of the {left} on the left and the {right} on the right."
+            ),
+            format!(
+                "A person moves the {right} out of the way, puts the {left} in its place and the {right} where the {left} was."
+            ),
+        ]
+    }
+
+    /// [`Task::Pour`]: the other hand steadies a receiver near the edge while the main hand
+    /// lifts a pourer above it, tips it towards it and puts it back.
+    fn pour(&mut self) -> Vec<String> {
+        let (hand, other) = (self.hand, self.hand.other());
+        let pourer = pick(self.rng, &pool(|o| o.pours && o.one_handed));
+        let receiver =
+            pick(self.rng, &pool(|o| o.receives && o.one_handed && o.name != pourer.name));
+        let source_rest = self.spot_beside(pourer, hand);
+        let receiver_x = other.side() * self.rng.random_range(0.12..0.18);
+        let receiver_yaw = self.yaw();
+        let target_rest =
+            self.table.rest(receiver, receiver_x, self.table.near + 0.12, receiver_yaw);
+        let source = self.add_object(pourer, source_rest);
+        let target = self.add_object(receiver, target_rest);
+        let hold_start = self.reach();
+        let start = hold_start + self.duration(0.0..0.3);
+        // Beside the receiver's top on the pouring hand's side, a little above it.
+        let above = target_rest.position
+            + Vec3::new(
+                hand.side() * (footprint(receiver) + 0.05),
+                receiver.half_extents().y + pourer.half_extents().y + 0.10,
+                0.0,
+            );
+        let up = Pose { rotation: source_rest.rotation, position: above };
+        // Tilt about the forward axis toward the receiver.
+        let tip: f32 = self.rng.random_range(1.3..1.8);
+        let tilted = Pose {
+            rotation: axis_angle_to_matrix(Vec3::Z * (hand.side() * tip)) * source_rest.rotation,
+            position: above,
+        };
+        let poured = self.carry(source, start, &[up, tilted, tilted, up, source_rest]);
+        let end = poured + CLOSE_TIME;
+        let reach_start = self.t;
+        self.attach(hand, source, GraspStyle::Top, reach_start, start, end);
+        // The steadying hand lets go only after the pourer is down.
+        self.attach(other, target, GraspStyle::Side, reach_start, hold_start, end + 0.2);
+        let (pourer, receiver, hand, other) =
+            (pourer.name, receiver.name, hand.word(), other.word());
+        vec![
+            format!(
+                "The person holds the {receiver} with the {other} hand and pours from the {pourer} with the {hand} hand."
+            ),
+            format!(
+                "Someone pours from the {pourer} into the {receiver}, steadying the {receiver} with the {other} hand."
+            ),
+            format!(
+                "A person lifts the {pourer} with the {hand} hand, tips it over the {receiver} and puts it back."
+            ),
+        ]
+    }
+
+    /// [`Task::MoveNextTo`]: the main hand moves an object from its side of the table next to
+    /// another near the middle, on the side facing the hand.
+    fn move_next_to(&mut self) -> Vec<String> {
+        let hand = self.hand;
+        let moved = pick(self.rng, &small_one_handed());
+        let anchor = pick(self.rng, &pool(|o| o.one_handed && o.name != moved.name));
+        let anchor_x = -hand.side() * self.rng.random_range(0.0..0.08);
+        let anchor_z = self.depth();
+        let anchor_yaw = self.yaw();
+        let anchor_rest = self.table.rest(anchor, anchor_x, anchor_z, anchor_yaw);
+        let moved_x = hand.side() * self.rng.random_range(0.16..0.24);
+        let moved_z = self.depth();
+        let moved_yaw = self.yaw();
+        let moved_rest = self.table.rest(moved, moved_x, moved_z, moved_yaw);
+        let o = self.add_object(moved, moved_rest);
+        self.add_object(anchor, anchor_rest);
+        // Side by side with a 3 cm gap, both standing on the table.
+        let gap = footprint(moved) + footprint(anchor) + 0.03;
+        let target = Pose {
+            position: anchor_rest.position
+                + Vec3::new(
+                    hand.side() * gap,
+                    moved.half_extents().y - anchor.half_extents().y,
+                    0.0,
+                ),
+            ..moved_rest
+        };
+        let start = self.reach();
+        let lift = self.duration(0.08..0.15);
+        let arrive = self.carry_over(o, start, &moved_rest, target, lift);
+        self.attach(hand, o, GraspStyle::Top, self.idle, start, arrive + CLOSE_TIME);
+        let (moved, anchor, hand) = (moved.name, anchor.name, hand.word());
+        vec![
+            format!("The person moves the {moved} next to the {anchor} with the {hand} hand."),
+            format!("Using the {hand} hand, someone places the {moved} beside the {anchor}."),
+            format!("A person picks up the {moved} and puts it down next to the {anchor}."),
+        ]
+    }
 }
 
-/// Plans one sequence of a task.
+/// Plans one sequence of a task: the scene, then the task family's object tracks and hand
+/// assignments (see [`Planner`] on why the order of the random draws must not change).
 pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
-    let table = Table { height: rng.random_range(0.86..0.94), near: rng.random_range(0.20..0.26) };
-    let idle = rng.random_range(0.4..0.9);
-    let mut b = Builder { rng, t: idle, objects: Vec::new(), attachments: Vec::new() };
-    let hand = if b.rng.random_bool(0.5) { Hand::Left } else { Hand::Right };
-    let yaw = |rng: &mut ChaCha8Rng| rng.random_range(-0.3..0.3);
-    let side_x = |rng: &mut ChaCha8Rng, hand: Hand| hand.side() * rng.random_range(0.10..0.22);
-    let one = pool(|o| o.one_handed && o.name != "plate" && o.name != "book");
-    let texts: Vec<String>;
-    match task {
-        Task::PickPlace | Task::Inspect => {
-            let object = pick(b.rng, &pool(|o| o.one_handed));
-            let (x, z, y) = (side_x(b.rng, hand), table.depth(b.rng), yaw(b.rng));
-            let rest = table.rest(object, x, z, y);
-            let o = b.add_object(object, rest);
-            let start = b.reach();
-            let end = if task == Task::PickPlace {
-                let dx = hand.side()
-                    * b.rng.random_range(0.10..0.16)
-                    * if b.rng.random_bool(0.5) { 1.0 } else { -1.0 };
-                let target =
-                    table.rest(object, (x + dx).clamp(-0.25, 0.25), table.depth(b.rng), yaw(b.rng));
-                let towards = if target.position.x > rest.position.x { "left" } else { "right" };
-                let lift = b.duration(0.12..0.2);
-                let arrive = b.carry(o, start, &[apex(&rest, &target, lift), target]);
-                texts = vec![
-                    format!(
-                        "The person picks up the {} with the {} hand and puts it down to the {towards}.",
-                        object.name,
-                        hand.word()
-                    ),
-                    format!(
-                        "Using the {} hand, someone lifts the {} and sets it down a little to the {towards}.",
-                        hand.word(),
-                        object.name
-                    ),
-                    format!(
-                        "A person moves the {} to the {towards} with the {} hand.",
-                        object.name,
-                        hand.word()
-                    ),
-                ];
-                arrive + CLOSE_TIME
-            } else {
-                let held = Pose {
-                    rotation: rest.rotation,
-                    position: Vec3::new(hand.side() * 0.12, 1.18, table.near + 0.12),
-                };
-                let turn = |angles: Vec3| Pose {
-                    rotation: axis_angle_to_matrix(angles) * rest.rotation,
-                    position: held.position,
-                };
-                let (spin, tilt) = (b.duration(0.8..1.3), b.duration(0.3..0.6));
-                let arrive = b.carry(
-                    o,
-                    start,
-                    &[
-                        held,
-                        turn(Vec3::new(tilt, spin, 0.0)),
-                        turn(Vec3::new(-tilt, -spin * 0.5, tilt * 0.5)),
-                        held,
-                        rest,
-                    ],
-                );
-                texts = vec![
-                    format!(
-                        "The person picks up the {} with the {} hand, turns it around to look at it and puts it back.",
-                        object.name,
-                        hand.word()
-                    ),
-                    format!(
-                        "Someone inspects the {} held in the {} hand and then returns it to the table.",
-                        object.name,
-                        hand.word()
-                    ),
-                    format!(
-                        "A person lifts the {} with the {} hand, examines it from several sides and sets it down.",
-                        object.name,
-                        hand.word()
-                    ),
-                ];
-                arrive + CLOSE_TIME
-            };
-            b.attach(hand, o, GraspStyle::Top, idle, start, end);
-            b.t = end;
-        }
-        Task::LiftBoth => {
-            let object = pick(b.rng, &pool(|o| o.two_handed));
-            let rest = table.rest(
-                object,
-                b.rng.random_range(-0.04..0.04),
-                table.near + footprint(object) + 0.05,
-                yaw(b.rng) * 0.3,
-            );
-            let o = b.add_object(object, rest);
-            let start = b.reach();
-            let lift = b.duration(0.15..0.3);
-            let up = Pose { rotation: rest.rotation, position: rest.position + Vec3::Y * lift };
-            let arrive = b.carry(o, start, &[up, up, rest]);
-            let end = arrive + CLOSE_TIME;
-            b.attach(Hand::Left, o, GraspStyle::Side, idle, start, end);
-            b.attach(Hand::Right, o, GraspStyle::Side, idle, start, end);
-            texts = vec![
-                format!(
-                    "The person lifts the {} with both hands and puts it back down.",
-                    object.name
-                ),
-                format!(
-                    "Someone raises the {} using both hands, holds it for a moment and lowers it again.",
-                    object.name
-                ),
-                format!(
-                    "A person picks up the {} with two hands and sets it back on the table.",
-                    object.name
-                ),
-            ];
-        }
-        Task::Handover => {
-            let object = pick(b.rng, &one);
-            let rest = table.rest(object, side_x(b.rng, hand), table.depth(b.rng), yaw(b.rng));
-            let o = b.add_object(object, rest);
-            let start = b.reach();
-            let middle = Pose {
-                rotation: rest.rotation,
-                position: Vec3::new(0.0, table.height + 0.25, table.near + 0.14),
-            };
-            let arrive = b.carry(o, start, &[middle]);
-            // The other hand reaches while the object comes to the middle and takes it.
-            let other = hand.other();
-            let take = arrive + 0.1;
-            let give_end = take + CLOSE_TIME + 0.3;
-            b.attach(hand, o, GraspStyle::Top, idle, start, give_end);
-            b.key(o, give_end, middle);
-            let target = table.rest(object, side_x(b.rng, other), table.depth(b.rng), yaw(b.rng));
-            b.t = give_end;
-            let lift = b.duration(0.08..0.15);
-            let place = b.carry(o, give_end - CLOSE_TIME, &[apex(&middle, &target, lift), target]);
-            let end = place + CLOSE_TIME;
-            let reach_start = take - b.duration(0.8..1.1);
-            b.attach(other, o, GraspStyle::Side, reach_start, take, end);
-            texts = vec![
-                format!(
-                    "The person picks up the {} with the {} hand, passes it to the {} hand and puts it down on the {} side.",
-                    object.name,
-                    hand.word(),
-                    other.word(),
-                    other.word()
-                ),
-                format!(
-                    "Someone hands the {} over from the {} hand to the {} hand.",
-                    object.name,
-                    hand.word(),
-                    other.word()
-                ),
-                format!(
-                    "A person lifts the {} with the {} hand, gives it to the other hand and places it to the {}.",
-                    object.name,
-                    hand.word(),
-                    other.word()
-                ),
-            ];
-        }
-        Task::HoldTwo | Task::Swap => {
-            let left_object = pick(b.rng, &one);
-            let others: Vec<_> =
-                one.iter().copied().filter(|o| o.name != left_object.name).collect();
-            let right_object = pick(b.rng, &others);
-            let spread = if task == Task::Swap { 0.06..0.11 } else { 0.09..0.16 };
-            // Swapped objects cross the body: keep them close to the near edge.
-            let depth = |b: &mut Builder<'_>| {
-                if task == Task::Swap {
-                    table.near + b.rng.random_range(0.07..0.12)
-                } else {
-                    table.depth(b.rng)
-                }
-            };
-            let (left_depth, right_depth) = (depth(&mut b), depth(&mut b));
-            let left_rest =
-                table.rest(left_object, b.rng.random_range(spread.clone()), left_depth, yaw(b.rng));
-            let right_rest =
-                table.rest(right_object, -b.rng.random_range(spread), right_depth, yaw(b.rng));
-            let lo = b.add_object(left_object, left_rest);
-            let ro = b.add_object(right_object, right_rest);
-            if task == Task::HoldTwo {
-                let start_left = b.reach();
-                let delay = b.duration(0.0..0.4);
-                let start_right = start_left + delay;
-                let (lift_left, lift_right) = (b.duration(0.12..0.25), b.duration(0.12..0.25));
-                let hold = b.duration(0.8..1.4);
-                let up_left =
-                    Pose { position: left_rest.position + Vec3::Y * lift_left, ..left_rest };
-                let up_right =
-                    Pose { position: right_rest.position + Vec3::Y * lift_right, ..right_rest };
-                let left_up = b.carry(lo, start_left, &[up_left]);
-                let right_up = b.carry(ro, start_right, &[up_right]);
-                let down_at = left_up.max(right_up) + hold;
-                b.key(lo, down_at, up_left);
-                b.key(ro, down_at, up_right);
-                let left_done = b.carry(lo, down_at - CLOSE_TIME, &[left_rest]);
-                let right_done = b.carry(ro, down_at - CLOSE_TIME, &[right_rest]);
-                b.attach(Hand::Left, lo, GraspStyle::Top, idle, start_left, left_done + CLOSE_TIME);
-                b.attach(
-                    Hand::Right,
-                    ro,
-                    GraspStyle::Top,
-                    idle + delay,
-                    start_right,
-                    right_done + CLOSE_TIME,
-                );
-                texts = vec![
-                    format!(
-                        "The person picks up the {} with the left hand and the {} with the right hand, holds both and puts them back.",
-                        left_object.name, right_object.name
-                    ),
-                    format!(
-                        "Someone lifts the {} in the left hand and the {} in the right hand at the same time and sets them down again.",
-                        left_object.name, right_object.name
-                    ),
-                    format!(
-                        "A person holds the {} and the {}, one in each hand, then returns them to the table.",
-                        left_object.name, right_object.name
-                    ),
-                ];
-            } else {
-                // The right hand parks its object far to the right, the left hand moves its
-                // object to the right spot, the right hand brings the parked object to the left
-                // spot, high over the object now standing in the middle.
-                let park = table.rest(right_object, -0.30, table.near + 0.10, yaw(b.rng));
-                let left_to = table.rest(
-                    left_object,
-                    right_rest.position.x,
-                    right_rest.position.z,
-                    yaw(b.rng),
-                );
-                let right_to = table.rest(
-                    right_object,
-                    left_rest.position.x,
-                    left_rest.position.z,
-                    yaw(b.rng),
-                );
-                let start1 = b.reach();
-                let parked = b.carry(ro, start1, &[apex(&right_rest, &park, 0.12), park]);
-                let end1 = parked + CLOSE_TIME;
-                let done1 = b.attach(Hand::Right, ro, GraspStyle::Top, idle, start1, end1);
-                b.t = end1 - 0.9;
-                let reach2 = b.t;
-                let start2 = b.reach();
-                let moved = b.carry(lo, start2, &[apex(&left_rest, &left_to, 0.14), left_to]);
-                let end2 = moved + CLOSE_TIME;
-                b.attach(Hand::Left, lo, GraspStyle::Top, reach2, start2, end2);
-                b.t = (end2 - 0.9).max(done1);
-                let reach3 = b.t;
-                let start3 = b.reach();
-                let placed = b.carry(ro, start3, &[apex(&park, &right_to, 0.30), right_to]);
-                b.attach(Hand::Right, ro, GraspStyle::Top, reach3, start3, placed + CLOSE_TIME);
-                texts = vec![
-                    format!(
-                        "The person swaps the places of the {} and the {}.",
-                        left_object.name, right_object.name
-                    ),
-                    format!(
-                        "Someone exchanges the positions of the {} on the left and the {} on the right.",
-                        left_object.name, right_object.name
-                    ),
-                    format!(
-                        "A person moves the {} out of the way, puts the {} in its place and the {} where the {} was.",
-                        right_object.name, left_object.name, right_object.name, left_object.name
-                    ),
-                ];
-            }
-        }
-        Task::Pour => {
-            let pourer = pick(b.rng, &pool(|o| o.pours && o.one_handed));
-            let receiver =
-                pick(b.rng, &pool(|o| o.receives && o.one_handed && o.name != pourer.name));
-            let other = hand.other();
-            let source_rest =
-                table.rest(pourer, side_x(b.rng, hand), table.depth(b.rng), yaw(b.rng));
-            let target_rest = table.rest(
-                receiver,
-                other.side() * b.rng.random_range(0.12..0.18),
-                table.near + 0.12,
-                yaw(b.rng),
-            );
-            let so = b.add_object(pourer, source_rest);
-            let ro = b.add_object(receiver, target_rest);
-            let hold_start = b.reach();
-            let start = hold_start + b.duration(0.0..0.3);
-            let above = target_rest.position
-                + Vec3::new(
-                    hand.side() * (footprint(receiver) + 0.05),
-                    receiver.half_extents().y + pourer.half_extents().y + 0.10,
-                    0.0,
-                );
-            let up = Pose { rotation: source_rest.rotation, position: above };
-            // Tilt about the forward axis toward the receiver.
-            let tilted = Pose {
-                rotation: axis_angle_to_matrix(
-                    Vec3::Z * (hand.side() * b.rng.random_range(1.3..1.8)),
-                ) * source_rest.rotation,
-                position: above,
-            };
-            let poured = b.carry(so, start, &[up, tilted, tilted, up, source_rest]);
-            let end = poured + CLOSE_TIME;
-            b.attach(hand, so, GraspStyle::Top, b.t, start, end);
-            b.attach(other, ro, GraspStyle::Side, b.t, hold_start, end + 0.2);
-            texts = vec![
-                format!(
-                    "The person holds the {} with the {} hand and pours from the {} with the {} hand.",
-                    receiver.name,
-                    other.word(),
-                    pourer.name,
-                    hand.word()
-                ),
-                format!(
-                    "Someone pours from the {} into the {}, steadying the {} with the {} hand.",
-                    pourer.name,
-                    receiver.name,
-                    receiver.name,
-                    other.word()
-                ),
-                format!(
-                    "A person lifts the {} with the {} hand, tips it over the {} and puts it back.",
-                    pourer.name,
-                    hand.word(),
-                    receiver.name
-                ),
-            ];
-        }
-        Task::MoveNextTo => {
-            let moved = pick(b.rng, &one);
-            let anchor = pick(b.rng, &pool(|o| o.one_handed && o.name != moved.name));
-            let anchor_rest = table.rest(
-                anchor,
-                -hand.side() * b.rng.random_range(0.0..0.08),
-                table.depth(b.rng),
-                yaw(b.rng),
-            );
-            let moved_rest = table.rest(
-                moved,
-                hand.side() * b.rng.random_range(0.16..0.24),
-                table.depth(b.rng),
-                yaw(b.rng),
-            );
-            let mo = b.add_object(moved, moved_rest);
-            b.add_object(anchor, anchor_rest);
-            let gap = footprint(moved) + footprint(anchor) + 0.03;
-            let target = Pose {
-                position: anchor_rest.position
-                    + Vec3::new(
-                        hand.side() * gap,
-                        moved.half_extents().y - anchor.half_extents().y,
-                        0.0,
-                    ),
-                ..moved_rest
-            };
-            let start = b.reach();
-            let lift = b.duration(0.08..0.15);
-            let arrive = b.carry(mo, start, &[apex(&moved_rest, &target, lift), target]);
-            b.attach(hand, mo, GraspStyle::Top, idle, start, arrive + CLOSE_TIME);
-            texts = vec![
-                format!(
-                    "The person moves the {} next to the {} with the {} hand.",
-                    moved.name,
-                    anchor.name,
-                    hand.word()
-                ),
-                format!(
-                    "Using the {} hand, someone places the {} beside the {}.",
-                    hand.word(),
-                    moved.name,
-                    anchor.name
-                ),
-                format!(
-                    "A person picks up the {} and puts it down next to the {}.",
-                    moved.name, anchor.name
-                ),
-            ];
-        }
-    }
-    let duration = b.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
-        + b.rng.random_range(0.3..0.7);
-    Plan {
-        task,
-        duration,
-        table_height: table.height,
-        objects: b.objects,
-        attachments: b.attachments,
-        texts,
-    }
+    let mut planner = Planner::start(rng);
+    let texts = match task {
+        Task::PickPlace => planner.pick_place(),
+        Task::Inspect => planner.inspect(),
+        Task::LiftBoth => planner.lift_both(),
+        Task::Handover => planner.handover(),
+        Task::HoldTwo => planner.hold_two(),
+        Task::Swap => planner.swap(),
+        Task::Pour => planner.pour(),
+        Task::MoveNextTo => planner.move_next_to(),
+    };
+    planner.finish(task, texts)
 }
