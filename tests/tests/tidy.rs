@@ -13,7 +13,7 @@ const LAYERING: [(&str, &[&str]); 11] = [
     ("dex2hoi-repr", &[]),
     ("dex2hoi-data", &["dex2hoi-repr"]),
     ("dex2hoi-import", &["dex2hoi-repr", "dex2hoi-data"]),
-    ("dex2hoi-model", &["dex2hoi-repr"]),
+    ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"]),
     ("dex2hoi-diffusion", &[]),
     ("dex2hoi-optim", &[]),
     ("dex2hoi-sample", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),

@@ -3,6 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use dex2hoi_data::FeatureLayout;
+
 use crate::error::{ModelError, Result};
 
 /// The presets of `configs/` at the repository root, compiled in: the one source of every
@@ -119,12 +121,17 @@ impl ModelConfig {
 
     /// Numbers per frame of the body part `[h, r]`.
     pub fn body_features(&self) -> usize {
-        6 * self.joints + 3
+        self.layout().body_width()
     }
 
     /// Numbers per frame of one stream `[h, r, o]`.
     pub fn stream_features(&self) -> usize {
-        self.body_features() + 18
+        self.layout().stream_width()
+    }
+
+    /// The feature layout of this model's streams.
+    pub fn layout(&self) -> FeatureLayout {
+        FeatureLayout::new(self.joints)
     }
 
     /// Frames of a window, `T_p + T_f`.

@@ -15,7 +15,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::{DecodedMotion, OBJECT_FEATURE_SIZE, ObjectDecoding, decode_features};
+use dex2hoi_data::features::{DecodedMotion, ObjectDecoding, decode_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::text::reject_empty;
 use dex2hoi_model::{Model, ObjectRepresentation};
@@ -181,7 +181,7 @@ pub fn generate_motion(
     let started = Instant::now();
     let device = &run.device;
     let config = &run.config.model;
-    let (width, body) = (config.stream_features(), config.body_features());
+    let width = config.stream_features();
     let bps_width = config.bps_points * 3;
     if conditioning.prefix.len() != MAX_OBJECTS * config.prefix_frames * width
         || conditioning.bps.len() != MAX_OBJECTS * bps_width
@@ -226,16 +226,7 @@ pub fn generate_motion(
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;
-    let mut body_features = Vec::with_capacity(frames * body);
-    let mut object_features = vec![0.0f32; frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE];
-    for t in 0..frames {
-        body_features.extend_from_slice(&features[t * width..t * width + body]);
-        for s in 0..MAX_OBJECTS {
-            let row = &features[(s * frames + t) * width..(s * frames + t + 1) * width];
-            object_features[(t * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE..][..OBJECT_FEATURE_SIZE]
-                .copy_from_slice(&row[body..]);
-        }
-    }
+    let (body_features, object_features) = config.layout().streams_to_frames(&features)?;
     let decoding = match config.object_representation {
         ObjectRepresentation::HandRelative => ObjectDecoding::Mixture,
         ObjectRepresentation::GlobalOnly => ObjectDecoding::GlobalOnly,

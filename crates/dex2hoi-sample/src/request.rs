@@ -7,7 +7,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::{DecodedMotion, OBJECT_FEATURE_SIZE};
+use dex2hoi_data::features::DecodedMotion;
 use dex2hoi_data::synth::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_model::text::reject_empty;
@@ -96,16 +96,10 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             .copy_from_slice(&features);
     }
     let (body_row, object_rows) = standing_features(poses)?;
-    let width = config.stream_features();
-    let mut prefix = Vec::with_capacity(MAX_OBJECTS * config.prefix_frames * width);
-    for slot in 0..MAX_OBJECTS {
-        for _ in 0..config.prefix_frames {
-            prefix.extend_from_slice(&body_row);
-            prefix.extend_from_slice(
-                &object_rows[slot * OBJECT_FEATURE_SIZE..(slot + 1) * OBJECT_FEATURE_SIZE],
-            );
-        }
-    }
+    let prefix = config.layout().frames_to_streams(
+        &body_row.repeat(config.prefix_frames),
+        &object_rows.repeat(config.prefix_frames),
+    )?;
     let prompts: Vec<(usize, &str)> =
         request.prompts.iter().map(|p| (p.start_frame, p.text.as_str())).collect();
     let generated = generate_motion(

@@ -5,10 +5,11 @@ use candle_core::{DType, Device, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
+use dex2hoi_data::FeatureLayout;
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::augment::{mirror, swap_streams};
 use dex2hoi_data::dataset::{Dataset, FeatureStats, Split};
-use dex2hoi_data::features::{OBJECT_FEATURE_SIZE, ProcessedSequence, body_feature_size};
+use dex2hoi_data::features::{ObjectAsset, ProcessedSequence};
 use dex2hoi_data::window::{Window, WindowConfig, windows};
 use dex2hoi_repr::Skeleton;
 
@@ -103,32 +104,12 @@ impl TrainingSet {
         }
         let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
         let windows = windows(&counts, &window)?;
-        let asset_index = |name: &str| dataset.objects.iter().position(|a| a.name == name);
         let assets_of = sequences
             .iter()
-            .map(|s| {
-                let mut slots = [None; MAX_OBJECTS];
-                for (slot, name) in s.object_names.iter().enumerate() {
-                    if let Some(name) = name {
-                        slots[slot] = Some(asset_index(name).ok_or_else(|| {
-                            TrainError::config(
-                                "dataset",
-                                format!("object of {}", s.source_id),
-                                "an object listed in the manifest",
-                                name,
-                            )
-                        })?);
-                    }
-                }
-                Ok(slots)
-            })
-            .collect::<Result<_>>()?;
+            .map(|s| dataset.slot_assets(s))
+            .collect::<std::result::Result<_, _>>()?;
         let bps_width = dataset.manifest.bps.points * 3;
-        let bps = dataset
-            .objects
-            .iter()
-            .map(|a| a.bps.iter().flat_map(|v| v.to_array()).collect())
-            .collect();
+        let bps = dataset.objects.iter().map(ObjectAsset::bps_features).collect();
         let clouds = dataset
             .objects
             .iter()
@@ -187,8 +168,8 @@ impl TrainingSet {
         let (tp, tf) = (self.window.prefix_frames, self.window.predicted_frames);
         let t_all = tp + tf;
         let joints = self.skeleton.joint_count();
-        let body = body_feature_size(joints);
-        let width = body + OBJECT_FEATURE_SIZE;
+        let layout = FeatureLayout::new(joints);
+        let width = layout.stream_width();
         let h = self.skeleton.groups().left_hand.len() + self.skeleton.groups().right_hand.len();
         let mut features = vec![0.0f32; b * 2 * t_all * width];
         let mut frame_mask = vec![0.0f32; b * t_all];
@@ -208,7 +189,7 @@ impl TrainingSet {
             let text = source.texts[rng.random_range(0..source.texts.len())].clone();
             let swap = rng.random_bool(options.swap_probability);
             let mirrored = rng.random_bool(options.mirror_probability);
-            let mut w = slice_window(source, &window, t_all);
+            let mut w = window.cut(source, t_all);
             w.texts = vec![text];
             let mut slots = self.assets_of[window.sequence];
             if swap {
@@ -222,9 +203,7 @@ impl TrainingSet {
                 frame_mask[i * t_all + k] = if k < window.valid_frames { 1.0 } else { 0.0 };
                 for s in 0..MAX_OBJECTS {
                     let row = &mut features[((i * 2 + s) * t_all + k) * width..][..width];
-                    row[..body].copy_from_slice(&w.body[k * body..(k + 1) * body]);
-                    let o = (k * MAX_OBJECTS + s) * OBJECT_FEATURE_SIZE;
-                    row[body..].copy_from_slice(&w.objects[o..o + OBJECT_FEATURE_SIZE]);
+                    layout.write_stream_row(&w.body, &w.objects, k, s, row);
                     for (c, v) in row.iter_mut().enumerate() {
                         *v = (*v - self.stats.mean[c]) / self.stats.std[c];
                     }
@@ -278,41 +257,5 @@ impl TrainingSet {
             root_start: tensor(root_start, &[b, 1, 3])?,
             clouds,
         })
-    }
-}
-
-/// The frames of one window as a sequence of its own (padding repeats the last real frame);
-/// the root start stays the sequence's, since features are measured from it.
-pub fn slice_window(
-    sequence: &ProcessedSequence,
-    window: &Window,
-    length: usize,
-) -> ProcessedSequence {
-    fn rows(values: &[f32], width: usize, window: &Window, length: usize) -> Vec<f32> {
-        (0..length)
-            .flat_map(|k| values[window.frame(k) * width..][..width].iter().copied())
-            .collect()
-    }
-    let per_frame = |values: &[f32]| {
-        let width = values.len() / sequence.frames.max(1);
-        rows(values, width, window, length)
-    };
-    ProcessedSequence {
-        frames: length,
-        joints: sequence.joints,
-        body: per_frame(&sequence.body),
-        objects: per_frame(&sequence.objects),
-        object_present: sequence.object_present,
-        object_names: sequence.object_names.clone(),
-        joint_positions: per_frame(&sequence.joint_positions),
-        hand_distances: per_frame(&sequence.hand_distances),
-        hand_contact: per_frame(&sequence.hand_contact),
-        foot_contact: per_frame(&sequence.foot_contact),
-        object_rotations: per_frame(&sequence.object_rotations),
-        object_positions: per_frame(&sequence.object_positions),
-        root_start: sequence.root_start,
-        texts: sequence.texts.clone(),
-        action: sequence.action.clone(),
-        source_id: sequence.source_id.clone(),
     }
 }

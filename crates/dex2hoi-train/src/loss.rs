@@ -20,8 +20,9 @@
 use candle_core::{D, DType, Tensor};
 use rayon::prelude::*;
 
+use dex2hoi_data::FeatureLayout;
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::OBJECT_FEATURE_SIZE;
+use dex2hoi_data::layout::OBJECT_FEATURE_SIZE;
 use dex2hoi_model::ObjectRepresentation;
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::object_repr::{
@@ -209,7 +210,7 @@ impl LossContext {
         target: &Tensor,
         terms: &mut Vec<(Term, Tensor)>,
     ) -> Result<()> {
-        let (b, tf, d, body) = (window.batch, window.tf, window.width, window.body);
+        let (b, tf, d) = (window.batch, window.tf, window.width);
         let object_channel: Vec<f32> = (0..OBJECT_FEATURE_SIZE)
             .map(|c| {
                 let hand_relative_only = LEFT_OFFSET_RANGE.contains(&c)
@@ -225,10 +226,10 @@ impl LossContext {
             for s in 0..MAX_OBJECTS {
                 let row = &mut channels[(i * 2 + s) * d..(i * 2 + s + 1) * d];
                 if s == 0 {
-                    row[..body].fill(1.0);
+                    row[window.layout.body_range()].fill(1.0);
                 }
                 if window.batch_data.presence_values[i][s] {
-                    row[body..].copy_from_slice(&object_channel);
+                    row[window.layout.object_range()].copy_from_slice(&object_channel);
                 }
             }
         }
@@ -283,8 +284,8 @@ impl LossContext {
         }
 
         // Objects: the prediction's 18 numbers per slot, decoded with the predicted wrists.
-        let objects = raw.narrow(3, window.body, OBJECT_FEATURE_SIZE)?; // [B, 2, T_f, 18]
-        let target_objects = target_raw.narrow(3, window.body, OBJECT_FEATURE_SIZE)?;
+        let objects = window.layout.object_of(&raw)?; // [B, 2, T_f, 18]
+        let target_objects = window.layout.object_of(&target_raw)?;
         let slots = window.slot_mask(false)?;
         let gated_slots = window.slot_mask(true)?;
         if self.active(Term::Mixture) {
@@ -337,12 +338,11 @@ impl LossContext {
     /// - `raw`: `[B, 2, T_f, D]` denormalised; positions `[B, T_f, J, 3]`, rotations
     ///   `[B, T_f, J, 3, 3]`
     fn body_kinematics(&self, window: &Window<'_>, raw: &Tensor) -> Result<BodyKinematics> {
-        let (b, tf, joints) = (window.batch, window.tf, window.joints);
-        let body_raw = raw.narrow(1, 0, 1)?.squeeze(1)?.narrow(2, 0, window.body)?;
-        let rotations =
-            sixd_to_matrix(&body_raw.narrow(2, 0, 6 * joints)?.reshape((b, tf, joints, 6))?)?;
-        let root = body_raw
-            .narrow(2, 6 * joints, 3)?
+        let body_raw = window.layout.stream_body_of(raw)?;
+        let rotations = sixd_to_matrix(&window.layout.joint_rotations_of(&body_raw)?)?;
+        let root = window
+            .layout
+            .root_of(&body_raw)?
             .broadcast_add(&window.batch_data.root_start.to_dtype(window.dtype)?)?;
         let (positions, world_rotations) =
             tensor_forward_kinematics(&self.skeleton, &rotations, &root)?;
@@ -489,7 +489,7 @@ struct Window<'a> {
     tp: usize,
     tf: usize,
     width: usize,
-    body: usize,
+    layout: FeatureLayout,
     joints: usize,
     dtype: DType,
     device: candle_core::Device,
@@ -525,7 +525,7 @@ impl<'a> Window<'a> {
             tp: context.prefix_frames,
             tf,
             width,
-            body: 6 * joints + 3,
+            layout: FeatureLayout::new(joints),
             joints,
             dtype,
             gate,
