@@ -1,0 +1,216 @@
+//! Generation for the test split: each test sequence's own prefix, objects and one of its
+//! texts condition a clip after the prefix (paper Sec. 4.2 protocol; the prefix of Sec. 3),
+//! once per replication, plus the repeated generations of MultiModality.
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::dataset::Dataset;
+use dex2hoi_data::features::{OBJECT_FEATURE_SIZE, ProcessedSequence};
+use dex2hoi_diffusion::SamplerConfig;
+use dex2hoi_train::TrainedRun;
+use dex2hoi_train::sampling::{Conditioning, GeneratedMotion, generate_motion};
+
+use crate::error::{EvalError, Result};
+use crate::evaluator::MotionClip;
+use crate::metrics;
+
+/// Seed offset between replications of the test clips: more than any test split's sequences,
+/// so that no two (replication, sequence) pairs share a seed.
+const REPLICATION_STRIDE: usize = 100_003;
+/// Seed offset of the MultiModality generations, far from the test clips' seeds.
+const MULTIMODALITY_OFFSET: usize = 1_000_000_007;
+/// Seed offset between MultiModality prompts.
+const MULTIMODALITY_PROMPT_STRIDE: usize = 1009;
+
+/// Counts generated clips for the caller's progress callback.
+pub(super) struct Progress<'p> {
+    done: usize,
+    total: usize,
+    report: &'p mut dyn FnMut(usize, usize),
+}
+
+impl<'p> Progress<'p> {
+    /// A count of `total` clips reported to `report` as (clips done, clips in all).
+    pub(super) fn new(total: usize, report: &'p mut dyn FnMut(usize, usize)) -> Self {
+        Self { done: 0, total, report }
+    }
+
+    fn clip_done(&mut self) {
+        self.done += 1;
+        (self.report)(self.done, self.total);
+    }
+}
+
+/// A generated test clip with what the physical metrics and the runtime need.
+pub(super) struct GeneratedClip {
+    /// The decoded motion.
+    pub clip: MotionClip,
+    /// `[frames, 2, 3]` mixture weights `softmax(alpha)` of the generated object features
+    /// (Eq. 4).
+    pub mixture_weights: Vec<f32>,
+    /// Seconds the generation took.
+    pub seconds: f64,
+}
+
+/// Generates clips of `frames` frames with a run, conditioned on test sequences.
+pub(super) struct Generator<'a> {
+    run: &'a TrainedRun,
+    dataset: &'a Dataset,
+    frames: usize,
+    sampler: SamplerConfig,
+    seed: u64,
+}
+
+impl<'a> Generator<'a> {
+    /// A generator of `frames`-frame clips with `sampler`; `seed` is the first replication's.
+    pub(super) fn new(
+        run: &'a TrainedRun,
+        dataset: &'a Dataset,
+        frames: usize,
+        sampler: SamplerConfig,
+        seed: u64,
+    ) -> Self {
+        Self { run, dataset, frames, sampler, seed }
+    }
+
+    /// One clip for a test sequence after its own prefix, prompted with `prompt`.
+    fn generate(
+        &self,
+        sequence: &ProcessedSequence,
+        prompt: &str,
+        seed: u64,
+    ) -> Result<GeneratedMotion> {
+        let conditioning = conditioning(self.run, self.dataset, sequence, prompt)?;
+        Ok(generate_motion(self.run, &conditioning, self.frames, seed, self.sampler)?)
+    }
+
+    /// A replication's clip for every test sequence, sequence `k` prompted with `prompts[k]`.
+    ///
+    /// # Shapes
+    /// - `sequences`, `prompts`: `[clips]`; returns `[clips]`
+    pub(super) fn test_clips(
+        &self,
+        sequences: &[&ProcessedSequence],
+        prompts: &[String],
+        replication: usize,
+        progress: &mut Progress<'_>,
+    ) -> Result<Vec<GeneratedClip>> {
+        let c = &self.run.config.model;
+        let (width, body) = (c.stream_features(), c.body_features());
+        let mut clips = Vec::with_capacity(sequences.len());
+        for (k, (sequence, prompt)) in sequences.iter().zip(prompts).enumerate() {
+            let seed = self.seed.wrapping_add((replication * REPLICATION_STRIDE + k) as u64);
+            let generated = self.generate(sequence, prompt, seed)?;
+            let object_features = generated_object_features(&generated, self.frames, width, body);
+            clips.push(GeneratedClip {
+                mixture_weights: metrics::mixture_weights_from_features(&object_features)?,
+                clip: MotionClip::from_decoded(&generated.motion)?,
+                seconds: generated.seconds,
+            });
+            progress.clip_done();
+        }
+        Ok(clips)
+    }
+
+    /// MultiModality's generations: `repeats` clips for each of `sequences` (the first test
+    /// sequences) with its replication prompt.
+    ///
+    /// # Shapes
+    /// - `sequences`: `[prompts]`, `prompts`: at least as many; returns `[prompts][repeats]`
+    pub(super) fn multimodality_clips(
+        &self,
+        sequences: &[&ProcessedSequence],
+        prompts: &[String],
+        repeats: usize,
+        replication: usize,
+        progress: &mut Progress<'_>,
+    ) -> Result<Vec<Vec<MotionClip>>> {
+        let mut groups = Vec::with_capacity(sequences.len());
+        for (k, (sequence, prompt)) in sequences.iter().zip(prompts).enumerate() {
+            let mut group = Vec::with_capacity(repeats);
+            for repeat in 0..repeats {
+                let offset = MULTIMODALITY_OFFSET
+                    + replication * REPLICATION_STRIDE
+                    + k * MULTIMODALITY_PROMPT_STRIDE
+                    + repeat;
+                let generated =
+                    self.generate(sequence, prompt, self.seed.wrapping_add(offset as u64))?;
+                group.push(MotionClip::from_decoded(&generated.motion)?);
+                progress.clip_done();
+            }
+            groups.push(group);
+        }
+        Ok(groups)
+    }
+}
+
+/// The prompt of each test sequence in a replication: its texts in turn.
+pub(super) fn replication_prompts(
+    sequences: &[&ProcessedSequence],
+    replication: usize,
+) -> Vec<String> {
+    sequences.iter().map(|s| s.texts[replication % s.texts.len()].clone()).collect()
+}
+
+/// The prefix, BPS and presence of a test sequence.
+fn conditioning<'a>(
+    run: &TrainedRun,
+    dataset: &Dataset,
+    sequence: &ProcessedSequence,
+    prompt: &'a str,
+) -> Result<Conditioning<'a>> {
+    let c = &run.config.model;
+    let (body, width) = (c.body_features(), c.stream_features());
+    let mut prefix = Vec::with_capacity(MAX_OBJECTS * c.prefix_frames * width);
+    for slot in 0..MAX_OBJECTS {
+        for t in 0..c.prefix_frames {
+            prefix.extend_from_slice(&sequence.body[t * body..(t + 1) * body]);
+            let o = (t * MAX_OBJECTS + slot) * OBJECT_FEATURE_SIZE;
+            prefix.extend_from_slice(&sequence.objects[o..o + OBJECT_FEATURE_SIZE]);
+        }
+    }
+    let bps_width = c.bps_points * 3;
+    let mut bps = vec![0.0f32; MAX_OBJECTS * bps_width];
+    for (slot, name) in sequence.object_names.iter().enumerate() {
+        let Some(name) = name else { continue };
+        let asset = dataset.objects.iter().find(|a| &a.name == name).ok_or_else(|| {
+            EvalError::invalid(
+                format!("object of {}", sequence.source_id),
+                "an object of the dataset's manifest",
+                name,
+            )
+        })?;
+        let flat: Vec<f32> = asset.bps.iter().flat_map(|v| v.to_array()).collect();
+        if flat.len() != bps_width {
+            return Err(EvalError::invalid(
+                "BPS of the dataset",
+                format!("{bps_width} numbers (the run's bps_points)"),
+                flat.len(),
+            ));
+        }
+        bps[slot * bps_width..(slot + 1) * bps_width].copy_from_slice(&flat);
+    }
+    Ok(Conditioning {
+        prefix,
+        bps,
+        present: sequence.object_present,
+        prompts: vec![(0, prompt)],
+        root_start: sequence.root_start,
+    })
+}
+
+/// The generated object features `[T, 2, 18]` out of both streams' features `[2, T, D]`.
+fn generated_object_features(
+    generated: &GeneratedMotion,
+    frames: usize,
+    width: usize,
+    body: usize,
+) -> Vec<f32> {
+    let mut out = Vec::with_capacity(frames * MAX_OBJECTS * OBJECT_FEATURE_SIZE);
+    for t in 0..frames {
+        for s in 0..MAX_OBJECTS {
+            let row = &generated.features[(s * frames + t) * width..(s * frames + t + 1) * width];
+            out.extend_from_slice(&row[body..body + OBJECT_FEATURE_SIZE]);
+        }
+    }
+    out
+}
