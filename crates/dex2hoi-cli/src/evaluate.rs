@@ -35,10 +35,16 @@ pub struct EvaluateArgs {
     /// Evaluate at most this many test sequences.
     #[arg(long)]
     sequences: Option<usize>,
-    /// MultiModality protocol as PROMPTS,REPEATS,PAIRS (default 8,4,3; the paper's 100,30,10
-    /// with --paper-multimodality).
-    #[arg(long, conflicts_with = "paper_multimodality")]
-    multimodality: Option<String>,
+    /// MultiModality protocol: REPEATS generations for each of the first PROMPTS test
+    /// sequences, PAIRS random pairs among them (0 prompts or 1 repeat turn it off; the paper's
+    /// 100,30,10 with --paper-multimodality).
+    #[arg(
+        long,
+        value_name = "PROMPTS,REPEATS,PAIRS",
+        default_value_t = MultimodalityProtocol::default(),
+        conflicts_with = "paper_multimodality"
+    )]
+    multimodality: MultimodalityProtocol,
     /// Use the paper's MultiModality protocol (100 prompts x 30 repeats x 10 pairs).
     #[arg(long)]
     paper_multimodality: bool,
@@ -61,20 +67,8 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
     if args.replications == 0 || args.ddim_steps == 0 {
         bail!("--replications and --ddim-steps must be at least 1");
     }
-    let multimodality = if args.paper_multimodality {
-        MultimodalityProtocol::paper()
-    } else if let Some(spec) = &args.multimodality {
-        let values: Vec<usize> =
-            spec.split(',').map(|v| v.trim().parse()).collect::<Result<_, _>>().with_context(
-                || format!("--multimodality {spec}: expected PROMPTS,REPEATS,PAIRS"),
-            )?;
-        let [prompts, repeats, pairs] = values[..] else {
-            bail!("--multimodality {spec}: expected three numbers PROMPTS,REPEATS,PAIRS");
-        };
-        MultimodalityProtocol { prompts, repeats, pairs }
-    } else {
-        MultimodalityProtocol { prompts: 8, repeats: 4, pairs: 3 }
-    };
+    let multimodality =
+        if args.paper_multimodality { MultimodalityProtocol::paper() } else { args.multimodality };
     let device = Device::Cpu;
     let run = TrainedRun::load(&args.run, Weights::Ema, &device)
         .with_context(|| format!("loading the run {}", args.run.display()))?;

@@ -7,9 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
-use dex2hoi_eval::evaluator::{
-    EVALUATOR_FILE, EvaluatorConfig, MotionClip, STATS_FILE, train_evaluator,
-};
+use dex2hoi_eval::evaluator::{EVALUATOR_FILE, EvaluatorConfig, STATS_FILE, train_evaluator};
 
 /// Pairs per batch of the held-out retrieval (R-precision's 32).
 const RETRIEVAL_BATCH: usize = 32;
@@ -124,11 +122,7 @@ fn train(args: EvaluatorTrainArgs) -> Result<()> {
         })
         .unwrap_or_default();
     if test.len() >= 2 {
-        let frames = evaluator.config().clip_frames;
-        let windows = test
-            .iter()
-            .map(|s| Ok(MotionClip::from_processed(s, 0, s.frames.min(frames))?))
-            .collect::<Result<Vec<_>>>()?;
+        let windows = evaluator.evaluation_windows(test.iter().copied())?;
         let texts: Vec<&str> = test.iter().map(|s| first_text(s)).collect();
         let retrieval = evaluator.retrieval(&windows, &texts, RETRIEVAL_BATCH)?;
         line += &format!(

@@ -113,3 +113,51 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--replications"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn evaluate_parses_the_multimodality_protocol() {
+    // Parsing comes before anything is loaded, so the paths need not exist.
+    let with = |extra: &[&str]| {
+        let mut args = vec![
+            "evaluate",
+            "--run",
+            "/nonexistent/run",
+            "--data",
+            "/nonexistent/data",
+            "--evaluator",
+            "/nonexistent/eval",
+            "--out",
+            "/nonexistent/out",
+        ];
+        args.extend_from_slice(extra);
+        dex2hoi(&args)
+    };
+    for (value, reason) in [
+        ("2,2", "PROMPTS,REPEATS,PAIRS"),
+        ("2,two,1", "PROMPTS,REPEATS,PAIRS"),
+        ("2,2,3", "between 1 and the generations per prompt (2)"),
+        ("2,4,0", "between 1 and the generations per prompt (4)"),
+    ] {
+        let bad = with(&["--multimodality", value]);
+        let stderr = String::from_utf8_lossy(&bad.stderr);
+        assert_eq!(bad.status.code(), Some(2), "{value}: a usage error\n{stderr}");
+        assert!(
+            stderr.contains(&format!("invalid value '{value}' for '--multimodality")),
+            "{stderr}"
+        );
+        assert!(stderr.contains(reason), "{value}: {stderr}");
+    }
+    let both = with(&["--multimodality", "2,2,1", "--paper-multimodality"]);
+    assert_eq!(both.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&both.stderr).contains("cannot be used with"));
+    // The default does not conflict with --paper-multimodality: parsing passes, the run is
+    // missing.
+    let paper = with(&["--paper-multimodality"]);
+    assert_eq!(paper.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&paper.stderr).contains("/nonexistent/run"));
+    // The default shown is the library's.
+    let help = ok(&dex2hoi(&["evaluate", "--help"]));
+    let default = dex2hoi_eval::metrics::MultimodalityProtocol::default();
+    assert!(help.contains(&format!("[default: {default}]")), "{help}");
+    assert!(help.contains("[default: 8,4,3]"), "{help}");
+}

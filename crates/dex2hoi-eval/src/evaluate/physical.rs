@@ -1,0 +1,176 @@
+//! The physical metrics of evaluated clips (paper Sec. 4.2): penetration, contact against the
+//! ground truth, foot sliding and mixture agreement (Eq. 4), measured per clip as counts and
+//! pooled per replication.
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::dataset::Dataset;
+use dex2hoi_data::features::ProcessedSequence;
+use dex2hoi_repr::{MeshQuery, Skeleton};
+
+use crate::error::Result;
+use crate::evaluator::MotionClip;
+use crate::metrics;
+
+use super::report::{Estimate, PhysicalRow};
+
+/// Where an evaluated clip sits in its test sequence: after the `start` prefix frames,
+/// `frames` long.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct Window {
+    /// First frame of the clip (the prefix length `T_p`).
+    pub start: usize,
+    /// Frames of the clip.
+    pub frames: usize,
+}
+
+/// The meshes of a dataset's objects, prepared once for signed-distance queries.
+pub(super) struct ObjectMeshes<'a> {
+    dataset: &'a Dataset,
+    queries: Vec<MeshQuery>,
+}
+
+impl<'a> ObjectMeshes<'a> {
+    /// Prepares every object of the dataset's manifest.
+    pub(super) fn new(dataset: &'a Dataset) -> Result<Self> {
+        let queries =
+            dataset.objects.iter().map(|a| MeshQuery::new(&a.mesh)).collect::<Result<_, _>>()?;
+        Ok(Self { dataset, queries })
+    }
+
+    /// The mesh of each of a sequence's object slots (`None` for an empty slot); an object
+    /// the dataset does not list is an error.
+    pub(super) fn of(
+        &self,
+        sequence: &ProcessedSequence,
+    ) -> Result<[Option<&MeshQuery>; MAX_OBJECTS]> {
+        Ok(self.dataset.slot_assets(sequence)?.map(|slot| slot.map(|k| &self.queries[k])))
+    }
+}
+
+/// The physical measurements of one clip, kept as counts so that a replication pools them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct Physical {
+    penetration: metrics::Penetration,
+    contact: metrics::ContactCounts,
+    foot_sliding_mm: f64,
+    /// Frames where the mixture picks the holding hand, and frames judged.
+    agreement: (usize, usize),
+}
+
+/// Measures one clip against its sequence's ground-truth contact over the same frames.
+fn measure(
+    sample: &metrics::MotionSample<'_>,
+    sequence: &ProcessedSequence,
+    window: Window,
+) -> Result<Physical> {
+    let per_frame = MAX_OBJECTS * 2;
+    let truth_contact = &sequence.hand_contact
+        [window.start * per_frame..(window.start + window.frames) * per_frame];
+    let penetration = metrics::penetration(sample, metrics::PENETRATION_TOLERANCE_M)?;
+    let contact = metrics::contact_scores(sample, truth_contact, metrics::CONTACT_RADIUS_M)?.counts;
+    let foot_sliding_mm = metrics::foot_sliding(sample.joints, sample.skeleton)?;
+    let agreement = match sample.mixture_weights {
+        Some(weights) => metrics::mixture_agreement_counts(weights, truth_contact, sample.present)?,
+        None => (0, 0),
+    };
+    Ok(Physical { penetration, contact, foot_sliding_mm, agreement })
+}
+
+/// A clip with its skeleton, meshes and mixture weights as the physical metrics read it.
+fn clip_sample<'a>(
+    clip: &'a MotionClip,
+    skeleton: &'a Skeleton,
+    objects: [Option<&'a MeshQuery>; MAX_OBJECTS],
+    weights: Option<&'a [f32]>,
+) -> metrics::MotionSample<'a> {
+    metrics::MotionSample {
+        skeleton,
+        joints: &clip.joints,
+        object_rotations: &clip.object_rotations,
+        object_positions: &clip.object_positions,
+        present: clip.present,
+        objects,
+        mixture_weights: weights,
+    }
+}
+
+/// Measures a ground-truth clip, with the mixture weights its own object features encode.
+///
+/// # Shapes
+/// - `truth`: the window's `window.frames` frames of `sequence`
+pub(super) fn measure_ground_truth(
+    sequence: &ProcessedSequence,
+    truth: &MotionClip,
+    skeleton: &Skeleton,
+    meshes: [Option<&MeshQuery>; MAX_OBJECTS],
+    window: Window,
+) -> Result<Physical> {
+    let frames = window.start..window.start + window.frames;
+    let objects = &sequence.objects[sequence.layout().object_frames(frames)];
+    let weights = metrics::mixture_weights_from_features(objects)?;
+    let sample = clip_sample(truth, skeleton, meshes, Some(&weights));
+    measure(&sample, sequence, window)
+}
+
+/// Measures a generated clip against its test sequence's ground-truth contact.
+///
+/// # Shapes
+/// - `mixture_weights`: `[frames, 2, 3]`
+pub(super) fn measure_generated(
+    sequence: &ProcessedSequence,
+    generated: &MotionClip,
+    mixture_weights: &[f32],
+    skeleton: &Skeleton,
+    meshes: [Option<&MeshQuery>; MAX_OBJECTS],
+    window: Window,
+) -> Result<Physical> {
+    let sample = clip_sample(generated, skeleton, meshes, Some(mixture_weights));
+    measure(&sample, sequence, window)
+}
+
+/// One replication's physical metrics, pooled over its clips.
+struct Pooled {
+    penetration: metrics::Penetration,
+    contact: metrics::ContactScores,
+    foot_sliding_mm: f64,
+    agreement: (usize, usize),
+}
+
+impl Pooled {
+    /// Pools one replication's clips: counts and depth sums add up before the ratios are
+    /// taken, so a clip without contact does not make a ratio undefined.
+    fn of(clips: &[Physical]) -> Self {
+        let penetrations: Vec<metrics::Penetration> = clips.iter().map(|p| p.penetration).collect();
+        let counts =
+            clips.iter().fold(metrics::ContactCounts::default(), |a, p| a.merge(p.contact));
+        Self {
+            penetration: metrics::Penetration::pooled(&penetrations),
+            contact: metrics::ContactScores::from_counts(counts),
+            foot_sliding_mm: clips.iter().map(|p| p.foot_sliding_mm).sum::<f64>()
+                / clips.len().max(1) as f64,
+            agreement: clips.iter().fold((0, 0), |a, p| (a.0 + p.agreement.0, a.1 + p.agreement.1)),
+        }
+    }
+}
+
+/// Pools each replication's clips (`per_replication` consecutive ones), then estimates over
+/// replications.
+pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> PhysicalRow {
+    let pooled: Vec<Pooled> = samples.chunks(per_replication.max(1)).map(Pooled::of).collect();
+    let estimate =
+        |f: &dyn Fn(&Pooled) -> f64| Estimate::of(&pooled.iter().map(f).collect::<Vec<_>>());
+    let judged = pooled.iter().all(|p| p.agreement.1 > 0);
+    PhysicalRow {
+        penetration_depth_mm: estimate(&|p| p.penetration.mean_depth_mm),
+        penetration_frames_percent: estimate(&|p| 100.0 * p.penetration.frame_share),
+        contact_precision: estimate(&|p| p.contact.precision),
+        contact_recall: estimate(&|p| p.contact.recall),
+        contact_f1: estimate(&|p| p.contact.f1),
+        contact_distance_mm: estimate(&|p| {
+            p.contact.mean_distance_on_contact_mm.unwrap_or(f64::NAN)
+        }),
+        foot_sliding_mm: estimate(&|p| p.foot_sliding_mm),
+        mixture_agreement_percent: judged
+            .then(|| estimate(&|p| 100.0 * p.agreement.0 as f64 / p.agreement.1 as f64)),
+    }
+}

@@ -1,0 +1,245 @@
+//! The evaluation report: rows of estimates over replications laid out like the paper's tables
+//! (Sec. 4.2), as markdown and JSON, and the embeddings of the last replication as `.npz`.
+
+use serde::Serialize;
+
+use crate::error::Result;
+use crate::metrics;
+
+use super::embedding::EmbeddedMotions;
+use super::scores::DistributionScores;
+
+/// A value over replications: the mean and the half-width of its 95% interval.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Estimate {
+    /// Mean over replications.
+    pub mean: f64,
+    /// `1.96 std / sqrt(R)`.
+    pub interval: f64,
+}
+
+impl Estimate {
+    /// The estimate over the replications' values (T2M's `get_metric_statistics`).
+    pub(super) fn of(values: &[f64]) -> Self {
+        let (mean, interval) = metrics::mean_interval(values);
+        Self { mean, interval }
+    }
+}
+
+/// One row of the report (the ground truth or a model).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReportRow {
+    /// What the row measures.
+    pub name: String,
+    /// R-precision top-1, top-2, top-3.
+    pub r_precision: [Estimate; 3],
+    /// FID against the ground truth (0 for the ground-truth row by definition).
+    pub fid: Estimate,
+    /// Mean distance between matched motion and text embeddings.
+    pub mm_dist: Estimate,
+    /// Diversity.
+    pub diversity: Estimate,
+    /// MultiModality (models only).
+    pub multimodality: Option<Estimate>,
+    /// Physical metrics.
+    pub physical: PhysicalRow,
+    /// Seconds per generated clip (mean and standard deviation over all samples; models only).
+    pub runtime_seconds: Option<(f64, f64)>,
+}
+
+/// The physical metrics of a row, each over replications.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PhysicalRow {
+    /// Mean penetration depth, mm.
+    pub penetration_depth_mm: Estimate,
+    /// Share of frames with penetration, percent.
+    pub penetration_frames_percent: Estimate,
+    /// Contact precision against the ground truth.
+    pub contact_precision: Estimate,
+    /// Contact recall.
+    pub contact_recall: Estimate,
+    /// Contact F1.
+    pub contact_f1: Estimate,
+    /// Mean hand-object distance on ground-truth contact frames, mm.
+    pub contact_distance_mm: Estimate,
+    /// Foot sliding, mm per frame.
+    pub foot_sliding_mm: Estimate,
+    /// Share of one-hand holding frames where the mixture weights pick the holding hand,
+    /// percent (`None` when no frame qualifies).
+    pub mixture_agreement_percent: Option<Estimate>,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    /// Ground truth, then the model.
+    pub rows: Vec<ReportRow>,
+    /// Test sequences evaluated per replication.
+    pub samples: usize,
+    /// Test sequences skipped (too short for prefix + clip).
+    pub skipped: usize,
+    /// Replications.
+    pub replications: usize,
+    /// Frames per evaluated clip.
+    pub clip_frames: usize,
+    /// Which features FID, Diversity and MultiModality use.
+    pub distribution_features: String,
+    /// The MultiModality protocol.
+    pub multimodality_protocol: [usize; 3],
+}
+
+/// Embeddings of the last replication, for `--dump-embeddings`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Embeddings {
+    /// Generated motions' contrastive embeddings.
+    pub generated: Vec<Vec<f32>>,
+    /// Ground-truth motions' contrastive embeddings.
+    pub ground_truth: Vec<Vec<f32>>,
+    /// The prompts' text embeddings.
+    pub texts: Vec<Vec<f32>>,
+    /// The prompts.
+    pub prompts: Vec<String>,
+    /// Action features of the generated and ground-truth motions (empty without labels).
+    pub generated_action: Vec<Vec<f32>>,
+    /// Action features of the ground truth.
+    pub ground_truth_action: Vec<Vec<f32>>,
+}
+
+impl ReportRow {
+    /// A row from the distribution scores of every replication (R-precision, FID, MMdist,
+    /// Diversity, MultiModality) and the physical metrics. MultiModality is reported only when
+    /// every replication measured a finite value.
+    pub(super) fn from_replications(
+        name: &str,
+        scores: &[DistributionScores],
+        physical: PhysicalRow,
+        runtime_seconds: Option<(f64, f64)>,
+    ) -> Self {
+        let column = |value: fn(&DistributionScores) -> f64| {
+            Estimate::of(&scores.iter().map(value).collect::<Vec<_>>())
+        };
+        let multimodality = scores
+            .iter()
+            .map(|s| s.multimodality.filter(|v| v.is_finite()))
+            .collect::<Option<Vec<f64>>>()
+            .map(|values| Estimate::of(&values));
+        Self {
+            name: name.to_string(),
+            r_precision: [
+                column(|s| s.r_precision[0]),
+                column(|s| s.r_precision[1]),
+                column(|s| s.r_precision[2]),
+            ],
+            fid: column(|s| s.fid),
+            mm_dist: column(|s| s.mm_dist),
+            diversity: column(|s| s.diversity),
+            multimodality,
+            physical,
+            runtime_seconds,
+        }
+    }
+}
+
+fn cell(e: &Estimate, digits: usize) -> String {
+    format!("{:.*} ± {:.*}", digits, e.mean, digits, e.interval)
+}
+
+impl Report {
+    /// The report as markdown: one table laid out like the paper's (ground truth first), then
+    /// the physical metrics, with units and the protocol.
+    pub fn markdown(&self, title: &str) -> String {
+        let mut out = format!("# {title}\n\n");
+        out.push_str(
+            "| Method | R-prec. top-1 ↑ | top-2 ↑ | top-3 ↑ | FID ↓ | MMdist ↓ | Diversity → | MModality ↑ | Pen. depth (mm) ↓ | Pen. frames (%) ↓ | Contact P ↑ | Contact R ↑ | Contact F1 ↑ | Hand-obj. dist. (mm) ↓ | Foot sliding (mm/frame) ↓ | Mixture picks holding hand (%) ↑ | Runtime (s / clip) ↓ |\n",
+        );
+        out.push_str(&format!("|{}\n", "---|".repeat(17)));
+        for row in &self.rows {
+            let p = &row.physical;
+            out.push_str(&format!(
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+                row.name,
+                cell(&row.r_precision[0], 3),
+                cell(&row.r_precision[1], 3),
+                cell(&row.r_precision[2], 3),
+                cell(&row.fid, 3),
+                cell(&row.mm_dist, 3),
+                cell(&row.diversity, 3),
+                row.multimodality.as_ref().map_or("-".into(), |e| cell(e, 3)),
+                cell(&p.penetration_depth_mm, 2),
+                cell(&p.penetration_frames_percent, 1),
+                cell(&p.contact_precision, 3),
+                cell(&p.contact_recall, 3),
+                cell(&p.contact_f1, 3),
+                cell(&p.contact_distance_mm, 1),
+                cell(&p.foot_sliding_mm, 2),
+                p.mixture_agreement_percent.as_ref().map_or("-".into(), |e| cell(e, 1)),
+                row.runtime_seconds.map_or("-".into(), |(m, s)| format!("{m:.2} ± {s:.2}")),
+            ));
+        }
+        out.push_str(&format!(
+            "\n{} test sequences ({} too short skipped), {} replications (mean ± 95% interval), \
+             clips of {} frames after the sequence's own prefix. FID, Diversity and MultiModality \
+             on {}; R-precision and MMdist on the contrastive embeddings; MultiModality over {} \
+             prompts x {} repeats x {} pairs. The ground-truth FID is 0 by definition (the same \
+             clips). Runtime: mean ± standard deviation per generated clip.\n",
+            self.samples,
+            self.skipped,
+            self.replications,
+            self.clip_frames,
+            self.distribution_features,
+            self.multimodality_protocol[0],
+            self.multimodality_protocol[1],
+            self.multimodality_protocol[2],
+        ));
+        out
+    }
+}
+
+impl Embeddings {
+    /// The ground truth's embeddings, with the generated side still empty (filled by
+    /// [`Embeddings::set_replication`]).
+    pub(super) fn of_ground_truth(truth: &EmbeddedMotions) -> Self {
+        Self {
+            generated: Vec::new(),
+            ground_truth: truth.contrastive.clone(),
+            texts: Vec::new(),
+            prompts: Vec::new(),
+            generated_action: Vec::new(),
+            ground_truth_action: truth.action.clone(),
+        }
+    }
+
+    /// Keeps a replication's generated embeddings, texts and prompts (each replication replaces
+    /// the previous one's, so the last one is dumped).
+    pub(super) fn set_replication(
+        &mut self,
+        generated: EmbeddedMotions,
+        texts: Vec<Vec<f32>>,
+        prompts: Vec<String>,
+    ) {
+        self.generated = generated.contrastive;
+        self.generated_action = generated.action;
+        self.texts = texts;
+        self.prompts = prompts;
+    }
+
+    /// The embeddings as an `.npz` archive (float32 arrays and the prompts as strings).
+    pub fn npz(&self) -> Result<Vec<u8>> {
+        use dex2hoi_data::npz::{NpyArray, encode_npz};
+        let matrix = |name: &str, rows: &[Vec<f32>]| {
+            let width = rows.first().map_or(0, Vec::len);
+            NpyArray::f32(name, &[rows.len(), width], rows.iter().flatten().copied().collect())
+        };
+        let mut arrays = vec![
+            matrix("generated_motion", &self.generated),
+            matrix("ground_truth_motion", &self.ground_truth),
+            matrix("text", &self.texts),
+            NpyArray::text("prompts", &[self.prompts.len()], self.prompts.clone()),
+        ];
+        if !self.generated_action.is_empty() {
+            arrays.push(matrix("generated_action", &self.generated_action));
+            arrays.push(matrix("ground_truth_action", &self.ground_truth_action));
+        }
+        Ok(encode_npz(&arrays)?)
+    }
+}
