@@ -19,7 +19,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let usage = "usage: sample_motion RUN_DIR PROMPT OBJECT [OBJECT]";
     let run_dir = args.next().ok_or(usage)?;
     let prompt = args.next().ok_or(usage)?;
-    let objects = args.map(|spec| SceneObject::parse(&spec)).collect::<Result<Vec<_>, _>>()?;
+    let mut objects = Vec::new();
+    for spec in args {
+        objects.push(SceneObject::parse(&spec)?);
+    }
 
     // The EMA weights are the ones meant for sampling; any candle device works.
     let run = TrainedRun::load(run_dir.as_ref(), Weights::Ema, &Device::Cpu)?;

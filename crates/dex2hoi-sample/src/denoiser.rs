@@ -34,7 +34,7 @@ fn repeat_rows(t: &Tensor, times: usize) -> candle_core::Result<Tensor> {
     if times == 1 {
         return Ok(t.clone());
     }
-    Ok(Tensor::cat(&vec![t.clone(); times], 0)?)
+    Tensor::cat(&vec![t.clone(); times], 0)
 }
 
 impl Denoiser for ModelDenoiser<'_> {

@@ -72,9 +72,11 @@ pub enum TrainError {
     /// An error from the model crate.
     #[error(transparent)]
     Model(#[from] dex2hoi_model::ModelError),
-    /// An error from the inference crate (run files, text encoders).
+    /// An error from the inference crate: run files, text encoders (boxed: it is large, and
+    /// clippy's `result_large_err` would flag every function returning this crate's `Result`;
+    /// `?` still converts through the `From` impl below).
     #[error(transparent)]
-    Sample(#[from] dex2hoi_sample::SampleError),
+    Sample(Box<dex2hoi_sample::SampleError>),
     /// An error from the optimiser.
     #[error(transparent)]
     Optim(#[from] dex2hoi_optim::OptimError),
@@ -87,6 +89,12 @@ pub enum TrainError {
     /// An error from a tensor operation.
     #[error(transparent)]
     Tensor(#[from] candle_core::Error),
+}
+
+impl From<dex2hoi_sample::SampleError> for TrainError {
+    fn from(error: dex2hoi_sample::SampleError) -> Self {
+        Self::Sample(Box::new(error))
+    }
 }
 
 /// Shorthand for `Result<T, TrainError>`.
