@@ -15,7 +15,7 @@ use std::time::SystemTime;
 use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 
-use crate::{cargo, dex2hoi, read, write};
+use crate::{cargo, dex2hoi, path, read, train_evaluator, write};
 
 /// A variant of Table 3: a label and the values it sets.
 #[derive(Debug, Clone, Copy)]
@@ -300,7 +300,6 @@ pub fn ablate(root: &Path, args: &[String]) -> Result<()> {
     cargo(root, &["build", "--release", "--locked", "-p", "dex2hoi-cli"])?;
     let dir = root.join("target/ablate").join(&preset);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let path = |p: &Path| p.to_str().map(str::to_owned).context("a UTF-8 path");
     let data = dir.join("data");
     if !data.join("manifest.json").is_file() {
         dex2hoi(
@@ -320,19 +319,7 @@ pub fn ablate(root: &Path, args: &[String]) -> Result<()> {
     let evaluator = dir.join("evaluator");
     let evaluator_weights = evaluator.join("evaluator.safetensors");
     if !evaluator_weights.is_file() {
-        dex2hoi(
-            root,
-            &[
-                "evaluator",
-                "train",
-                "--data",
-                &path(&data)?,
-                "--out",
-                &path(&evaluator)?,
-                "--steps",
-                EVALUATOR_STEPS,
-            ],
-        )?;
+        train_evaluator(root, &data, &evaluator, EVALUATOR_STEPS)?;
     }
     let data_arg = path(&data)?;
     let mut reports = Vec::with_capacity(VARIANTS.len());

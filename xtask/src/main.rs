@@ -147,8 +147,6 @@ fn demo(root: &Path) -> Result<()> {
     let dir = root.join("target/demo");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     cargo(root, &["build", "--release", "--locked", "-p", "dex2hoi-cli"])?;
-    let path = |p: &Path| p.to_str().map(str::to_owned).context("a UTF-8 path");
-
     let data = dir.join("data");
     let data_stamp = format!("synth sequences={DEMO_SEQUENCES} seed={DEMO_SEED} fps=20\n");
     let data_stamp_file = dir.join("data.stamp");
@@ -223,19 +221,7 @@ fn demo(root: &Path) -> Result<()> {
         eprintln!("\n==> reusing the evaluator in {}", evaluator.display());
     } else {
         let _ = std::fs::remove_file(&evaluator_stamp_file);
-        dex2hoi(
-            root,
-            &[
-                "evaluator",
-                "train",
-                "--data",
-                &path(&data)?,
-                "--out",
-                &path(&evaluator)?,
-                "--steps",
-                DEMO_EVALUATOR_STEPS,
-            ],
-        )?;
+        train_evaluator(root, &data, &evaluator, DEMO_EVALUATOR_STEPS)?;
         write(&evaluator_stamp_file, &evaluator_stamp)?;
     }
     let report = dir.join("evaluation");
@@ -274,6 +260,19 @@ fn demo(root: &Path) -> Result<()> {
 }
 
 /// A file's text, or nothing when it cannot be read.
+/// A path as a command-line argument.
+fn path(p: &Path) -> Result<String> {
+    p.to_str().map(str::to_owned).with_context(|| format!("{} is not a UTF-8 path", p.display()))
+}
+
+/// `dex2hoi evaluator train` on a dataset for `steps` steps into `out`.
+fn train_evaluator(root: &Path, data: &Path, out: &Path, steps: &str) -> Result<()> {
+    dex2hoi(
+        root,
+        &["evaluator", "train", "--data", &path(data)?, "--out", &path(out)?, "--steps", steps],
+    )
+}
+
 fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_default()
 }

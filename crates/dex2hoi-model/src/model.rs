@@ -12,9 +12,8 @@ use candle_core::{D, DType, Tensor};
 use candle_nn::{VarBuilder, init::Init};
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_repr::object_repr::{
-    LEFT_OFFSET_RANGE, MIXTURE_RANGE, OBJECT_FEATURE_SIZE, RIGHT_OFFSET_RANGE,
-};
+use dex2hoi_data::FeatureLayout;
+use dex2hoi_repr::object_repr::{LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE};
 
 use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
 use crate::error::{ModelError, Result};
@@ -108,7 +107,8 @@ impl Denoiser {
     /// the other stream in the dual layout.
     fn new(cfg: &ModelConfig, objects: usize, vb: VarBuilder<'_>) -> Result<Self> {
         let l = cfg.latent;
-        let frame_features = cfg.body_features() + objects * OBJECT_FEATURE_SIZE;
+        let layout = cfg.layout();
+        let frame_features = layout.body_width() + objects * layout.object_width();
         let block = BlockConfig {
             latent: l,
             heads: cfg.heads,
@@ -125,9 +125,11 @@ impl Denoiser {
             ObjectRepresentation::GlobalOnly => {
                 let mut mask = vec![1.0f32; frame_features];
                 for k in 0..objects {
-                    let base = cfg.body_features() + k * OBJECT_FEATURE_SIZE;
-                    for range in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
-                        mask[base + range.start..base + range.end].fill(0.0);
+                    // Object `k` of a frame sits `k` object widths after the first one.
+                    let shift = k * layout.object_width();
+                    for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
+                        let range = layout.object_part_range(part);
+                        mask[range.start + shift..range.end + shift].fill(0.0);
                     }
                 }
                 Some(Tensor::from_vec(mask, frame_features, vb.device())?.to_dtype(vb.dtype())?)
@@ -300,7 +302,7 @@ struct DualStream {
     conditioning: Conditioning,
     denoiser: Denoiser,
     fusion: Fusion,
-    body: usize,
+    layout: FeatureLayout,
 }
 
 impl DualStream {
@@ -313,7 +315,7 @@ impl DualStream {
             conditioning: Conditioning::new(cfg, cfg.bps_points * 3, vb.pp("conditioning"))?,
             denoiser: Denoiser::new(cfg, 1, vb)?,
             fusion,
-            body: cfg.body_features(),
+            layout: cfg.layout(),
         })
     }
 
@@ -350,11 +352,11 @@ impl DualStream {
         let batch = out.dim(0)? / 2;
         let stream = |s: usize| out.narrow(0, s * batch, batch);
         let (body_a, body_b) =
-            (stream(0)?.narrow(2, 0, self.body)?, stream(1)?.narrow(2, 0, self.body)?);
+            (self.layout.body_of(&stream(0)?)?, self.layout.body_of(&stream(1)?)?);
         let presence_b = input.presence.to_dtype(frames.dtype())?.narrow(1, 1, 1)?.squeeze(1)?;
         let body = self.fusion.forward(&body_a, &body_b, &presence_b, rng)?;
         let with_body = |s: usize| -> Result<Tensor> {
-            let object = stream(s)?.narrow(2, self.body, OBJECT_FEATURE_SIZE)?;
+            let object = self.layout.object_of(&stream(s)?)?;
             Ok(Tensor::cat(&[&body, &object], 2)?)
         };
         Ok(Tensor::stack(&[with_body(0)?, with_body(1)?], 1)?)
@@ -367,7 +369,7 @@ impl DualStream {
 struct SingleStream {
     conditioning: Conditioning,
     denoiser: Denoiser,
-    body: usize,
+    layout: FeatureLayout,
 }
 
 impl SingleStream {
@@ -375,7 +377,7 @@ impl SingleStream {
         Ok(Self {
             conditioning: Conditioning::new(cfg, 2 * cfg.bps_points * 3, vb.pp("conditioning"))?,
             denoiser: Denoiser::new(cfg, 2, vb)?,
-            body: cfg.body_features(),
+            layout: cfg.layout(),
         })
     }
 
@@ -386,8 +388,8 @@ impl SingleStream {
         let frames = Tensor::cat(&[input.prefix, input.noisy], 2)?; // [B, 2, T, D]
         let dtype = frames.dtype();
         let of_stream = |s: usize| frames.narrow(1, s, 1)?.squeeze(1);
-        let object = |s: usize| of_stream(s)?.narrow(2, self.body, OBJECT_FEATURE_SIZE);
-        let body = of_stream(0)?.narrow(2, 0, self.body)?;
+        let object = |s: usize| self.layout.object_of(&of_stream(s)?);
+        let body = self.layout.body_of(&of_stream(0)?)?;
         let single = Tensor::cat(&[&body, &object(0)?, &object(1)?], 2)?;
         let presence = input.presence.to_dtype(dtype)?;
         let bps = input.bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
@@ -399,9 +401,12 @@ impl SingleStream {
         )?;
         let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
         let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
-        let body = out.narrow(2, 0, self.body)?;
+        // The single stream's frames are `[h, r, o^A, o^B]`: object `s` sits `s` object widths
+        // after the body.
+        let body = self.layout.body_of(&out)?;
+        let (width, object_width) = (self.layout.body_width(), self.layout.object_width());
         let stream = |s: usize| -> Result<Tensor> {
-            let object = out.narrow(2, self.body + s * OBJECT_FEATURE_SIZE, OBJECT_FEATURE_SIZE)?;
+            let object = out.narrow(2, width + s * object_width, object_width)?;
             Ok(Tensor::cat(&[&body, &object], 2)?)
         };
         Ok(Tensor::stack(&[stream(0)?, stream(1)?], 1)?)
