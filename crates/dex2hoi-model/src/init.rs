@@ -43,6 +43,35 @@ impl SeededVarMap {
         VarBuilder::from_backend(Box::new(self.clone()), dtype, device.clone())
     }
 
+    /// Redraws, from `seed`, every parameter that is all zeros (the AdaLN modulations and the
+    /// output heads start at zero): weights `[input, output]` uniformly in `+-1/sqrt(input)`,
+    /// vectors in `+-0.1`. An untrained model outputs exact zeros, which would compare equal
+    /// to anything; benchmarks and equivalence tests use this to make every layer do work.
+    pub fn randomise_zero_parameters(&self, seed: u64) -> candle_core::Result<()> {
+        let data = self.map.data().lock().expect("the variable map's lock");
+        let mut names: Vec<&String> = data.keys().collect();
+        names.sort();
+        for name in names {
+            let var = &data[name];
+            let values: Vec<f32> =
+                var.as_tensor().flatten_all()?.to_dtype(DType::F32)?.to_vec1()?;
+            if values.iter().any(|&v| v != 0.0) {
+                continue;
+            }
+            let bound = match var.dims() {
+                [input, _] => 1.0 / (*input as f64).sqrt(),
+                _ => 0.1,
+            };
+            let mut rng = ChaCha8Rng::seed_from_u64(seed ^ fnv1a(name));
+            let drawn: Vec<f64> =
+                (0..values.len()).map(|_| rng.random_range(-bound..bound)).collect();
+            let drawn =
+                Tensor::from_vec(drawn, var.shape(), var.device())?.to_dtype(var.dtype())?;
+            var.set(&drawn)?;
+        }
+        Ok(())
+    }
+
     fn initial(&self, shape: &Shape, name: &str, init: Init) -> Vec<f64> {
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed ^ fnv1a(name));
         let count = shape.elem_count();

@@ -32,8 +32,8 @@ pub fn softmax(x: &Tensor) -> Result<Tensor> {
 /// whose leading dimensions are flattened into one matrix product.
 #[derive(Debug, Clone)]
 pub struct Dense {
-    weight: Tensor,
-    bias: Tensor,
+    pub(crate) weight: Tensor,
+    pub(crate) bias: Tensor,
 }
 
 /// A [`Dense`] layer initialised like PyTorch's `nn.Linear` (Kaiming-uniform weight, uniform
@@ -92,7 +92,7 @@ pub fn dropout(x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tenso
 /// layer zero-initialised.
 #[derive(Debug, Clone)]
 pub struct Modulation {
-    linear: Dense,
+    pub(crate) linear: Dense,
 }
 
 impl Modulation {
@@ -115,12 +115,12 @@ impl Modulation {
 /// Multi-head attention.
 #[derive(Debug, Clone)]
 pub struct Attention {
-    query: Dense,
+    pub(crate) query: Dense,
     /// Keys and values in one product, `[latent, 2 latent]`: one larger matrix product runs
     /// faster than two.
-    key_value: Dense,
-    out: Dense,
-    heads: usize,
+    pub(crate) key_value: Dense,
+    pub(crate) out: Dense,
+    pub(crate) heads: usize,
 }
 
 impl Attention {
@@ -179,8 +179,8 @@ impl Attention {
 /// sampling time otherwise).
 #[derive(Debug, Clone)]
 pub struct FeedForward {
-    up: Dense,
-    down: Dense,
+    pub(crate) up: Dense,
+    pub(crate) down: Dense,
 }
 
 impl FeedForward {

@@ -5,6 +5,7 @@
 pub mod checkpoint;
 pub mod config;
 pub mod error;
+pub mod fused;
 pub mod init;
 pub mod layers;
 pub mod model;
@@ -16,4 +17,4 @@ pub mod transformer;
 pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, StreamLayout};
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
-pub use model::{Model, ModelInput};
+pub use model::{InferenceModel, Model, ModelInput, PreparedCondition};

@@ -20,6 +20,9 @@ use crate::error::{ModelError, Result};
 use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
 use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, TransformerEncoder};
 
+mod inference;
+pub use inference::{InferenceModel, PreparedCondition};
+
 /// What the model reads for one batch.
 #[derive(Debug, Clone, Copy)]
 pub struct ModelInput<'a> {
@@ -41,7 +44,8 @@ pub struct ModelInput<'a> {
 }
 
 /// The condition embedding of each stream: timestep MLP + projected text + the stream's object
-/// (BPS MLP and presence).
+/// (BPS MLP and presence), the sum split in the part that changes with the timestep and the
+/// part that does not (computed once per sample by the inference path).
 #[derive(Debug, Clone)]
 struct Conditioning {
     time_in: Dense,
@@ -67,21 +71,25 @@ impl Conditioning {
         })
     }
 
+    /// The part that does not change over a sample's diffusion steps: projected text, object
+    /// (BPS MLP) and presence.
+    ///
     /// # Shapes
-    /// - `timesteps`: `[batch]`; `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`;
-    ///   `presence`: `[batch, 2]`; returns `[batch, latent]`
-    fn forward(
-        &self,
-        timesteps: &Tensor,
-        text: &Tensor,
-        bps: &Tensor,
-        presence: &Tensor,
-    ) -> Result<Tensor> {
-        let time = timestep_embedding(timesteps, self.latent, text.dtype(), text.device())?;
-        let time = self.time_out.forward(&self.time_in.forward(&time)?.silu()?)?;
+    /// - `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`; `presence`: `[batch, 2]`;
+    ///   returns `[batch, latent]`
+    fn fixed_part(&self, text: &Tensor, bps: &Tensor, presence: &Tensor) -> Result<Tensor> {
         let object = self.bps_out.forward(&self.bps_in.forward(bps)?.silu()?)?;
-        let total = ((time + self.text.forward(text)?)? + object)?;
-        Ok((total + self.presence.forward(presence)?)?)
+        Ok(((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?)
+    }
+
+    /// The timestep MLP.
+    ///
+    /// # Shapes
+    /// - `timesteps`: `[batch]`; returns `[batch, latent]`
+    fn time(&self, timesteps: &Tensor, dtype: DType) -> Result<Tensor> {
+        let device = self.time_in.weight.device();
+        let time = timestep_embedding(timesteps, self.latent, dtype, device)?;
+        self.time_out.forward(&self.time_in.forward(&time)?.silu()?)
     }
 }
 
@@ -324,12 +332,27 @@ impl DualStream {
     /// # Shapes
     /// - see [`ModelInput`]; returns `[2 batch, latent]`, stream A first
     fn condition(&self, input: &ModelInput<'_>, dtype: DType) -> Result<Tensor> {
-        let own = streams_into_batch(&input.presence.to_dtype(dtype)?.unsqueeze(2)?)?;
-        let flags = Tensor::cat(&[&own, &swap_streams(&own)?], 1)?;
-        let bps = streams_into_batch(input.bps)?.broadcast_mul(&own)?;
+        let fixed = self.fixed_condition(input.text, input.bps, input.presence, dtype)?;
         let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
-        let text = input.text.to_dtype(dtype)?;
-        self.conditioning.forward(&timesteps, &Tensor::cat(&[&text, &text], 0)?, &bps, &flags)
+        Ok((self.conditioning.time(&timesteps, dtype)? + fixed)?)
+    }
+
+    /// The part of [`Self::condition`] that does not depend on the timestep.
+    ///
+    /// # Shapes
+    /// - `text`, `bps`, `presence`: see [`ModelInput`]; returns `[2 batch, latent]`
+    fn fixed_condition(
+        &self,
+        text: &Tensor,
+        bps: &Tensor,
+        presence: &Tensor,
+        dtype: DType,
+    ) -> Result<Tensor> {
+        let own = streams_into_batch(&presence.to_dtype(dtype)?.unsqueeze(2)?)?;
+        let flags = Tensor::cat(&[&own, &swap_streams(&own)?], 1)?;
+        let bps = streams_into_batch(bps)?.broadcast_mul(&own)?;
+        let text = text.to_dtype(dtype)?;
+        self.conditioning.fixed_part(&Tensor::cat(&[&text, &text], 0)?, &bps, &flags)
     }
 
     /// # Shapes
@@ -348,13 +371,30 @@ impl DualStream {
             mask.as_ref(),
             rng.as_deref_mut(),
         )?; // [2B, T_f, D]
-        // Eq. 6: each stream's prediction splits into body and object.
+        self.assemble(&out, input.presence, |a, b, presence_b| {
+            self.fusion.forward(a, b, presence_b, rng)
+        })
+    }
+
+    /// Eq. 6 and 7: each stream's prediction splits into body and object; `fuse` makes one
+    /// body of the two, which both streams then carry.
+    ///
+    /// # Shapes
+    /// - `out`: `[2 batch, T_f, 6J + 3 + 18]`, stream A first; `presence`: `[batch, 2]`
+    /// - `fuse(body_a, body_b, presence_b)`: `[batch, T_f, 6J + 3]` twice and `[batch]`
+    /// - returns `[batch, 2, T_f, 6J + 3 + 18]`
+    fn assemble(
+        &self,
+        out: &Tensor,
+        presence: &Tensor,
+        fuse: impl FnOnce(&Tensor, &Tensor, &Tensor) -> Result<Tensor>,
+    ) -> Result<Tensor> {
         let batch = out.dim(0)? / 2;
         let stream = |s: usize| out.narrow(0, s * batch, batch);
         let (body_a, body_b) =
             (self.layout.body_of(&stream(0)?)?, self.layout.body_of(&stream(1)?)?);
-        let presence_b = input.presence.to_dtype(frames.dtype())?.narrow(1, 1, 1)?.squeeze(1)?;
-        let body = self.fusion.forward(&body_a, &body_b, &presence_b, rng)?;
+        let presence_b = presence.to_dtype(out.dtype())?.narrow(1, 1, 1)?.squeeze(1)?;
+        let body = fuse(&body_a, &body_b, &presence_b)?;
         let with_body = |s: usize| -> Result<Tensor> {
             let object = self.layout.object_of(&stream(s)?)?;
             Ok(Tensor::cat(&[&body, &object], 2)?)
@@ -384,26 +424,52 @@ impl SingleStream {
     /// # Shapes
     /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
     fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
-        let (batch, _, _, _) = input.noisy.dims4()?;
-        let frames = Tensor::cat(&[input.prefix, input.noisy], 2)?; // [B, 2, T, D]
-        let dtype = frames.dtype();
+        let single = self.frames(input.prefix, input.noisy)?;
+        let dtype = single.dtype();
+        let fixed = self.fixed_condition(input.text, input.bps, input.presence, dtype)?;
+        let condition = (self.conditioning.time(input.timesteps, dtype)? + fixed)?;
+        let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
+        let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
+        self.split(&out)
+    }
+
+    /// The single stream's frames `[h, r, o^A, o^B]` of a window.
+    ///
+    /// # Shapes
+    /// - `prefix`, `noisy`: see [`ModelInput`]; returns `[batch, T_p + T_f, 6J + 3 + 2 * 18]`
+    fn frames(&self, prefix: &Tensor, noisy: &Tensor) -> Result<Tensor> {
+        let frames = Tensor::cat(&[prefix, noisy], 2)?; // [B, 2, T, D]
         let of_stream = |s: usize| frames.narrow(1, s, 1)?.squeeze(1);
         let object = |s: usize| self.layout.object_of(&of_stream(s)?);
         let body = self.layout.body_of(&of_stream(0)?)?;
-        let single = Tensor::cat(&[&body, &object(0)?, &object(1)?], 2)?;
-        let presence = input.presence.to_dtype(dtype)?;
-        let bps = input.bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
-        let condition = self.conditioning.forward(
-            input.timesteps,
-            &input.text.to_dtype(dtype)?,
-            &bps,
-            &presence,
-        )?;
-        let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
-        let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
+        Ok(Tensor::cat(&[&body, &object(0)?, &object(1)?], 2)?)
+    }
+
+    /// The part of the condition that does not depend on the timestep.
+    ///
+    /// # Shapes
+    /// - `text`, `bps`, `presence`: see [`ModelInput`]; returns `[batch, latent]`
+    fn fixed_condition(
+        &self,
+        text: &Tensor,
+        bps: &Tensor,
+        presence: &Tensor,
+        dtype: DType,
+    ) -> Result<Tensor> {
+        let batch = text.dim(0)?;
+        let presence = presence.to_dtype(dtype)?;
+        let bps = bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
+        self.conditioning.fixed_part(&text.to_dtype(dtype)?, &bps, &presence)
+    }
+
+    /// The denoiser's single-stream output as both streams' frames.
+    ///
+    /// # Shapes
+    /// - `out`: `[batch, T_f, 6J + 3 + 2 * 18]`; returns `[batch, 2, T_f, 6J + 3 + 18]`
+    fn split(&self, out: &Tensor) -> Result<Tensor> {
         // The single stream's frames are `[h, r, o^A, o^B]`: object `s` sits `s` object widths
         // after the body.
-        let body = self.layout.body_of(&out)?;
+        let body = self.layout.body_of(out)?;
         let (width, object_width) = (self.layout.body_width(), self.layout.object_width());
         let stream = |s: usize| -> Result<Tensor> {
             let object = out.narrow(2, width + s * object_width, object_width)?;
@@ -477,6 +543,14 @@ impl Model {
         match &self.layout {
             Layout::Dual(dual) => dual.forward(input, rng),
             Layout::Single(single) => single.forward(input, rng),
+        }
+    }
+
+    /// The device of the parameters.
+    pub fn device(&self) -> &candle_core::Device {
+        match &self.layout {
+            Layout::Dual(dual) => dual.denoiser.positions.device(),
+            Layout::Single(single) => single.denoiser.positions.device(),
         }
     }
 

@@ -50,7 +50,7 @@ impl BlockConfig {
 
 /// The normalisation before a sub-layer.
 #[derive(Debug, Clone)]
-enum PreNorm {
+pub(crate) enum PreNorm {
     Plain,
     Adaptive(Modulation),
 }
@@ -83,10 +83,10 @@ impl PreNorm {
 /// The cross-attention sub-layer: queries from this sequence, keys and values from the other
 /// one, each normalised under its own condition.
 #[derive(Debug, Clone)]
-struct CrossAttention {
-    norm: PreNorm,
-    other_norm: PreNorm,
-    attention: Attention,
+pub(crate) struct CrossAttention {
+    pub(crate) norm: PreNorm,
+    pub(crate) other_norm: PreNorm,
+    pub(crate) attention: Attention,
 }
 
 /// The other sequence a block cross-attends to.
@@ -109,11 +109,11 @@ pub struct Other<'a> {
 /// initialisation are keyed by name.
 #[derive(Debug, Clone)]
 pub struct TransformerBlock {
-    self_norm: PreNorm,
-    self_attention: Attention,
-    cross: Option<CrossAttention>,
-    ff_norm: PreNorm,
-    feed_forward: FeedForward,
+    pub(crate) self_norm: PreNorm,
+    pub(crate) self_attention: Attention,
+    pub(crate) cross: Option<CrossAttention>,
+    pub(crate) ff_norm: PreNorm,
+    pub(crate) feed_forward: FeedForward,
     dropout: f64,
 }
 
@@ -191,7 +191,7 @@ impl TransformerBlock {
 /// sequence encoders'.
 #[derive(Debug, Clone)]
 pub struct TransformerEncoder {
-    blocks: Vec<TransformerBlock>,
+    pub(crate) blocks: Vec<TransformerBlock>,
 }
 
 impl TransformerEncoder {

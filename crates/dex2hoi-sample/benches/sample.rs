@@ -11,7 +11,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
-use dex2hoi_model::{BodyFusion, Model, ModelConfig, SeededVarMap, StreamLayout};
+use dex2hoi_model::{BodyFusion, InferenceModel, Model, ModelConfig, SeededVarMap, StreamLayout};
 use dex2hoi_sample::{Generation, Normaliser, TimedText, WindowCondition, generate, sample_window};
 
 fn median(runs: usize, mut f: impl FnMut()) -> Duration {
@@ -68,6 +68,9 @@ fn main() {
         let cfg = ModelConfig::preset(name).unwrap();
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &device)).unwrap();
+        // Randomised like the PyTorch reference's weights (the zero-initialised layers too).
+        vars.randomise_zero_parameters(1).unwrap();
+        let model = InferenceModel::new(&model).unwrap();
         let d = cfg.stream_features();
         let condition = WindowCondition {
             prefix: dex2hoi_diffusion::gaussian(

@@ -5,7 +5,9 @@ use candle_core::Tensor;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_diffusion::{CosineSchedule, Denoiser, DiffusionError, SamplerConfig, sample};
-use dex2hoi_model::{Model, ModelInput};
+use std::sync::Mutex;
+
+use dex2hoi_model::{InferenceModel, PreparedCondition};
 
 /// Everything a window is conditioned on, for a batch of `B` samples.
 #[derive(Debug, Clone)]
@@ -22,12 +24,49 @@ pub struct WindowCondition {
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
 /// (classifier-free guidance doubles the batch); rows asked for the null condition get a zero
-/// text embedding.
+/// text embedding. The timestep-independent part of the condition is computed at the first
+/// step and reused while the rows' null flags stay the same.
 pub struct ModelDenoiser<'a> {
-    /// The network.
-    pub model: &'a Model,
-    /// The window's condition.
-    pub condition: &'a WindowCondition,
+    model: &'a InferenceModel,
+    condition: &'a WindowCondition,
+    prepared: Mutex<Option<(Vec<bool>, PreparedCondition)>>,
+}
+
+impl<'a> ModelDenoiser<'a> {
+    /// The model conditioned on a window.
+    pub fn new(model: &'a InferenceModel, condition: &'a WindowCondition) -> Self {
+        Self { model, condition, prepared: Mutex::new(None) }
+    }
+
+    /// The condition of `rows` rows with the given null flags, prepared once.
+    fn prepared(
+        &self,
+        null_condition: &[bool],
+        rows: usize,
+    ) -> Result<PreparedCondition, DiffusionError> {
+        let mut cache = self.prepared.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some((flags, prepared)) = cache.as_ref()
+            && flags == null_condition
+        {
+            return Ok(prepared.clone());
+        }
+        let times = rows / self.condition.text.dims()[0];
+        let device = self.condition.text.device();
+        let keep: Vec<f32> =
+            null_condition.iter().map(|&null| if null { 0.0 } else { 1.0 }).collect();
+        let keep =
+            Tensor::from_vec(keep, (rows, 1), device)?.to_dtype(self.condition.text.dtype())?;
+        let text = repeat_rows(&self.condition.text, times)?.broadcast_mul(&keep)?;
+        let bps = repeat_rows(&self.condition.bps, times)?;
+        let presence = repeat_rows(&self.condition.presence, times)?;
+        let prepared = self.model.prepare(&text, &bps, &presence).map_err(denoiser_error)?;
+        *cache = Some((null_condition.to_vec(), prepared.clone()));
+        Ok(prepared)
+    }
+}
+
+fn denoiser_error(e: dex2hoi_model::ModelError) -> DiffusionError {
+    DiffusionError::Denoiser { expected: "a prediction".into(), got: e.to_string() }
 }
 
 fn repeat_rows(t: &Tensor, times: usize) -> candle_core::Result<Tensor> {
@@ -53,27 +92,9 @@ impl Denoiser for ModelDenoiser<'_> {
                 format!("{rows} rows, {} flags", null_condition.len()),
             ));
         }
-        let times = rows / batch;
-        let keep: Vec<f32> =
-            null_condition.iter().map(|&null| if null { 0.0 } else { 1.0 }).collect();
-        let keep = Tensor::from_vec(keep, (rows, 1), noisy.device())?.to_dtype(noisy.dtype())?;
-        let text = repeat_rows(&self.condition.text, times)?.broadcast_mul(&keep)?;
-        let prefix = repeat_rows(&self.condition.prefix, times)?;
-        let bps = repeat_rows(&self.condition.bps, times)?;
-        let presence = repeat_rows(&self.condition.presence, times)?;
-        let input = ModelInput {
-            noisy,
-            prefix: &prefix,
-            timesteps,
-            text: &text,
-            bps: &bps,
-            presence: &presence,
-            frame_mask: None,
-        };
-        self.model.forward(&input, None).map_err(|e| DiffusionError::Denoiser {
-            expected: "a prediction".into(),
-            got: e.to_string(),
-        })
+        let prepared = self.prepared(null_condition, rows)?;
+        let prefix = repeat_rows(&self.condition.prefix, rows / batch)?;
+        self.model.forward(&prefix, noisy, timesteps, &prepared).map_err(denoiser_error)
     }
 }
 
@@ -82,7 +103,7 @@ impl Denoiser for ModelDenoiser<'_> {
 /// # Shapes
 /// - returns `[B, 2, T_f, D]`
 pub fn sample_window(
-    model: &Model,
+    model: &InferenceModel,
     schedule: &CosineSchedule,
     condition: &WindowCondition,
     config: &SamplerConfig,
@@ -91,6 +112,6 @@ pub fn sample_window(
     let c = model.config();
     let batch = condition.text.dims()[0];
     let shape = [batch, 2, c.predicted_frames, c.stream_features()];
-    let denoiser = ModelDenoiser { model, condition };
+    let denoiser = ModelDenoiser::new(model, condition);
     sample(schedule, &denoiser, &shape, config, rng, model.dtype(), condition.text.device())
 }

@@ -18,7 +18,7 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::features::{DecodedMotion, ObjectDecoding, decode_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::text::reject_empty;
-use dex2hoi_model::{Model, ObjectRepresentation};
+use dex2hoi_model::{InferenceModel, ObjectRepresentation};
 
 use crate::denoiser::{WindowCondition, sample_window};
 use crate::error::{Result, SampleError};
@@ -58,7 +58,7 @@ impl Normaliser {
 #[derive(Debug, Clone)]
 pub struct Generation<'a> {
     /// The network.
-    pub model: &'a Model,
+    pub model: &'a InferenceModel,
     /// The diffusion schedule it was trained with.
     pub schedule: &'a CosineSchedule,
     /// Feature statistics.
@@ -214,7 +214,7 @@ pub fn generate_motion(
     let schedule = CosineSchedule::new(run.config.diffusion_steps)?;
     let normaliser = run.normaliser()?;
     let generation = Generation {
-        model: &run.model,
+        model: &run.inference,
         schedule: &schedule,
         normaliser: &normaliser,
         initial_prefix,

@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use dex2hoi_data::dataset::{FeatureStats, Manifest};
 use dex2hoi_model::checkpoint::{assign_parameters, read_tensors};
 use dex2hoi_model::text::{TextEncoder, Vocabulary};
-use dex2hoi_model::{Model, SeededVarMap};
+use dex2hoi_model::{InferenceModel, Model, SeededVarMap};
 use dex2hoi_repr::{Skeleton, SkeletonKind};
 
 use crate::config::RunConfig;
@@ -48,6 +48,8 @@ pub struct TrainedRun {
     pub skeleton: Skeleton,
     /// The network.
     pub model: Model,
+    /// The network rearranged for sampling (fused operations on the CPU).
+    pub inference: InferenceModel,
     /// Its parameters.
     pub model_vars: SeededVarMap,
     /// The text encoder (trained built-in one, or frozen).
@@ -110,12 +112,14 @@ impl TrainedRun {
         }
         let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
         let skeleton = Skeleton::builtin(SkeletonKind::from_name(&manifest.skeleton)?);
+        let inference = InferenceModel::new(&model)?;
         Ok(Self {
             config,
             manifest,
             stats,
             skeleton,
             model,
+            inference,
             model_vars,
             text: text.into_encoder(),
             step,

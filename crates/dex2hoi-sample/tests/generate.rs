@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
-use dex2hoi_model::{Model, ModelConfig, SeededVarMap};
+use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
 use dex2hoi_sample::{Generation, Normaliser, TimedText, generate};
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
@@ -19,7 +19,7 @@ fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
     .unwrap()
 }
 
-fn tiny_model() -> Model {
+fn tiny_model() -> InferenceModel {
     let cfg = ModelConfig::tiny();
     let vars = SeededVarMap::new(0);
     let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
@@ -33,7 +33,7 @@ fn tiny_model() -> Model {
         let var = &data[name];
         var.set(&random(var.dims(), &mut rng).affine(0.3, 0.0).unwrap()).unwrap();
     }
-    model
+    InferenceModel::new(&model).unwrap()
 }
 
 #[test]

@@ -1,0 +1,455 @@
+//! Forward-only fused CPU operations of the inference path ([`crate::inference`]): each replaces
+//! a chain of candle operations (one pass over memory instead of four to eight, each a fresh
+//! allocation and, in candle, single-threaded) and spreads its rows over the rayon pool.
+//!
+//! None of them has a backward pass: training never uses them (Architecture Invariant: every
+//! operation that trains has a backward pass; only the no-grad inference path may use
+//! forward-only fused operations). They accept contiguous f32 tensors on the CPU; the inference
+//! path uses the composite model on any other device or dtype. Each is tested equal to the
+//! composite operations it replaces (`tests/fused.rs`).
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
+use rayon::prelude::*;
+
+/// The layer norm's epsilon, added to the variance (as [`crate::layers::layer_norm`]).
+const EPS: f32 = 1e-6;
+
+/// Rows per rayon task of the row-wise operations: enough work per task to hide the scheduling
+/// cost (a few microseconds), enough tasks to keep both cores busy on a 240-row batch.
+const ROWS_PER_TASK: usize = 16;
+
+fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
+    candle_core::Error::Msg(format!("{op}: {message}"))
+}
+
+/// The values of a contiguous f32 tensor.
+fn values<'a>(
+    op: &str,
+    storage: &'a CpuStorage,
+    layout: &Layout,
+) -> candle_core::Result<&'a [f32]> {
+    let CpuStorage::F32(all) = storage else {
+        return Err(op_error(op, "expects f32 tensors"));
+    };
+    match layout.contiguous_offsets() {
+        Some((start, end)) => Ok(&all[start..end]),
+        None => Err(op_error(op, "expects contiguous tensors")),
+    }
+}
+
+/// The last dimension and the number of rows before it.
+fn rows_and_width(layout: &Layout) -> (usize, usize) {
+    let width = layout.dims().last().copied().unwrap_or(1);
+    (layout.shape().elem_count() / width.max(1), width)
+}
+
+/// Normalises `row` into `out` (zero mean, unit variance over the row) and returns nothing;
+/// the mean and variance are computed as the composite does (two passes, mean of squares of
+/// the centred values).
+fn normalise_row(row: &[f32], out: &mut [f32]) {
+    let n = row.len() as f32;
+    let mean = row.iter().sum::<f32>() / n;
+    let mut variance = 0.0;
+    for (o, &x) in out.iter_mut().zip(row) {
+        let centred = x - mean;
+        *o = centred;
+        variance += centred * centred;
+    }
+    let inverse = 1.0 / (variance / n + EPS).sqrt();
+    for o in out.iter_mut() {
+        *o *= inverse;
+    }
+}
+
+/// Layer norm over the last dimension without affine parameters.
+///
+/// # Shapes
+/// - input `[..., features]`; output the same
+#[derive(Debug, Clone, Copy)]
+pub struct LayerNorm;
+
+impl CustomOp1 for LayerNorm {
+    fn name(&self) -> &'static str {
+        "fused-layer-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = values(self.name(), storage, layout)?;
+        let (_, width) = rows_and_width(layout);
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(width * ROWS_PER_TASK)
+            .zip(x.par_chunks(width * ROWS_PER_TASK))
+            .for_each(|(out, x)| {
+                for (o, row) in out.chunks_exact_mut(width).zip(x.chunks_exact(width)) {
+                    normalise_row(row, o);
+                }
+            });
+        Ok((CpuStorage::F32(out), layout.shape().clone()))
+    }
+}
+
+/// AdaLN (`norm(x) * (1 + scale) + shift`, [`crate::layers::Modulation`]) with the modulation
+/// read from a table that holds every modulation of the model side by side: `shift` at columns
+/// `column..column + latent`, `scale` right after. With `swap_halves`, output sequence `n` is
+/// made of input sequence `(n + N/2) % N` and its table row (the other stream of a batch that
+/// stacks both streams: the keys of the cross-attention, paper Eq. 5).
+///
+/// # Shapes
+/// - `x`: `[N, T, latent]`; `table`: `[N, columns]`; output `[N, T, latent]`
+#[derive(Debug, Clone, Copy)]
+pub struct AdaLn {
+    /// The first column of the shift in the table.
+    pub column: usize,
+    /// Whether each output sequence is the other half's.
+    pub swap_halves: bool,
+}
+
+impl CustomOp2 for AdaLn {
+    fn name(&self) -> &'static str {
+        "fused-adaln"
+    }
+
+    fn cpu_fwd(
+        &self,
+        x_storage: &CpuStorage,
+        x_layout: &Layout,
+        table_storage: &CpuStorage,
+        table_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = values(self.name(), x_storage, x_layout)?;
+        let table = values(self.name(), table_storage, table_layout)?;
+        let (sequences, frames, latent) = x_layout.shape().dims3()?;
+        let (table_rows, columns) = table_layout.shape().dims2()?;
+        if table_rows != sequences || self.column + 2 * latent > columns {
+            return Err(op_error(
+                self.name(),
+                format!(
+                    "a [{sequences}, >= {}] table, got {:?}",
+                    self.column + 2 * latent,
+                    table_layout.dims()
+                ),
+            ));
+        }
+        if self.swap_halves && sequences % 2 != 0 {
+            return Err(op_error(self.name(), "an even number of sequences to swap halves"));
+        }
+        let sequence_width = frames * latent;
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(latent * ROWS_PER_TASK).enumerate().for_each(|(task, out)| {
+            for (k, o) in out.chunks_exact_mut(latent).enumerate() {
+                let row = task * ROWS_PER_TASK + k;
+                let (n, t) = (row / frames.max(1), row % frames.max(1));
+                let source = if self.swap_halves { (n + sequences / 2) % sequences } else { n };
+                let input = &x[source * sequence_width + t * latent..][..latent];
+                let modulation = &table[source * columns + self.column..][..2 * latent];
+                let (shift, scale) = modulation.split_at(latent);
+                normalise_row(input, o);
+                for ((o, &shift), &scale) in o.iter_mut().zip(shift).zip(scale) {
+                    *o = *o * (scale + 1.0) + shift;
+                }
+            }
+        });
+        Ok((CpuStorage::F32(out), x_layout.shape().clone()))
+    }
+}
+
+/// The bias and activation after a linear layer's product: `y + bias`, or `SiLU(y + bias)`.
+///
+/// # Shapes
+/// - `y`: `[..., features]`; `bias`: `[features]`; output `y`'s shape
+#[derive(Debug, Clone, Copy)]
+pub struct Bias {
+    /// Whether SiLU follows the bias.
+    pub silu: bool,
+}
+
+impl CustomOp2 for Bias {
+    fn name(&self) -> &'static str {
+        "fused-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        y_storage: &CpuStorage,
+        y_layout: &Layout,
+        bias_storage: &CpuStorage,
+        bias_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let y = values(self.name(), y_storage, y_layout)?;
+        let bias = values(self.name(), bias_storage, bias_layout)?;
+        let (_, width) = rows_and_width(y_layout);
+        if bias.len() != width {
+            return Err(op_error(self.name(), format!("a bias of {width}, got {}", bias.len())));
+        }
+        let mut out = vec![0f32; y.len()];
+        out.par_chunks_mut(width * ROWS_PER_TASK)
+            .zip(y.par_chunks(width * ROWS_PER_TASK))
+            .for_each(|(out, y)| {
+                for (o, row) in out.chunks_exact_mut(width).zip(y.chunks_exact(width)) {
+                    for ((o, &y), &b) in o.iter_mut().zip(row).zip(bias) {
+                        let v = y + b;
+                        *o = if self.silu { v / (1.0 + (-v).exp()) } else { v };
+                    }
+                }
+            });
+        Ok((CpuStorage::F32(out), y_layout.shape().clone()))
+    }
+}
+
+/// A residual branch's end: `x + (y + bias)` (the linear layer's bias, then the residual sum,
+/// in the composite's order).
+///
+/// # Shapes
+/// - `x`, `y`: `[..., features]`; `bias`: `[features]`; output `x`'s shape
+#[derive(Debug, Clone, Copy)]
+pub struct Residual;
+
+impl CustomOp3 for Residual {
+    fn name(&self) -> &'static str {
+        "fused-residual"
+    }
+
+    fn cpu_fwd(
+        &self,
+        x_storage: &CpuStorage,
+        x_layout: &Layout,
+        y_storage: &CpuStorage,
+        y_layout: &Layout,
+        bias_storage: &CpuStorage,
+        bias_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = values(self.name(), x_storage, x_layout)?;
+        let y = values(self.name(), y_storage, y_layout)?;
+        let bias = values(self.name(), bias_storage, bias_layout)?;
+        let (_, width) = rows_and_width(x_layout);
+        if y.len() != x.len() || bias.len() != width {
+            return Err(op_error(
+                self.name(),
+                format!(
+                    "x and y of one shape and a bias of {width}, got {:?}, {:?}, {}",
+                    x_layout.dims(),
+                    y_layout.dims(),
+                    bias.len()
+                ),
+            ));
+        }
+        let mut out = vec![0f32; x.len()];
+        let chunk = width * ROWS_PER_TASK;
+        out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).zip(y.par_chunks(chunk)).for_each(
+            |((out, x), y)| {
+                for ((o, x), y) in out
+                    .chunks_exact_mut(width)
+                    .zip(x.chunks_exact(width))
+                    .zip(y.chunks_exact(width))
+                {
+                    for (((o, &x), &y), &b) in o.iter_mut().zip(x).zip(y).zip(bias) {
+                        *o = x + (y + b);
+                    }
+                }
+            },
+        );
+        Ok((CpuStorage::F32(out), x_layout.shape().clone()))
+    }
+}
+
+/// Multi-head attention after the projections ([`crate::layers::Attention`] without its
+/// linear layers): the projections' biases added on the fly, scores scaled by
+/// `1/sqrt(head)`, softmax fused, heads merged in the output. Queries, keys and values are read
+/// where the (fused) projections put them, so no head split or transposition is copied.
+///
+/// # Shapes
+/// - `queries`: `[N, Tq, Cq]`, the queries at columns `query_column..query_column + latent`
+/// - `keys_values`: `[N, Tk, Ckv]`, keys at `key_column..`, values right after them
+/// - `bias`: `[3 latent]`, the query, key and value biases; output `[N, Tq, latent]`
+#[derive(Debug, Clone, Copy)]
+pub struct Attention {
+    /// Heads (dividing `latent`).
+    pub heads: usize,
+    /// Token width.
+    pub latent: usize,
+    /// The first column of the queries in their tensor.
+    pub query_column: usize,
+    /// The first column of the keys in their tensor (the values follow).
+    pub key_column: usize,
+}
+
+/// `sum_k a_k b_k` with eight independent partial sums, so that the compiler vectorises it.
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut partial = [0f32; 8];
+    let (a_chunks, b_chunks) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = a_chunks.remainder().iter().zip(b_chunks.remainder()).map(|(x, y)| x * y).sum();
+    for (a, b) in a_chunks.zip(b_chunks) {
+        for k in 0..8 {
+            partial[k] += a[k] * b[k];
+        }
+    }
+    partial.iter().sum::<f32>() + tail
+}
+
+impl Attention {
+    /// Each sequence's biased keys or values, head-major: `[N][heads][Tk][head]`.
+    fn gather(
+        &self,
+        source: &[f32],
+        sequences: usize,
+        frames: usize,
+        width: usize,
+        column: usize,
+        bias: &[f32],
+    ) -> Vec<f32> {
+        let head = self.latent / self.heads;
+        let mut out = vec![0f32; sequences * frames * self.latent];
+        out.par_chunks_mut(frames * self.latent).enumerate().for_each(|(n, out)| {
+            for h in 0..self.heads {
+                for j in 0..frames {
+                    let from = &source[(n * frames + j) * width + column + h * head..][..head];
+                    let to = &mut out[(h * frames + j) * head..][..head];
+                    for ((t, &f), &b) in to.iter_mut().zip(from).zip(&bias[h * head..]) {
+                        *t = f + b;
+                    }
+                }
+            }
+        });
+        out
+    }
+}
+
+impl CustomOp3 for Attention {
+    fn name(&self) -> &'static str {
+        "fused-attention"
+    }
+
+    fn cpu_fwd(
+        &self,
+        q_storage: &CpuStorage,
+        q_layout: &Layout,
+        kv_storage: &CpuStorage,
+        kv_layout: &Layout,
+        bias_storage: &CpuStorage,
+        bias_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let queries = values(self.name(), q_storage, q_layout)?;
+        let keys_values = values(self.name(), kv_storage, kv_layout)?;
+        let bias = values(self.name(), bias_storage, bias_layout)?;
+        let (sequences, query_frames, query_width) = q_layout.shape().dims3()?;
+        let (kv_sequences, key_frames, kv_width) = kv_layout.shape().dims3()?;
+        let l = self.latent;
+        if self.heads == 0
+            || l % self.heads != 0
+            || kv_sequences != sequences
+            || self.query_column + l > query_width
+            || self.key_column + 2 * l > kv_width
+            || bias.len() != 3 * l
+        {
+            return Err(op_error(
+                self.name(),
+                format!(
+                    "queries [N, Tq, >= {}], keys and values [N, Tk, >= {}], a bias of {} and heads dividing {l}; got {:?}, {:?}, {}",
+                    self.query_column + l,
+                    self.key_column + 2 * l,
+                    3 * l,
+                    q_layout.dims(),
+                    kv_layout.dims(),
+                    bias.len()
+                ),
+            ));
+        }
+        let head = l / self.heads;
+        let scale = 1.0 / (head as f32).sqrt();
+        let keys = self.gather(
+            keys_values,
+            sequences,
+            key_frames,
+            kv_width,
+            self.key_column,
+            &bias[l..2 * l],
+        );
+        let vals = self.gather(
+            keys_values,
+            sequences,
+            key_frames,
+            kv_width,
+            self.key_column + l,
+            &bias[2 * l..],
+        );
+        let mut out = vec![0f32; sequences * query_frames * l];
+        out.par_chunks_mut(l * ROWS_PER_TASK / 4).enumerate().for_each(|(task, out)| {
+            let mut query = vec![0f32; head];
+            let mut weights = vec![0f32; key_frames];
+            for (k, o) in out.chunks_exact_mut(l).enumerate() {
+                let row = task * ROWS_PER_TASK / 4 + k;
+                let n = row / query_frames.max(1);
+                let q_row = &queries[row * query_width + self.query_column..][..l];
+                for h in 0..self.heads {
+                    for ((q, &x), &b) in
+                        query.iter_mut().zip(&q_row[h * head..]).zip(&bias[h * head..])
+                    {
+                        *q = x + b;
+                    }
+                    let keys =
+                        &keys[(n * self.heads + h) * key_frames * head..][..key_frames * head];
+                    let vals =
+                        &vals[(n * self.heads + h) * key_frames * head..][..key_frames * head];
+                    let mut max = f32::NEG_INFINITY;
+                    for (w, key) in weights.iter_mut().zip(keys.chunks_exact(head)) {
+                        *w = dot(&query, key) * scale;
+                        max = max.max(*w);
+                    }
+                    let mut total = 0.0;
+                    for w in weights.iter_mut() {
+                        *w = (*w - max).exp();
+                        total += *w;
+                    }
+                    let o = &mut o[h * head..][..head];
+                    o.fill(0.0);
+                    for (&w, value) in weights.iter().zip(vals.chunks_exact(head)) {
+                        let w = w / total;
+                        for (o, &v) in o.iter_mut().zip(value) {
+                            *o += w * v;
+                        }
+                    }
+                }
+            }
+        });
+        Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
+    }
+}
+
+/// `x` through [`LayerNorm`].
+pub fn layer_norm(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.apply_op1_no_bwd(&LayerNorm)
+}
+
+/// `x` through [`AdaLn`] with the modulation at `column` of `table`.
+pub fn adaln(
+    x: &Tensor,
+    table: &Tensor,
+    column: usize,
+    swap_halves: bool,
+) -> candle_core::Result<Tensor> {
+    x.apply_op2_no_bwd(table, &AdaLn { column, swap_halves })
+}
+
+/// `y + bias`, then SiLU when `silu`.
+pub fn bias(y: &Tensor, bias: &Tensor, silu: bool) -> candle_core::Result<Tensor> {
+    y.apply_op2_no_bwd(bias, &Bias { silu })
+}
+
+/// `x + (y + bias)`.
+pub fn residual(x: &Tensor, y: &Tensor, bias: &Tensor) -> candle_core::Result<Tensor> {
+    x.apply_op3_no_bwd(y, bias, &Residual)
+}
+
+/// The attention of [`Attention`].
+pub fn attention(
+    queries: &Tensor,
+    keys_values: &Tensor,
+    bias: &Tensor,
+    op: Attention,
+) -> candle_core::Result<Tensor> {
+    queries.apply_op3_no_bwd(keys_values, bias, &op)
+}

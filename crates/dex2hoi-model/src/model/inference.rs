@@ -1,0 +1,492 @@
+//! The no-grad inference path (sampling): the function of [`Model::forward`] without dropout
+//! or an autograd graph, made of fused forward-only CPU operations ([`crate::fused`]) and
+//! parameters rearranged once, at load time:
+//! - the query, key and value projections of each self-attention in one `[latent, 3 latent]`
+//!   product;
+//! - every AdaLN modulation of the denoiser (four per block and the final one) in one
+//!   `[latent, columns]` product per diffusion step;
+//! - the part of the condition that does not depend on the timestep (text, BPS and presence
+//!   projections) computed once per sample ([`InferenceModel::prepare`]).
+//!
+//! Stored parameter names do not change: the rearranged tensors are built from the modules
+//! that [`Model::new`] made. An [`InferenceModel`] is a snapshot: build it after the weights
+//! are final. On a device other than the CPU, or in a dtype other than f32, it runs the
+//! composite [`Model::forward`].
+
+use candle_core::{DType, Device, Tensor};
+
+use super::{Denoiser, body_average, streams_into_batch};
+use super::{DualStream, Fusion, FusionNetwork, Layout, Model, ModelInput, SingleStream};
+use crate::error::Result;
+use crate::fused;
+use crate::layers::{Dense, Modulation};
+use crate::transformer::{PreNorm, TransformerBlock};
+
+/// `x @ weight` over the last dimension (the bias is added by the fused consumer).
+///
+/// # Shapes
+/// - `x`: `[..., input]`; `weight`: `[input, output]`; returns `[..., output]`
+fn product(x: &Tensor, weight: &Tensor) -> Result<Tensor> {
+    let dims = x.dims();
+    let input = dims[dims.len() - 1];
+    let rows = x.elem_count() / input.max(1);
+    let out = x.contiguous()?.reshape((rows, input))?.matmul(weight)?;
+    let mut shape = dims.to_vec();
+    *shape.last_mut().expect("a non-scalar input") = weight.dims()[1];
+    Ok(out.reshape(shape)?)
+}
+
+/// A linear layer's parameters, detached from the autograd graph.
+#[derive(Debug, Clone)]
+struct Linear {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl Linear {
+    fn of(dense: &Dense) -> Self {
+        Self { weight: dense.weight.detach(), bias: dense.bias.detach() }
+    }
+
+    /// Parameters of layers that read the same input, side by side (their outputs
+    /// concatenated).
+    fn side_by_side(layers: &[&Dense]) -> Result<Self> {
+        let weights: Vec<&Tensor> = layers.iter().map(|d| &d.weight).collect();
+        let biases: Vec<&Tensor> = layers.iter().map(|d| &d.bias).collect();
+        Ok(Self {
+            weight: Tensor::cat(&weights, 1)?.detach(),
+            bias: Tensor::cat(&biases, 0)?.detach(),
+        })
+    }
+
+    /// # Shapes
+    /// - `x`: `[..., input]`; returns `[..., output]`
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(fused::bias(&product(x, &self.weight)?, &self.bias, false)?)
+    }
+}
+
+/// Collects the AdaLN modulations of a denoiser into one table (see the module's docs).
+#[derive(Default)]
+struct TableBuilder {
+    layers: Vec<Dense>,
+    columns: usize,
+}
+
+impl TableBuilder {
+    /// Adds a modulation; returns its first column.
+    fn add(&mut self, modulation: &Modulation) -> usize {
+        let column = self.columns;
+        self.columns += modulation.linear.weight.dims()[1];
+        self.layers.push(modulation.linear.clone());
+        column
+    }
+
+    fn norm(&mut self, norm: &PreNorm) -> Norm {
+        match norm {
+            PreNorm::Plain => Norm::Plain,
+            PreNorm::Adaptive(modulation) => Norm::Adaptive { column: self.add(modulation) },
+        }
+    }
+
+    fn finish(self) -> Result<Option<Linear>> {
+        if self.layers.is_empty() {
+            return Ok(None);
+        }
+        Linear::side_by_side(&self.layers.iter().collect::<Vec<_>>()).map(Some)
+    }
+}
+
+/// A block's normalisation: plain layer norm, or AdaLN with its modulation at `column` of the
+/// step's table.
+#[derive(Debug, Clone, Copy)]
+enum Norm {
+    Plain,
+    Adaptive { column: usize },
+}
+
+impl Norm {
+    /// With `swap_halves`, each sequence is normalised as the other half's (the other
+    /// stream).
+    ///
+    /// # Shapes
+    /// - `x`: `[N, T, latent]`; `table`: `[N, columns]`; returns `x`'s shape
+    fn forward(&self, x: &Tensor, table: Option<&Tensor>, swap_halves: bool) -> Result<Tensor> {
+        match (self, table) {
+            (Self::Adaptive { column }, Some(table)) => {
+                Ok(fused::adaln(x, table, *column, swap_halves)?)
+            }
+            (Self::Adaptive { .. }, None) => Err(crate::error::ModelError::shape(
+                "modulation table",
+                "a table for an AdaLN block",
+                &[],
+            )),
+            (Self::Plain, _) if swap_halves => Ok(fused::layer_norm(&super::swap_streams(x)?)?),
+            (Self::Plain, _) => Ok(fused::layer_norm(x)?),
+        }
+    }
+}
+
+/// The cross-attention of a [`Block`]: queries from this stream, keys and values from the
+/// other stream's block input.
+#[derive(Debug, Clone)]
+struct Cross {
+    norm: Norm,
+    other_norm: Norm,
+    query: Tensor,
+    key_value: Tensor,
+    /// Query, key and value biases, `[3 latent]`.
+    bias: Tensor,
+    out: Linear,
+}
+
+/// [`TransformerBlock`] for inference.
+#[derive(Debug, Clone)]
+struct Block {
+    self_norm: Norm,
+    /// Queries, keys and values of the self-attention in one product, `[latent, 3 latent]`.
+    qkv: Linear,
+    self_out: Linear,
+    cross: Option<Cross>,
+    ff_norm: Norm,
+    up: Linear,
+    down: Linear,
+    heads: usize,
+    latent: usize,
+}
+
+impl Block {
+    fn new(block: &TransformerBlock, table: &mut TableBuilder) -> Result<Self> {
+        let attention = &block.self_attention;
+        let latent = attention.query.weight.dims()[1];
+        let self_norm = table.norm(&block.self_norm);
+        let cross = match &block.cross {
+            Some(cross) => Some(Cross {
+                norm: table.norm(&cross.norm),
+                other_norm: table.norm(&cross.other_norm),
+                query: cross.attention.query.weight.detach(),
+                key_value: cross.attention.key_value.weight.detach(),
+                bias: Tensor::cat(
+                    &[&cross.attention.query.bias, &cross.attention.key_value.bias],
+                    0,
+                )?
+                .detach(),
+                out: Linear::of(&cross.attention.out),
+            }),
+            None => None,
+        };
+        Ok(Self {
+            self_norm,
+            qkv: Linear::side_by_side(&[&attention.query, &attention.key_value])?,
+            self_out: Linear::of(&attention.out),
+            cross,
+            ff_norm: table.norm(&block.ff_norm),
+            up: Linear::of(&block.feed_forward.up),
+            down: Linear::of(&block.feed_forward.down),
+            heads: attention.heads,
+            latent,
+        })
+    }
+
+    fn attention_op(&self, key_column: usize) -> fused::Attention {
+        fused::Attention { heads: self.heads, latent: self.latent, query_column: 0, key_column }
+    }
+
+    /// [`TransformerBlock::forward`] without dropout; with a cross-attention, the batch stacks
+    /// both streams and the keys come from the other half of `x` (Eq. 5).
+    ///
+    /// # Shapes
+    /// - `x`: `[N, T, latent]`; `table`: `[N, columns]` (AdaLN only); returns `x`'s shape
+    fn forward(&self, x: &Tensor, table: Option<&Tensor>) -> Result<Tensor> {
+        let l = self.latent;
+        let h = self.self_norm.forward(x, table, false)?;
+        let qkv = product(&h, &self.qkv.weight)?;
+        let attended = fused::attention(&qkv, &qkv, &self.qkv.bias, self.attention_op(l))?;
+        let out = product(&attended, &self.self_out.weight)?;
+        let mut y = fused::residual(x, &out, &self.self_out.bias)?;
+        if let Some(cross) = &self.cross {
+            let queries = product(&cross.norm.forward(&y, table, false)?, &cross.query)?;
+            let keys = product(&cross.other_norm.forward(x, table, true)?, &cross.key_value)?;
+            let attended = fused::attention(&queries, &keys, &cross.bias, self.attention_op(0))?;
+            y = fused::residual(&y, &product(&attended, &cross.out.weight)?, &cross.out.bias)?;
+        }
+        let h = self.ff_norm.forward(&y, table, false)?;
+        let hidden = fused::bias(&product(&h, &self.up.weight)?, &self.up.bias, true)?;
+        Ok(fused::residual(&y, &product(&hidden, &self.down.weight)?, &self.down.bias)?)
+    }
+}
+
+/// The denoiser for inference (see [`Denoiser`]).
+#[derive(Debug, Clone)]
+struct FastDenoiser {
+    input: Tensor,
+    /// The input bias, positions and prefix/noisy types of each frame, `[T, latent]`.
+    tokens: Tensor,
+    channel_mask: Option<Tensor>,
+    blocks: Vec<Block>,
+    /// Every AdaLN modulation side by side.
+    modulations: Linear,
+    final_column: usize,
+    head: Linear,
+    prefix_frames: usize,
+    predicted_frames: usize,
+}
+
+impl FastDenoiser {
+    fn new(denoiser: &Denoiser) -> Result<Self> {
+        let latent = denoiser.positions.dims()[1];
+        let kind = |k: usize, count: usize| -> Result<Tensor> {
+            Ok(denoiser.frame_types.get(k)?.unsqueeze(0)?.broadcast_as((count, latent))?)
+        };
+        let types = Tensor::cat(
+            &[kind(0, denoiser.prefix_frames)?, kind(1, denoiser.predicted_frames)?],
+            0,
+        )?;
+        let tokens = (&denoiser.positions + types)?.broadcast_add(&denoiser.input.bias)?.detach();
+        let mut table = TableBuilder::default();
+        let blocks =
+            denoiser.blocks.iter().map(|b| Block::new(b, &mut table)).collect::<Result<_>>()?;
+        let final_column = table.add(&denoiser.final_modulation);
+        let modulations = table.finish()?.expect("the final modulation at least");
+        Ok(Self {
+            input: denoiser.input.weight.detach(),
+            tokens,
+            channel_mask: denoiser.channel_mask.as_ref().map(Tensor::detach),
+            blocks,
+            modulations,
+            final_column,
+            head: Linear::of(&denoiser.head),
+            prefix_frames: denoiser.prefix_frames,
+            predicted_frames: denoiser.predicted_frames,
+        })
+    }
+
+    /// # Shapes
+    /// - `frames`: `[N, T_p + T_f, features]`; `condition`: `[N, latent]`
+    /// - returns `[N, T_f, features]`
+    fn forward(&self, frames: &Tensor, condition: &Tensor) -> Result<Tensor> {
+        let frames = match &self.channel_mask {
+            Some(mask) => frames.broadcast_mul(mask)?,
+            None => frames.clone(),
+        };
+        let mut x = product(&frames, &self.input)?.broadcast_add(&self.tokens)?;
+        let table = self.modulations.forward(&condition.silu()?)?;
+        for block in &self.blocks {
+            x = block.forward(&x, Some(&table))?;
+        }
+        let predicted = x.narrow(1, self.prefix_frames, self.predicted_frames)?.contiguous()?;
+        self.head.forward(&fused::adaln(&predicted, &table, self.final_column, false)?)
+    }
+}
+
+/// The Motion Fusion Network for inference (see [`FusionNetwork`]).
+#[derive(Debug, Clone)]
+struct FastFusionNetwork {
+    input: Linear,
+    positions: Tensor,
+    blocks: Vec<Block>,
+    output: Linear,
+}
+
+impl FastFusionNetwork {
+    fn new(network: &FusionNetwork) -> Result<Self> {
+        let mut table = TableBuilder::default();
+        let blocks = network
+            .layers
+            .blocks
+            .iter()
+            .map(|b| Block::new(b, &mut table))
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            input: Linear::of(&network.input),
+            positions: network.positions.detach(),
+            blocks,
+            output: Linear::of(&network.output),
+        })
+    }
+
+    /// # Shapes
+    /// - `body_a`, `body_b`: `[batch, T_f, 6J + 3]`; `presence_b`: `[batch]`
+    /// - returns the fused body `[batch, T_f, 6J + 3]`
+    fn forward(&self, body_a: &Tensor, body_b: &Tensor, presence_b: &Tensor) -> Result<Tensor> {
+        let (batch, frames, _) = body_a.dims3()?;
+        let present = presence_b.reshape((batch, 1, 1))?;
+        let masked_b = body_b.broadcast_mul(&present)?;
+        let flag = present.broadcast_as((batch, frames, 1))?.contiguous()?;
+        let average = body_average(body_a, &masked_b, &present)?;
+        let inputs = Tensor::cat(&[body_a, &masked_b, &flag], 2)?;
+        let mut x =
+            self.input.forward(&inputs)?.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
+        for block in &self.blocks {
+            x = block.forward(&x, None)?;
+        }
+        Ok((average + self.output.forward(&fused::layer_norm(&x)?)?)?)
+    }
+}
+
+/// The body fusion for inference (see [`Fusion`]).
+#[derive(Debug, Clone)]
+enum FastFusion {
+    Network(FastFusionNetwork),
+    Average,
+}
+
+impl FastFusion {
+    fn forward(&self, body_a: &Tensor, body_b: &Tensor, presence_b: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Network(network) => network.forward(body_a, body_b, presence_b),
+            Self::Average => {
+                let present = presence_b.reshape((presence_b.dim(0)?, 1, 1))?;
+                body_average(body_a, &body_b.broadcast_mul(&present)?, &present)
+            }
+        }
+    }
+}
+
+/// The layouts' inference paths.
+#[derive(Debug, Clone)]
+enum FastLayout {
+    Dual { denoiser: FastDenoiser, fusion: FastFusion },
+    Single { denoiser: FastDenoiser },
+}
+
+/// What a window's samples are conditioned on, with the part of the condition embedding that
+/// does not change over the diffusion steps computed once.
+#[derive(Debug, Clone)]
+pub struct PreparedCondition {
+    text: Tensor,
+    bps: Tensor,
+    presence: Tensor,
+    /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
+    /// dual layout (stream A first), `[batch, latent]` in the single one.
+    fixed: Tensor,
+}
+
+impl PreparedCondition {
+    /// The rows of the batch.
+    pub fn batch(&self) -> usize {
+        self.text.dims()[0]
+    }
+}
+
+/// The model for sampling (see the module's docs).
+#[derive(Debug, Clone)]
+pub struct InferenceModel {
+    model: Model,
+    /// `None` where the fused operations do not apply (another device or dtype).
+    fast: Option<FastLayout>,
+}
+
+impl InferenceModel {
+    /// Rearranges `model`'s parameters for inference (a snapshot of their current values).
+    pub fn new(model: &Model) -> Result<Self> {
+        let on_cpu = matches!(model.device(), Device::Cpu) && model.dtype() == DType::F32;
+        let fast = if on_cpu {
+            Some(match &model.layout {
+                Layout::Dual(DualStream { denoiser, fusion, .. }) => FastLayout::Dual {
+                    denoiser: FastDenoiser::new(denoiser)?,
+                    fusion: match fusion {
+                        Fusion::Network(network) => {
+                            FastFusion::Network(FastFusionNetwork::new(network)?)
+                        }
+                        Fusion::Average => FastFusion::Average,
+                    },
+                },
+                Layout::Single(SingleStream { denoiser, .. }) => {
+                    FastLayout::Single { denoiser: FastDenoiser::new(denoiser)? }
+                }
+            })
+        } else {
+            None
+        };
+        Ok(Self { model: model.clone(), fast })
+    }
+
+    /// The composite model.
+    pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &super::ModelConfig {
+        self.model.config()
+    }
+
+    /// The floating-point type of the parameters.
+    pub fn dtype(&self) -> DType {
+        self.model.dtype()
+    }
+
+    /// Whether the fused CPU operations run (f32 on the CPU).
+    pub fn is_fused(&self) -> bool {
+        self.fast.is_some()
+    }
+
+    /// Computes once what the condition of a window's samples needs at every step.
+    ///
+    /// # Shapes
+    /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
+    ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`
+    pub fn prepare(
+        &self,
+        text: &Tensor,
+        bps: &Tensor,
+        presence: &Tensor,
+    ) -> Result<PreparedCondition> {
+        let dtype = self.model.dtype();
+        let fixed = match &self.model.layout {
+            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, dtype)?,
+            Layout::Single(single) => single.fixed_condition(text, bps, presence, dtype)?,
+        };
+        Ok(PreparedCondition {
+            text: text.detach(),
+            bps: bps.detach(),
+            presence: presence.detach(),
+            fixed: fixed.detach(),
+        })
+    }
+
+    /// The clean predicted frames of both streams (x0), as [`Model::forward`] without
+    /// dropout and with every frame valid.
+    ///
+    /// # Shapes
+    /// - `prefix`: `[batch, 2, T_p, D]`; `noisy`: `[batch, 2, T_f, D]`; `timesteps`: `[batch]`
+    /// - returns `[batch, 2, T_f, D]`
+    pub fn forward(
+        &self,
+        prefix: &Tensor,
+        noisy: &Tensor,
+        timesteps: &Tensor,
+        condition: &PreparedCondition,
+    ) -> Result<Tensor> {
+        let input = ModelInput {
+            noisy,
+            prefix,
+            timesteps,
+            text: &condition.text,
+            bps: &condition.bps,
+            presence: &condition.presence,
+            frame_mask: None,
+        };
+        self.model.check_input(&input)?;
+        let dtype = self.model.dtype();
+        let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
+        match (fast, &self.model.layout) {
+            (FastLayout::Dual { denoiser, fusion }, Layout::Dual(dual)) => {
+                let frames = streams_into_batch(&Tensor::cat(&[prefix, noisy], 2)?)?;
+                let timesteps = Tensor::cat(&[timesteps, timesteps], 0)?;
+                let time = dual.conditioning.time(&timesteps, dtype)?.detach();
+                let out = denoiser.forward(&frames, &(time + &condition.fixed)?)?;
+                dual.assemble(&out, &condition.presence, |a, b, presence_b| {
+                    fusion.forward(a, b, presence_b)
+                })
+            }
+            (FastLayout::Single { denoiser }, Layout::Single(single)) => {
+                let frames = single.frames(prefix, noisy)?;
+                let time = single.conditioning.time(timesteps, dtype)?.detach();
+                single.split(&denoiser.forward(&frames, &(time + &condition.fixed)?)?)
+            }
+            _ => unreachable!("the inference layout is built from the model's"),
+        }
+    }
+}
