@@ -98,6 +98,9 @@ class Config:
     @classmethod
     def preset(cls, root: Path, name: str) -> Config:
         path = root / "configs" / f"{name}.toml"
+        if not path.exists():
+            known = ", ".join(sorted(p.stem for p in path.parent.glob("*.toml")))
+            raise SystemExit(f"no preset {name!r} in {path.parent} (known: {known})")
         with open(path, "rb") as f:
             table = tomllib.load(f).get("model")
         if table is None:
@@ -771,6 +774,13 @@ def reference_path(root: Path, preset: str) -> Path:
     return root / "target" / "bench" / "reference" / f"{preset}.safetensors"
 
 
+def missing_reference(root: Path, preset: str) -> str:
+    return (
+        f"{reference_path(root, preset)} does not exist: run `cargo bench -p dex2hoi-sample "
+        "--bench reference` first (`cargo xtask bench compare` does), or pass --skip-check"
+    )
+
+
 def build_model(cfg: Config, root: Path, preset: str, skip_check: bool):
     """The model with dex2hoi's reference weights, the reference inputs and output (None with
     `--skip-check` when the file is absent: then the weights are a fresh initialisation)."""
@@ -780,10 +790,7 @@ def build_model(cfg: Config, root: Path, preset: str, skip_check: bool):
     if not path.exists():
         if skip_check:
             return model, None, None
-        raise SystemExit(
-            f"{path} does not exist: run `cargo bench -p dex2hoi-sample --bench reference` "
-            "first (`cargo xtask bench compare` does), or pass --skip-check"
-        )
+        raise SystemExit(missing_reference(root, preset))
     weights = SafeTensors(path)
     load_parameters(model, weights)
     inputs = reference_inputs(weights)
@@ -1103,6 +1110,10 @@ def write_atomically(path: Path, report: dict) -> None:
 
 
 def run_all(args) -> int:
+    for preset in args.presets:  # fail early on an unknown or unsupported preset
+        Config.preset(args.root, preset)
+        if not args.skip_check and not reference_path(args.root, preset).exists():
+            raise SystemExit(missing_reference(args.root, preset))
     torch.set_num_threads(args.threads)
     matmul = matmul_gflops()
     report: dict = {

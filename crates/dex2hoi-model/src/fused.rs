@@ -18,6 +18,9 @@ const EPS: f32 = 1e-6;
 /// cost (a few microseconds), enough tasks to keep both cores busy on a 240-row batch.
 const ROWS_PER_TASK: usize = 16;
 
+/// Query rows per rayon task of the attention (each row costs `heads x Tk x head` products).
+const ATTENTION_ROWS_PER_TASK: usize = 4;
+
 fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
 }
@@ -277,44 +280,67 @@ pub struct Attention {
     pub key_column: usize,
 }
 
-/// `sum_k a_k b_k` with eight independent partial sums, so that the compiler vectorises it.
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut partial = [0f32; 8];
-    let (a_chunks, b_chunks) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = a_chunks.remainder().iter().zip(b_chunks.remainder()).map(|(x, y)| x * y).sum();
-    for (a, b) in a_chunks.zip(b_chunks) {
-        for k in 0..8 {
-            partial[k] += a[k] * b[k];
-        }
-    }
-    partial.iter().sum::<f32>() + tail
-}
-
 impl Attention {
-    /// Each sequence's biased keys or values, head-major: `[N][heads][Tk][head]`.
+    /// Each sequence's biased keys or values per head: `[N][heads][Tk][head]`, or with
+    /// `transposed` `[N][heads][head][Tk]` (the keys: the scores of a query are then sums of
+    /// contiguous rows, which vectorise without horizontal sums).
     fn gather(
         &self,
         source: &[f32],
-        sequences: usize,
-        frames: usize,
-        width: usize,
-        column: usize,
+        (frames, width, column): (usize, usize, usize),
         bias: &[f32],
+        transposed: bool,
     ) -> Vec<f32> {
         let head = self.latent / self.heads;
+        let sequences = source.len() / (frames * width).max(1);
         let mut out = vec![0f32; sequences * frames * self.latent];
-        out.par_chunks_mut(frames * self.latent).enumerate().for_each(|(n, out)| {
+        out.par_chunks_mut((frames * self.latent).max(1)).enumerate().for_each(|(n, out)| {
             for h in 0..self.heads {
+                let block = &mut out[h * frames * head..][..frames * head];
                 for j in 0..frames {
                     let from = &source[(n * frames + j) * width + column + h * head..][..head];
-                    let to = &mut out[(h * frames + j) * head..][..head];
-                    for ((t, &f), &b) in to.iter_mut().zip(from).zip(&bias[h * head..]) {
-                        *t = f + b;
+                    for (d, (&f, &b)) in from.iter().zip(&bias[h * head..]).enumerate() {
+                        let at = if transposed { d * frames + j } else { j * head + d };
+                        block[at] = f + b;
                     }
                 }
             }
         });
         out
+    }
+
+    /// One query row of one head: `softmax(q K^T / sqrt(head)) V` into `out`.
+    ///
+    /// `keys_t` is `[head][Tk]`, `values` `[Tk][head]`; `scores` is scratch of `Tk`.
+    #[inline(always)]
+    fn attend(
+        query: &[f32],
+        keys_t: &[f32],
+        values: &[f32],
+        scale: f32,
+        scores: &mut [f32],
+        out: &mut [f32],
+    ) {
+        let frames = scores.len();
+        scores.fill(0.0);
+        for (&q, keys) in query.iter().zip(keys_t.chunks_exact(frames)) {
+            for (s, &k) in scores.iter_mut().zip(keys) {
+                *s += q * k;
+            }
+        }
+        let max = scores.iter().fold(f32::NEG_INFINITY, |m, &s| m.max(s * scale));
+        let mut total = 0.0;
+        for s in scores.iter_mut() {
+            *s = (*s * scale - max).exp();
+            total += *s;
+        }
+        out.fill(0.0);
+        for (&w, value) in scores.iter().zip(values.chunks_exact(out.len())) {
+            let w = w / total;
+            for (o, &v) in out.iter_mut().zip(value) {
+                *o += w * v;
+            }
+        }
     }
 }
 
@@ -360,61 +386,38 @@ impl CustomOp3 for Attention {
         }
         let head = l / self.heads;
         let scale = 1.0 / (head as f32).sqrt();
-        let keys = self.gather(
-            keys_values,
-            sequences,
-            key_frames,
-            kv_width,
-            self.key_column,
-            &bias[l..2 * l],
-        );
-        let vals = self.gather(
-            keys_values,
-            sequences,
-            key_frames,
-            kv_width,
-            self.key_column + l,
-            &bias[2 * l..],
-        );
+        let source = (key_frames, kv_width, self.key_column);
+        let keys_t = self.gather(keys_values, source, &bias[l..2 * l], true);
+        let source = (key_frames, kv_width, self.key_column + l);
+        let vals = self.gather(keys_values, source, &bias[2 * l..], false);
+        let per_head = key_frames * head;
         let mut out = vec![0f32; sequences * query_frames * l];
-        out.par_chunks_mut(l * ROWS_PER_TASK / 4).enumerate().for_each(|(task, out)| {
-            let mut query = vec![0f32; head];
-            let mut weights = vec![0f32; key_frames];
-            for (k, o) in out.chunks_exact_mut(l).enumerate() {
-                let row = task * ROWS_PER_TASK / 4 + k;
-                let n = row / query_frames.max(1);
-                let q_row = &queries[row * query_width + self.query_column..][..l];
-                for h in 0..self.heads {
-                    for ((q, &x), &b) in
-                        query.iter_mut().zip(&q_row[h * head..]).zip(&bias[h * head..])
-                    {
-                        *q = x + b;
-                    }
-                    let keys =
-                        &keys[(n * self.heads + h) * key_frames * head..][..key_frames * head];
-                    let vals =
-                        &vals[(n * self.heads + h) * key_frames * head..][..key_frames * head];
-                    let mut max = f32::NEG_INFINITY;
-                    for (w, key) in weights.iter_mut().zip(keys.chunks_exact(head)) {
-                        *w = dot(&query, key) * scale;
-                        max = max.max(*w);
-                    }
-                    let mut total = 0.0;
-                    for w in weights.iter_mut() {
-                        *w = (*w - max).exp();
-                        total += *w;
-                    }
-                    let o = &mut o[h * head..][..head];
-                    o.fill(0.0);
-                    for (&w, value) in weights.iter().zip(vals.chunks_exact(head)) {
-                        let w = w / total;
-                        for (o, &v) in o.iter_mut().zip(value) {
-                            *o += w * v;
+        out.par_chunks_mut((l * ATTENTION_ROWS_PER_TASK).max(1)).enumerate().for_each(
+            |(task, out)| {
+                // Runtime dispatch to the widest SIMD the CPU has (AVX2/AVX-512 with FMA): the
+                // loops of `attend` are vectorised for it.
+                pulp::Arch::new().dispatch(|| {
+                    let mut query = vec![0f32; head];
+                    let mut scores = vec![0f32; key_frames];
+                    for (k, o) in out.chunks_exact_mut(l).enumerate() {
+                        let row = task * ATTENTION_ROWS_PER_TASK + k;
+                        let n = row / query_frames.max(1);
+                        let q_row = &queries[row * query_width + self.query_column..][..l];
+                        for h in 0..self.heads {
+                            let q = q_row[h * head..].iter().zip(&bias[h * head..]);
+                            for (query, (&x, &b)) in query.iter_mut().zip(q) {
+                                *query = x + b;
+                            }
+                            let at = (n * self.heads + h) * per_head;
+                            let (keys_t, values) =
+                                (&keys_t[at..][..per_head], &vals[at..][..per_head]);
+                            let out = &mut o[h * head..][..head];
+                            Self::attend(&query, keys_t, values, scale, &mut scores, out);
                         }
                     }
-                }
-            }
-        });
+                })
+            },
+        );
         Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
     }
 }

@@ -6,6 +6,9 @@
 
 use std::time::{Duration, Instant};
 
+mod memory;
+use memory::{peak_memory_mib, reset_peak_memory};
+
 use candle_core::{DType, Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -64,7 +67,10 @@ fn main() {
     let schedule = CosineSchedule::new(1000).unwrap();
     let sampler = SamplerConfig::default();
     let mut json = format!("{{\"matmul_gflops\": {matmul_gflops:.3}");
-    for (name, runs) in [("small", 5), ("paper", 3)] {
+    // `DEX2HOI_BENCH_PRESETS=small` (comma-separated) measures a subset, e.g. for profiling.
+    let only = std::env::var("DEX2HOI_BENCH_PRESETS").ok();
+    let wanted = |name: &str| only.as_deref().is_none_or(|list| list.split(',').any(|p| p == name));
+    for (name, runs) in [("small", 5), ("paper", 3)].into_iter().filter(|(name, _)| wanted(name)) {
         let cfg = ModelConfig::preset(name).unwrap();
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &device)).unwrap();
@@ -96,10 +102,12 @@ fn main() {
             .unwrap(),
             presence: Tensor::ones((1, 2), DType::F32, &device).unwrap(),
         };
+        reset_peak_memory();
         let window = median(runs, || {
             sample_window(&model, &schedule, &condition, &sampler, &mut rng).unwrap();
         });
         let seconds = window.as_secs_f64();
+        let peak = peak_memory_mib();
         let gflops = flops_per_forward(&cfg, 2) * sampler.steps as f64 / seconds / 1e9;
         let normaliser = Normaliser {
             mean: Tensor::zeros(d, DType::F32, &device).unwrap(),
@@ -116,16 +124,22 @@ fn main() {
             frames: 300,
             sampler,
         };
-        let start = Instant::now();
-        generate(&request, &mut rng).unwrap();
-        let realtime = (300.0 / 20.0) / start.elapsed().as_secs_f64();
+        let realtime_at = |steps: usize, rng: &mut ChaCha8Rng| {
+            let request =
+                Generation { sampler: SamplerConfig { steps, ..sampler }, ..request.clone() };
+            let start = Instant::now();
+            generate(&request, rng).unwrap();
+            (300.0 / 20.0) / start.elapsed().as_secs_f64()
+        };
+        let realtime = realtime_at(sampler.steps, &mut rng);
+        let realtime_10 = realtime_at(10, &mut rng);
         println!(
-            "{:<44} {seconds:>8.3} s per 60-frame sample, {gflops:.1} GFLOP/s ({:.0}% of matmul); 300 frames at {realtime:.2}x real time",
+            "{:<44} {seconds:>8.3} s per 60-frame sample, {gflops:.1} GFLOP/s ({:.0}% of matmul), peak {peak:.0} MiB; 300 frames at {realtime:.2}x real time ({realtime_10:.2}x with 10 steps)",
             format!("{name} (latent {}, {} layers)", cfg.latent, cfg.layers),
             100.0 * gflops / matmul_gflops
         );
         json.push_str(&format!(
-            ", \"{name}\": {{\"seconds_per_sample\": {seconds:.4}, \"realtime_factor_300\": {realtime:.4}, \"gflops\": {gflops:.3}}}"
+            ", \"{name}\": {{\"seconds_per_sample\": {seconds:.4}, \"realtime_factor_300\": {realtime:.4}, \"realtime_factor_300_10_steps\": {realtime_10:.4}, \"gflops\": {gflops:.3}, \"peak_memory_mib\": {peak:.1}}}"
         ));
     }
     json.push('}');

@@ -1,11 +1,16 @@
 //! `cargo xtask bench train`: the median seconds of one training step (forward, objective,
 //! backward, AdamW, EMA) for a batch of 32 windows of 60 frames with the `small` preset, (a)
 //! with `L_diff` only and (b) with the full objective, on a procedural dataset built in the
-//! run. Written to `target/bench/train.json` as
-//! `{"small": {"mse_only_seconds": a, "full_seconds": b}}`.
+//! run, with the peak resident memory of each. Written to `target/bench/train.json` as
+//! `{"small": {"mse_only_seconds": a, "full_seconds": b, ...}}` (also the parts of (a) and
+//! the peaks).
 
 use std::path::Path;
 use std::time::Instant;
+
+#[path = "../../dex2hoi-sample/benches/memory.rs"]
+mod memory;
+use memory::{peak_memory_mib, reset_peak_memory};
 
 use dex2hoi_train::{TrainConfig, Trainer};
 
@@ -45,18 +50,24 @@ fn main() {
         config.loss.mse_only = mse_only;
         let mut trainer =
             Trainer::new(config.clone(), &dataset, Path::new("procedural")).expect("a trainer");
+        reset_peak_memory();
         let (seconds, parts) = median_step(&mut trainer, runs);
+        let peak = peak_memory_mib();
         println!(
             "  {label:<9} {seconds:>7.3} s per step (batch {:.3}, forward {:.3}, objective {:.3}, \
-             backward {:.3}, update {:.3})",
+             backward {:.3}, update {:.3}), peak {peak:.0} MiB",
             parts[0], parts[1], parts[2], parts[3], parts[4]
         );
-        results.push(seconds);
+        results.push((seconds, parts, peak));
     }
-    println!("\n  full / mse_only = {:.2}x", results[1] / results[0]);
+    println!("\n  full / mse_only = {:.2}x", results[1].0 / results[0].0);
+    let (mse, full) = (&results[0], &results[1]);
     let json = format!(
-        "{{\"small\": {{\"mse_only_seconds\": {:.4}, \"full_seconds\": {:.4}}}}}\n",
-        results[0], results[1]
+        "{{\"small\": {{\"mse_only_seconds\": {:.4}, \"full_seconds\": {:.4}, \
+         \"mse_only_forward_seconds\": {:.4}, \"mse_only_backward_seconds\": {:.4}, \
+         \"mse_only_update_seconds\": {:.4}, \"peak_memory_mib\": {:.1}, \
+         \"full_peak_memory_mib\": {:.1}}}}}\n",
+        mse.0, full.0, mse.1[1], mse.1[3], mse.1[4], mse.2, full.2
     );
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/bench");
     std::fs::create_dir_all(&dir).expect("target/bench");
