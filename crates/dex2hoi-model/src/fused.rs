@@ -25,6 +25,14 @@ fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
 }
 
+/// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
+/// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
+/// workspace's default target is baseline x86-64 (SSE2), which runs anywhere.
+#[inline(always)]
+fn simd<R>(kernel: impl FnOnce() -> R) -> R {
+    pulp::Arch::new().dispatch(kernel)
+}
+
 /// The values of a contiguous f32 tensor.
 fn values<'a>(
     op: &str,
@@ -49,6 +57,7 @@ fn rows_and_width(layout: &Layout) -> (usize, usize) {
 /// Normalises `row` into `out` (zero mean, unit variance over the row) and returns nothing;
 /// the mean and variance are computed as the composite does (two passes, mean of squares of
 /// the centred values).
+#[inline(always)]
 fn normalise_row(row: &[f32], out: &mut [f32]) {
     let n = row.len() as f32;
     let mean = row.iter().sum::<f32>() / n;
@@ -62,6 +71,29 @@ fn normalise_row(row: &[f32], out: &mut [f32]) {
     for o in out.iter_mut() {
         *o *= inverse;
     }
+}
+
+/// `e^x` to about 1 ulp for `x` in `[-87, 88]` (clamped outside), in plain arithmetic so that
+/// loops over it vectorise (a call to libm's `expf` does not): `x = n ln 2 + r` with
+/// `|r| <= ln 2 / 2`, a degree-7 expansion of `e^r` (Cephes' `expf` coefficients), times `2^n`
+/// built in the exponent bits.
+#[inline(always)]
+fn exp(x: f32) -> f32 {
+    const LOG2_E: f32 = std::f32::consts::LOG2_E;
+    // ln 2 split in a part exact in f32 and the rest (Cody and Waite).
+    const LN2_HIGH: f32 = 0.693_359_4;
+    const LN2_LOW: f32 = -2.121_944_4e-4;
+    let x = x.clamp(-87.0, 88.0);
+    let n = (x * LOG2_E).round();
+    let r = x - n * LN2_HIGH - n * LN2_LOW;
+    let p = 1.987_569_2e-4_f32;
+    let p = p * r + 1.398_199_9e-3;
+    let p = p * r + 8.333_452e-3;
+    let p = p * r + 4.166_579_6e-2;
+    let p = p * r + 0.166_666_65;
+    let p = p * r + 0.5;
+    let e_r = p * r * r + r + 1.0;
+    e_r * f32::from_bits(((n as i32 + 127) as u32) << 23)
 }
 
 /// Layer norm over the last dimension without affine parameters.
@@ -84,13 +116,14 @@ impl CustomOp1 for LayerNorm {
         let x = values(self.name(), storage, layout)?;
         let (_, width) = rows_and_width(layout);
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(width * ROWS_PER_TASK)
-            .zip(x.par_chunks(width * ROWS_PER_TASK))
-            .for_each(|(out, x)| {
+        let chunk = (width * ROWS_PER_TASK).max(1);
+        out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).for_each(|(out, x)| {
+            simd(|| {
                 for (o, row) in out.chunks_exact_mut(width).zip(x.chunks_exact(width)) {
                     normalise_row(row, o);
                 }
-            });
+            })
+        });
         Ok((CpuStorage::F32(out), layout.shape().clone()))
     }
 }
@@ -142,19 +175,22 @@ impl CustomOp2 for AdaLn {
         }
         let sequence_width = frames * latent;
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(latent * ROWS_PER_TASK).enumerate().for_each(|(task, out)| {
-            for (k, o) in out.chunks_exact_mut(latent).enumerate() {
-                let row = task * ROWS_PER_TASK + k;
-                let (n, t) = (row / frames.max(1), row % frames.max(1));
-                let source = if self.swap_halves { (n + sequences / 2) % sequences } else { n };
-                let input = &x[source * sequence_width + t * latent..][..latent];
-                let modulation = &table[source * columns + self.column..][..2 * latent];
-                let (shift, scale) = modulation.split_at(latent);
-                normalise_row(input, o);
-                for ((o, &shift), &scale) in o.iter_mut().zip(shift).zip(scale) {
-                    *o = *o * (scale + 1.0) + shift;
+        let chunk = (latent * ROWS_PER_TASK).max(1);
+        out.par_chunks_mut(chunk).enumerate().for_each(|(task, out)| {
+            simd(|| {
+                for (k, o) in out.chunks_exact_mut(latent).enumerate() {
+                    let row = task * ROWS_PER_TASK + k;
+                    let (n, t) = (row / frames.max(1), row % frames.max(1));
+                    let source = if self.swap_halves { (n + sequences / 2) % sequences } else { n };
+                    let input = &x[source * sequence_width + t * latent..][..latent];
+                    let modulation = &table[source * columns + self.column..][..2 * latent];
+                    let (shift, scale) = modulation.split_at(latent);
+                    normalise_row(input, o);
+                    for ((o, &shift), &scale) in o.iter_mut().zip(shift).zip(scale) {
+                        *o = *o * (scale + 1.0) + shift;
+                    }
                 }
-            }
+            })
         });
         Ok((CpuStorage::F32(out), x_layout.shape().clone()))
     }
@@ -189,16 +225,21 @@ impl CustomOp2 for Bias {
             return Err(op_error(self.name(), format!("a bias of {width}, got {}", bias.len())));
         }
         let mut out = vec![0f32; y.len()];
-        out.par_chunks_mut(width * ROWS_PER_TASK)
-            .zip(y.par_chunks(width * ROWS_PER_TASK))
-            .for_each(|(out, y)| {
+        let chunk = (width * ROWS_PER_TASK).max(1);
+        out.par_chunks_mut(chunk).zip(y.par_chunks(chunk)).for_each(|(out, y)| {
+            simd(|| {
                 for (o, row) in out.chunks_exact_mut(width).zip(y.chunks_exact(width)) {
                     for ((o, &y), &b) in o.iter_mut().zip(row).zip(bias) {
-                        let v = y + b;
-                        *o = if self.silu { v / (1.0 + (-v).exp()) } else { v };
+                        *o = y + b;
+                    }
+                    if self.silu {
+                        for o in o.iter_mut() {
+                            *o /= 1.0 + exp(-*o);
+                        }
                     }
                 }
-            });
+            })
+        });
         Ok((CpuStorage::F32(out), y_layout.shape().clone()))
     }
 }
@@ -241,18 +282,20 @@ impl CustomOp3 for Residual {
             ));
         }
         let mut out = vec![0f32; x.len()];
-        let chunk = width * ROWS_PER_TASK;
+        let chunk = (width * ROWS_PER_TASK).max(1);
         out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).zip(y.par_chunks(chunk)).for_each(
             |((out, x), y)| {
-                for ((o, x), y) in out
-                    .chunks_exact_mut(width)
-                    .zip(x.chunks_exact(width))
-                    .zip(y.chunks_exact(width))
-                {
-                    for (((o, &x), &y), &b) in o.iter_mut().zip(x).zip(y).zip(bias) {
-                        *o = x + (y + b);
+                simd(|| {
+                    for ((o, x), y) in out
+                        .chunks_exact_mut(width)
+                        .zip(x.chunks_exact(width))
+                        .zip(y.chunks_exact(width))
+                    {
+                        for (((o, &x), &y), &b) in o.iter_mut().zip(x).zip(y).zip(bias) {
+                            *o = x + (y + b);
+                        }
                     }
-                }
+                })
             },
         );
         Ok((CpuStorage::F32(out), x_layout.shape().clone()))
@@ -331,7 +374,7 @@ impl Attention {
         let max = scores.iter().fold(f32::NEG_INFINITY, |m, &s| m.max(s * scale));
         let mut total = 0.0;
         for s in scores.iter_mut() {
-            *s = (*s * scale - max).exp();
+            *s = exp(*s * scale - max);
             total += *s;
         }
         out.fill(0.0);
@@ -394,9 +437,7 @@ impl CustomOp3 for Attention {
         let mut out = vec![0f32; sequences * query_frames * l];
         out.par_chunks_mut((l * ATTENTION_ROWS_PER_TASK).max(1)).enumerate().for_each(
             |(task, out)| {
-                // Runtime dispatch to the widest SIMD the CPU has (AVX2/AVX-512 with FMA): the
-                // loops of `attend` are vectorised for it.
-                pulp::Arch::new().dispatch(|| {
+                simd(|| {
                     let mut query = vec![0f32; head];
                     let mut scores = vec![0f32; key_frames];
                     for (k, o) in out.chunks_exact_mut(l).enumerate() {
@@ -455,4 +496,22 @@ pub fn attention(
     op: Attention,
 ) -> candle_core::Result<Tensor> {
     queries.apply_op3_no_bwd(keys_values, bias, &op)
+}
+
+#[cfg(test)]
+mod tests {
+    /// The polynomial `exp` against f64's over its whole range and the clamped ends.
+    #[test]
+    fn exp_is_accurate_to_a_few_ulp() {
+        let mut worst = 0f64;
+        for k in 0..=1_000_000 {
+            let x = -87.0 + 175.0 * k as f32 / 1e6;
+            let exact = (x as f64).exp();
+            worst = worst.max(((super::exp(x) as f64) - exact).abs() / exact);
+        }
+        assert!(worst < 3e-7, "relative error {worst}");
+        assert!(super::exp(-1e4) > 0.0 && super::exp(-1e4) < 1e-37);
+        assert!(super::exp(1e4).is_finite());
+        assert_eq!(super::exp(0.0), 1.0);
+    }
 }
