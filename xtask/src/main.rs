@@ -2,7 +2,7 @@
 //!
 //! - `ci`: the checks CI runs, cheapest first: format, clippy (warnings denied), tests.
 //! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
-//!   medians.
+//!   medians. `bench compare`: dex2hoi against the PyTorch reference (see [`compare`]).
 //! - `demo`: the main job on the built-in default: the procedural dataset, the `demo` training
 //!   preset, two prompts sampled, exported and rendered; what is up to date is reused.
 //! - `ablate [--preset NAME] [--steps N]`: the paper's Table 3 on the procedural dataset: the
@@ -12,6 +12,7 @@
 //!   through, so that a checkout drives everything through xtask.
 
 mod ablate;
+mod compare;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -23,6 +24,7 @@ const USAGE: &str = "usage: cargo xtask <command>
 commands:
   ci            format check, clippy with warnings denied, then every test (optimised profile)
   bench [NAME]  run the benchmarks (all, or one of: repr, sample, train) and print their medians
+  bench compare sampling and training side by side with the PyTorch reference (bench/torch_reference.py)
   ablate [--preset NAME] [--steps N]
                 train and evaluate the full model and the Table 3 variants, write docs/results/ablation.md
   demo          generate the procedural dataset, train the demo preset, sample and render two prompts
@@ -87,13 +89,16 @@ fn ci(root: &Path) -> Result<()> {
 }
 
 fn bench(root: &Path, name: Option<&str>) -> Result<()> {
+    if name == Some("compare") {
+        return compare::compare(root);
+    }
     let selected: Vec<_> = match name {
         None | Some("all") => BENCHES.to_vec(),
         Some(name) => {
             let found: Vec<_> = BENCHES.iter().copied().filter(|(n, _, _)| *n == name).collect();
             if found.is_empty() {
                 let known: Vec<_> = BENCHES.iter().map(|(n, _, _)| *n).collect();
-                bail!("unknown benchmark `{name}`; known: {}", known.join(", "));
+                bail!("unknown benchmark `{name}`; known: {}, compare", known.join(", "));
             }
             found
         }
