@@ -27,7 +27,9 @@ fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
 
 /// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
 /// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
-/// workspace's default target is baseline x86-64 (SSE2), which runs anywhere.
+/// workspace's default target is baseline x86-64 (SSE2), which runs anywhere. The kernel must
+/// be an `#[inline(always)]` closure (and call only `#[inline(always)]` functions), or it is
+/// compiled apart, for the baseline.
 #[inline(always)]
 fn simd<R>(kernel: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(kernel)
@@ -83,8 +85,11 @@ fn exp(x: f32) -> f32 {
     // ln 2 split in a part exact in f32 and the rest (Cody and Waite).
     const LN2_HIGH: f32 = 0.693_359_4;
     const LN2_LOW: f32 = -2.121_944_4e-4;
+    // Adding and removing 1.5 * 2^23 rounds to the nearest integer in plain arithmetic
+    // (`round` is a libm call on baseline x86-64, which would stop the vectorisation).
+    const ROUNDING: f32 = 12_582_912.0;
     let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2_E).round();
+    let n = (x * LOG2_E + ROUNDING) - ROUNDING;
     let r = x - n * LN2_HIGH - n * LN2_LOW;
     let p = 1.987_569_2e-4_f32;
     let p = p * r + 1.398_199_9e-3;
@@ -118,11 +123,14 @@ impl CustomOp1 for LayerNorm {
         let mut out = vec![0f32; x.len()];
         let chunk = (width * ROWS_PER_TASK).max(1);
         out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).for_each(|(out, x)| {
-            simd(|| {
-                for (o, row) in out.chunks_exact_mut(width).zip(x.chunks_exact(width)) {
-                    normalise_row(row, o);
-                }
-            })
+            simd(
+                #[inline(always)]
+                || {
+                    for (o, row) in out.chunks_exact_mut(width).zip(x.chunks_exact(width)) {
+                        normalise_row(row, o);
+                    }
+                },
+            )
         });
         Ok((CpuStorage::F32(out), layout.shape().clone()))
     }
@@ -177,20 +185,24 @@ impl CustomOp2 for AdaLn {
         let mut out = vec![0f32; x.len()];
         let chunk = (latent * ROWS_PER_TASK).max(1);
         out.par_chunks_mut(chunk).enumerate().for_each(|(task, out)| {
-            simd(|| {
-                for (k, o) in out.chunks_exact_mut(latent).enumerate() {
-                    let row = task * ROWS_PER_TASK + k;
-                    let (n, t) = (row / frames.max(1), row % frames.max(1));
-                    let source = if self.swap_halves { (n + sequences / 2) % sequences } else { n };
-                    let input = &x[source * sequence_width + t * latent..][..latent];
-                    let modulation = &table[source * columns + self.column..][..2 * latent];
-                    let (shift, scale) = modulation.split_at(latent);
-                    normalise_row(input, o);
-                    for ((o, &shift), &scale) in o.iter_mut().zip(shift).zip(scale) {
-                        *o = *o * (scale + 1.0) + shift;
+            simd(
+                #[inline(always)]
+                || {
+                    for (k, o) in out.chunks_exact_mut(latent).enumerate() {
+                        let row = task * ROWS_PER_TASK + k;
+                        let (n, t) = (row / frames.max(1), row % frames.max(1));
+                        let source =
+                            if self.swap_halves { (n + sequences / 2) % sequences } else { n };
+                        let input = &x[source * sequence_width + t * latent..][..latent];
+                        let modulation = &table[source * columns + self.column..][..2 * latent];
+                        let (shift, scale) = modulation.split_at(latent);
+                        normalise_row(input, o);
+                        for ((o, &shift), &scale) in o.iter_mut().zip(shift).zip(scale) {
+                            *o = *o * (scale + 1.0) + shift;
+                        }
                     }
-                }
-            })
+                },
+            )
         });
         Ok((CpuStorage::F32(out), x_layout.shape().clone()))
     }
@@ -227,18 +239,21 @@ impl CustomOp2 for Bias {
         let mut out = vec![0f32; y.len()];
         let chunk = (width * ROWS_PER_TASK).max(1);
         out.par_chunks_mut(chunk).zip(y.par_chunks(chunk)).for_each(|(out, y)| {
-            simd(|| {
-                for (o, row) in out.chunks_exact_mut(width).zip(y.chunks_exact(width)) {
-                    for ((o, &y), &b) in o.iter_mut().zip(row).zip(bias) {
-                        *o = y + b;
-                    }
-                    if self.silu {
-                        for o in o.iter_mut() {
-                            *o /= 1.0 + exp(-*o);
+            simd(
+                #[inline(always)]
+                || {
+                    for (o, row) in out.chunks_exact_mut(width).zip(y.chunks_exact(width)) {
+                        for ((o, &y), &b) in o.iter_mut().zip(row).zip(bias) {
+                            *o = y + b;
+                        }
+                        if self.silu {
+                            for o in o.iter_mut() {
+                                *o /= 1.0 + exp(-*o);
+                            }
                         }
                     }
-                }
-            })
+                },
+            )
         });
         Ok((CpuStorage::F32(out), y_layout.shape().clone()))
     }
@@ -285,17 +300,20 @@ impl CustomOp3 for Residual {
         let chunk = (width * ROWS_PER_TASK).max(1);
         out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).zip(y.par_chunks(chunk)).for_each(
             |((out, x), y)| {
-                simd(|| {
-                    for ((o, x), y) in out
-                        .chunks_exact_mut(width)
-                        .zip(x.chunks_exact(width))
-                        .zip(y.chunks_exact(width))
-                    {
-                        for (((o, &x), &y), &b) in o.iter_mut().zip(x).zip(y).zip(bias) {
-                            *o = x + (y + b);
+                simd(
+                    #[inline(always)]
+                    || {
+                        for ((o, x), y) in out
+                            .chunks_exact_mut(width)
+                            .zip(x.chunks_exact(width))
+                            .zip(y.chunks_exact(width))
+                        {
+                            for (((o, &x), &y), &b) in o.iter_mut().zip(x).zip(y).zip(bias) {
+                                *o = x + (y + b);
+                            }
                         }
-                    }
-                })
+                    },
+                )
             },
         );
         Ok((CpuStorage::F32(out), x_layout.shape().clone()))
@@ -437,26 +455,29 @@ impl CustomOp3 for Attention {
         let mut out = vec![0f32; sequences * query_frames * l];
         out.par_chunks_mut((l * ATTENTION_ROWS_PER_TASK).max(1)).enumerate().for_each(
             |(task, out)| {
-                simd(|| {
-                    let mut query = vec![0f32; head];
-                    let mut scores = vec![0f32; key_frames];
-                    for (k, o) in out.chunks_exact_mut(l).enumerate() {
-                        let row = task * ATTENTION_ROWS_PER_TASK + k;
-                        let n = row / query_frames.max(1);
-                        let q_row = &queries[row * query_width + self.query_column..][..l];
-                        for h in 0..self.heads {
-                            let q = q_row[h * head..].iter().zip(&bias[h * head..]);
-                            for (query, (&x, &b)) in query.iter_mut().zip(q) {
-                                *query = x + b;
+                simd(
+                    #[inline(always)]
+                    || {
+                        let mut query = vec![0f32; head];
+                        let mut scores = vec![0f32; key_frames];
+                        for (k, o) in out.chunks_exact_mut(l).enumerate() {
+                            let row = task * ATTENTION_ROWS_PER_TASK + k;
+                            let n = row / query_frames.max(1);
+                            let q_row = &queries[row * query_width + self.query_column..][..l];
+                            for h in 0..self.heads {
+                                let q = q_row[h * head..].iter().zip(&bias[h * head..]);
+                                for (query, (&x, &b)) in query.iter_mut().zip(q) {
+                                    *query = x + b;
+                                }
+                                let at = (n * self.heads + h) * per_head;
+                                let (keys_t, values) =
+                                    (&keys_t[at..][..per_head], &vals[at..][..per_head]);
+                                let out = &mut o[h * head..][..head];
+                                Self::attend(&query, keys_t, values, scale, &mut scores, out);
                             }
-                            let at = (n * self.heads + h) * per_head;
-                            let (keys_t, values) =
-                                (&keys_t[at..][..per_head], &vals[at..][..per_head]);
-                            let out = &mut o[h * head..][..head];
-                            Self::attend(&query, keys_t, values, scale, &mut scores, out);
                         }
-                    }
-                })
+                    },
+                )
             },
         );
         Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
