@@ -178,7 +178,7 @@ impl CustomOp2 for AdaLn {
                 ),
             ));
         }
-        if self.swap_halves && sequences % 2 != 0 {
+        if self.swap_halves && !sequences.is_multiple_of(2) {
             return Err(op_error(self.name(), "an even number of sequences to swap halves"));
         }
         let sequence_width = frames * latent;
@@ -426,7 +426,7 @@ impl CustomOp3 for Attention {
         let (kv_sequences, key_frames, kv_width) = kv_layout.shape().dims3()?;
         let l = self.latent;
         if self.heads == 0
-            || l % self.heads != 0
+            || !l.is_multiple_of(self.heads)
             || kv_sequences != sequences
             || self.query_column + l > query_width
             || self.key_column + 2 * l > kv_width
