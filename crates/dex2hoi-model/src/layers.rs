@@ -1,7 +1,7 @@
 //! Building blocks, all made of operations with a backward pass (candle's fused `layer_norm` and
-//! `softmax_last_dim` have none): layer norm without affine parameters, AdaLN modulation,
-//! multi-head attention, feed-forward, dropout from an explicit random stream, and the
-//! sinusoidal timestep embedding. The transformer block built from them is in
+//! `softmax_last_dim` have none; ours, in [`crate::differentiable`], do): layer norm without
+//! affine parameters, AdaLN modulation, multi-head attention, feed-forward, dropout from an
+//! explicit random stream, and the sinusoidal timestep embedding. The transformer block built from them is in
 //! [`crate::transformer`].
 
 use candle_core::{D, DType, Device, Tensor};
@@ -11,19 +11,38 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::error::Result;
 
-/// Layer norm over the last dimension without affine parameters, `eps = 1e-6`.
+/// Layer norm over the last dimension without affine parameters, `eps = 1e-6`: fused with a
+/// hand-written backward pass on the CPU ([`crate::differentiable`]), composed elsewhere.
 ///
 /// # Shapes
 /// - `x`: `[..., features]`; returns the same shape
 pub fn layer_norm(x: &Tensor) -> Result<Tensor> {
+    if crate::differentiable::applies(x) {
+        return Ok(crate::differentiable::layer_norm(x)?);
+    }
+    layer_norm_composite(x)
+}
+
+/// [`layer_norm`] composed of candle operations (any device).
+pub fn layer_norm_composite(x: &Tensor) -> Result<Tensor> {
     let mean = x.mean_keepdim(D::Minus1)?;
     let centred = x.broadcast_sub(&mean)?;
     let variance = centred.sqr()?.mean_keepdim(D::Minus1)?;
     Ok(centred.broadcast_div(&(variance + 1e-6)?.sqrt()?)?)
 }
 
-/// Softmax over the last dimension, composed (with a backward pass).
+/// Softmax over the last dimension: fused with a hand-written backward pass on the CPU
+/// ([`crate::differentiable`]), composed elsewhere (candle's fused `softmax_last_dim` has no
+/// backward pass).
 pub fn softmax(x: &Tensor) -> Result<Tensor> {
+    if crate::differentiable::applies(x) {
+        return Ok(crate::differentiable::softmax(x)?);
+    }
+    softmax_composite(x)
+}
+
+/// [`softmax`] composed of candle operations (any device).
+pub fn softmax_composite(x: &Tensor) -> Result<Tensor> {
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
 

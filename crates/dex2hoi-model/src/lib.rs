@@ -4,6 +4,7 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod differentiable;
 pub mod error;
 pub mod fused;
 pub mod init;

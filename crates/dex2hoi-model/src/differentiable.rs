@@ -1,0 +1,322 @@
+//! Fused CPU operations with hand-written backward passes, for training: layer norm and the
+//! softmax over the last dimension. Composed from candle operations, each is five to seven
+//! passes over memory with a fresh allocation per pass forward and about twice that backward;
+//! fused, one pass each way, row-parallel.
+//!
+//! Like the FK's custom operations they run on the CPU in f32 and f64 (the finite-difference
+//! gradient checks run in f64); [`crate::layers`] uses the composite operations on any other
+//! device or dtype. Each is tested equal to its composite (1e-6 in f64) with the gradient
+//! checked by finite differences (`tests/differentiable.rs`).
+
+use std::ops::{Add, Div, Mul, Sub};
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Shape, Tensor};
+use rayon::prelude::*;
+
+/// The layer norm's epsilon, added to the variance (as [`crate::layers::layer_norm`]).
+const EPS: f64 = 1e-6;
+
+/// Rows per rayon task.
+const ROWS_PER_TASK: usize = 16;
+
+/// The float types the operations run in.
+trait Real:
+    Copy
+    + Send
+    + Sync
+    + Default
+    + PartialOrd
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + std::iter::Sum
+    + 'static
+{
+    fn of(x: f64) -> Self;
+    fn sqrt(self) -> Self;
+    fn exp(self) -> Self;
+    fn values(storage: &CpuStorage) -> Option<&[Self]>;
+    fn storage(values: Vec<Self>) -> CpuStorage;
+}
+
+macro_rules! real {
+    ($t:ty, $variant:ident) => {
+        impl Real for $t {
+            fn of(x: f64) -> Self {
+                x as $t
+            }
+            fn sqrt(self) -> Self {
+                <$t>::sqrt(self)
+            }
+            fn exp(self) -> Self {
+                <$t>::exp(self)
+            }
+            fn values(storage: &CpuStorage) -> Option<&[Self]> {
+                match storage {
+                    CpuStorage::$variant(v) => Some(v),
+                    _ => None,
+                }
+            }
+            fn storage(values: Vec<Self>) -> CpuStorage {
+                CpuStorage::$variant(values)
+            }
+        }
+    };
+}
+
+real!(f32, F32);
+real!(f64, F64);
+
+fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
+    candle_core::Error::Msg(format!("{op}: {message}"))
+}
+
+/// The values of a contiguous tensor of type `T`.
+fn values<'a, T: Real>(
+    op: &str,
+    storage: &'a CpuStorage,
+    layout: &Layout,
+) -> candle_core::Result<&'a [T]> {
+    let all = T::values(storage).ok_or_else(|| op_error(op, "expects one f32 or f64 dtype"))?;
+    match layout.contiguous_offsets() {
+        Some((start, end)) => Ok(&all[start..end]),
+        None => Err(op_error(op, "expects contiguous tensors")),
+    }
+}
+
+/// Applies `row_op(input rows, output row)` to every row of `width` values, in parallel.
+fn map_rows<T: Real, const N: usize>(
+    width: usize,
+    inputs: [&[T]; N],
+    row_op: impl Fn([&[T]; N], &mut [T]) + Sync,
+) -> Vec<T> {
+    let mut out = vec![T::default(); inputs[0].len()];
+    if width == 0 {
+        return out;
+    }
+    let chunk = width * ROWS_PER_TASK;
+    out.par_chunks_mut(chunk).enumerate().for_each(|(task, out)| {
+        for (k, o) in out.chunks_exact_mut(width).enumerate() {
+            let at = task * chunk + k * width;
+            row_op(std::array::from_fn(|i| &inputs[i][at..at + width]), o);
+        }
+    });
+    out
+}
+
+fn mean<T: Real>(row: &[T]) -> T {
+    row.iter().copied().sum::<T>() / T::of(row.len() as f64)
+}
+
+/// The normalised row and `1 / sqrt(variance + eps)`.
+fn normalise<T: Real>(row: &[T], out: &mut [T]) -> T {
+    let mu = mean(row);
+    for (o, &x) in out.iter_mut().zip(row) {
+        *o = x - mu;
+    }
+    let variance = out.iter().map(|&c| c * c).sum::<T>() / T::of(row.len() as f64);
+    let inverse = T::of(1.0) / (variance + T::of(EPS)).sqrt();
+    for o in out.iter_mut() {
+        *o = *o * inverse;
+    }
+    inverse
+}
+
+/// Dispatches a kernel over the dtype of `storage`.
+macro_rules! by_dtype {
+    ($op:expr, $storage:expr, $kernel:ident($($arg:expr),*)) => {
+        match $storage {
+            CpuStorage::F32(_) => $kernel::<f32>($($arg),*),
+            CpuStorage::F64(_) => $kernel::<f64>($($arg),*),
+            _ => Err(op_error($op, "expects f32 or f64")),
+        }
+    };
+}
+
+/// Layer norm over the last dimension without affine parameters, `eps = 1e-6`.
+#[derive(Debug, Clone, Copy)]
+struct LayerNorm;
+
+fn layer_norm_forward<T: Real>(
+    storage: &CpuStorage,
+    layout: &Layout,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let x = values::<T>("layer-norm", storage, layout)?;
+    let width = layout.dims().last().copied().unwrap_or(1);
+    let out = map_rows(width, [x], |rows, o| {
+        normalise(rows[0], o);
+    });
+    Ok((T::storage(out), layout.shape().clone()))
+}
+
+impl CustomOp1 for LayerNorm {
+    fn name(&self) -> &'static str {
+        "layer-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        by_dtype!(self.name(), storage, layer_norm_forward(storage, layout))
+    }
+
+    fn bwd(&self, x: &Tensor, _: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        Ok(Some(x.apply_op2_no_bwd(&grad.contiguous()?, &LayerNormBackward)?))
+    }
+}
+
+/// The gradient of [`LayerNorm`] with respect to its input: with `y = (x - mean) / s`,
+/// `dx = (g - mean(g) - y mean(g y)) / s`.
+#[derive(Debug, Clone, Copy)]
+struct LayerNormBackward;
+
+fn layer_norm_backward<T: Real>(
+    x_storage: &CpuStorage,
+    x_layout: &Layout,
+    g_storage: &CpuStorage,
+    g_layout: &Layout,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let x = values::<T>("layer-norm-backward", x_storage, x_layout)?;
+    let g = values::<T>("layer-norm-backward", g_storage, g_layout)?;
+    if x.len() != g.len() {
+        return Err(op_error("layer-norm-backward", "a gradient of the input's shape"));
+    }
+    let width = x_layout.dims().last().copied().unwrap_or(1);
+    let out = map_rows(width, [x, g], |rows, o| {
+        let (x, g) = (rows[0], rows[1]);
+        let inverse = normalise(x, o); // o = y
+        let n = T::of(width as f64);
+        let g_mean = mean(g);
+        let gy_mean = o.iter().zip(g).map(|(&y, &g)| g * y).sum::<T>() / n;
+        for (o, &g) in o.iter_mut().zip(g) {
+            *o = (g - g_mean - *o * gy_mean) * inverse;
+        }
+    });
+    Ok((T::storage(out), x_layout.shape().clone()))
+}
+
+impl CustomOp2 for LayerNormBackward {
+    fn name(&self) -> &'static str {
+        "layer-norm-backward"
+    }
+
+    fn cpu_fwd(
+        &self,
+        x_storage: &CpuStorage,
+        x_layout: &Layout,
+        g_storage: &CpuStorage,
+        g_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        by_dtype!(
+            self.name(),
+            x_storage,
+            layer_norm_backward(x_storage, x_layout, g_storage, g_layout)
+        )
+    }
+}
+
+/// Softmax over the last dimension (`exp(x - max) / sum`).
+#[derive(Debug, Clone, Copy)]
+struct Softmax;
+
+fn softmax_forward<T: Real>(
+    storage: &CpuStorage,
+    layout: &Layout,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let x = values::<T>("softmax", storage, layout)?;
+    let width = layout.dims().last().copied().unwrap_or(1);
+    let out = map_rows(width, [x], |rows, o| {
+        let row = rows[0];
+        let max = row.iter().copied().fold(row[0], |m, v| if v > m { v } else { m });
+        for (o, &v) in o.iter_mut().zip(row) {
+            *o = (v - max).exp();
+        }
+        let total = o.iter().copied().sum::<T>();
+        for o in o.iter_mut() {
+            *o = *o / total;
+        }
+    });
+    Ok((T::storage(out), layout.shape().clone()))
+}
+
+impl CustomOp1 for Softmax {
+    fn name(&self) -> &'static str {
+        "softmax"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        by_dtype!(self.name(), storage, softmax_forward(storage, layout))
+    }
+
+    fn bwd(&self, _: &Tensor, y: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        Ok(Some(y.apply_op2_no_bwd(&grad.contiguous()?, &SoftmaxBackward)?))
+    }
+}
+
+/// The gradient of [`Softmax`] with respect to its input: `dx = y (g - sum(g y))`.
+#[derive(Debug, Clone, Copy)]
+struct SoftmaxBackward;
+
+fn softmax_backward<T: Real>(
+    y_storage: &CpuStorage,
+    y_layout: &Layout,
+    g_storage: &CpuStorage,
+    g_layout: &Layout,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let y = values::<T>("softmax-backward", y_storage, y_layout)?;
+    let g = values::<T>("softmax-backward", g_storage, g_layout)?;
+    if y.len() != g.len() {
+        return Err(op_error("softmax-backward", "a gradient of the output's shape"));
+    }
+    let width = y_layout.dims().last().copied().unwrap_or(1);
+    let out = map_rows(width, [y, g], |rows, o| {
+        let (y, g) = (rows[0], rows[1]);
+        let gy = y.iter().zip(g).map(|(&y, &g)| y * g).sum::<T>();
+        for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
+            *o = y * (g - gy);
+        }
+    });
+    Ok((T::storage(out), y_layout.shape().clone()))
+}
+
+impl CustomOp2 for SoftmaxBackward {
+    fn name(&self) -> &'static str {
+        "softmax-backward"
+    }
+
+    fn cpu_fwd(
+        &self,
+        y_storage: &CpuStorage,
+        y_layout: &Layout,
+        g_storage: &CpuStorage,
+        g_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        by_dtype!(
+            self.name(),
+            y_storage,
+            softmax_backward(y_storage, y_layout, g_storage, g_layout)
+        )
+    }
+}
+
+/// Whether the fused operations apply to `x` (the CPU, f32 or f64).
+pub fn applies(x: &Tensor) -> bool {
+    x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+}
+
+/// Layer norm over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
+pub fn layer_norm(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.contiguous()?.apply_op1(LayerNorm)
+}
+
+/// Softmax over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
+pub fn softmax(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.contiguous()?.apply_op1(Softmax)
+}
