@@ -18,8 +18,11 @@ const EPS: f32 = 1e-6;
 /// cost (a few microseconds), enough tasks to keep both cores busy on a 240-row batch.
 const ROWS_PER_TASK: usize = 16;
 
-/// Query rows per rayon task of the attention (each row costs `heads x Tk x head` products).
-const ATTENTION_ROWS_PER_TASK: usize = 4;
+/// Query rows per rayon task of the attention, attended together by the blocked kernel.
+const QUERY_BLOCK: usize = 4;
+
+/// Floats per SIMD tile of the blocked attention kernel (one AVX register).
+const LANES: usize = 8;
 
 fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
@@ -62,13 +65,11 @@ fn rows_and_width(layout: &Layout) -> (usize, usize) {
 #[inline(always)]
 fn normalise_row(row: &[f32], out: &mut [f32]) {
     let n = row.len() as f32;
-    let mean = row.iter().sum::<f32>() / n;
-    let mut variance = 0.0;
+    let mean = sum(row, |x| x) / n;
     for (o, &x) in out.iter_mut().zip(row) {
-        let centred = x - mean;
-        *o = centred;
-        variance += centred * centred;
+        *o = x - mean;
     }
+    let variance = sum(out, |c| c * c);
     let inverse = 1.0 / (variance / n + EPS).sqrt();
     for o in out.iter_mut() {
         *o *= inverse;
@@ -99,6 +100,35 @@ fn exp(x: f32) -> f32 {
     let p = p * r + 0.5;
     let e_r = p * r * r + r + 1.0;
     e_r * f32::from_bits(((n as i32 + 127) as u32) << 23)
+}
+
+/// `sum_k f(values_k)` in [`LANES`] independent partial sums, so that it vectorises (a plain
+/// sum is one chain of dependent additions).
+#[inline(always)]
+fn sum(values: &[f32], f: impl Fn(f32) -> f32) -> f32 {
+    let mut lanes = [0f32; LANES];
+    let chunks = values.chunks_exact(LANES);
+    let tail: f32 = chunks.remainder().iter().map(|&v| f(v)).sum();
+    for chunk in chunks {
+        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+            *lane += f(v);
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
+}
+
+/// The largest of `values` (`-inf` for none), in [`LANES`] partial maxima.
+#[inline(always)]
+fn max(values: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; LANES];
+    let chunks = values.chunks_exact(LANES);
+    let tail = chunks.remainder().iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+    for chunk in chunks {
+        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+            *lane = lane.max(v);
+        }
+    }
+    lanes.iter().fold(tail, |m, &v| m.max(v))
 }
 
 /// Layer norm over the last dimension without affine parameters.
@@ -342,26 +372,31 @@ pub struct Attention {
 }
 
 impl Attention {
-    /// Each sequence's biased keys or values per head: `[N][heads][Tk][head]`, or with
-    /// `transposed` `[N][heads][head][Tk]` (the keys: the scores of a query are then sums of
-    /// contiguous rows, which vectorise without horizontal sums).
+    /// Each sequence's biased keys or values per head: `[N][heads][Tk][head]`, or with a
+    /// `transposed_stride` `[N][heads][head][stride]` (the keys, zero-padded to `stride >= Tk`:
+    /// the scores of a query are then sums of contiguous rows, which vectorise without
+    /// horizontal sums).
     fn gather(
         &self,
         source: &[f32],
         (frames, width, column): (usize, usize, usize),
         bias: &[f32],
-        transposed: bool,
+        transposed_stride: Option<usize>,
     ) -> Vec<f32> {
         let head = self.latent / self.heads;
         let sequences = source.len() / (frames * width).max(1);
-        let mut out = vec![0f32; sequences * frames * self.latent];
-        out.par_chunks_mut((frames * self.latent).max(1)).enumerate().for_each(|(n, out)| {
+        let per_head = transposed_stride.unwrap_or(frames) * head;
+        let mut out = vec![0f32; sequences * self.heads * per_head];
+        out.par_chunks_mut((self.heads * per_head).max(1)).enumerate().for_each(|(n, out)| {
             for h in 0..self.heads {
-                let block = &mut out[h * frames * head..][..frames * head];
+                let block = &mut out[h * per_head..][..per_head];
                 for j in 0..frames {
                     let from = &source[(n * frames + j) * width + column + h * head..][..head];
                     for (d, (&f, &b)) in from.iter().zip(&bias[h * head..]).enumerate() {
-                        let at = if transposed { d * frames + j } else { j * head + d };
+                        let at = match transposed_stride {
+                            Some(stride) => d * stride + j,
+                            None => j * head + d,
+                        };
                         block[at] = f + b;
                     }
                 }
@@ -372,34 +407,93 @@ impl Attention {
 
     /// One query row of one head: `softmax(q K^T / sqrt(head)) V` into `out`.
     ///
-    /// `keys_t` is `[head][Tk]`, `values` `[Tk][head]`; `scores` is scratch of `Tk`.
+    /// `keys_t` is `[head][stride]`, `values` `[Tk][head]`; `scores` is scratch of `Tk`.
     #[inline(always)]
     fn attend(
         query: &[f32],
         keys_t: &[f32],
         values: &[f32],
-        scale: f32,
+        (stride, scale): (usize, f32),
         scores: &mut [f32],
         out: &mut [f32],
     ) {
         let frames = scores.len();
         scores.fill(0.0);
-        for (&q, keys) in query.iter().zip(keys_t.chunks_exact(frames)) {
+        for (&q, keys) in query.iter().zip(keys_t.chunks_exact(stride)) {
             for (s, &k) in scores.iter_mut().zip(keys) {
-                *s += q * k;
+                *s = q.mul_add(k, *s);
             }
         }
-        let max = scores.iter().fold(f32::NEG_INFINITY, |m, &s| m.max(s * scale));
-        let mut total = 0.0;
+        let largest = max(scores) * scale;
         for s in scores.iter_mut() {
-            *s = exp(*s * scale - max);
-            total += *s;
+            *s = exp(*s * scale - largest);
         }
+        let total = sum(scores, |s| s);
         out.fill(0.0);
-        for (&w, value) in scores.iter().zip(values.chunks_exact(out.len())) {
+        for (&w, value) in scores[..frames].iter().zip(values.chunks_exact(out.len())) {
             let w = w / total;
             for (o, &v) in out.iter_mut().zip(value) {
-                *o += w * v;
+                *o = w.mul_add(v, *o);
+            }
+        }
+    }
+
+    /// [`Self::attend`] for [`QUERY_BLOCK`] query rows of one head at once, register-blocked:
+    /// each tile of [`LANES`] keys (or head channels) is loaded once for all the rows while
+    /// their sums stay in registers. `head` and `stride` must be multiples of [`LANES`]; the
+    /// zero padding keys past `Tk` never enter the softmax.
+    ///
+    /// `queries` is `[QUERY_BLOCK][head]`, `keys_t` `[head][stride]`, `values` `[Tk][head]`,
+    /// `scores` scratch of `[QUERY_BLOCK][stride]`; `out[r]` receives row `r`.
+    #[inline(always)]
+    fn attend_block(
+        queries: &[f32],
+        keys_t: &[f32],
+        values: &[f32],
+        (frames, stride, scale): (usize, usize, f32),
+        scores: &mut [f32],
+        out: &mut [&mut [f32]; QUERY_BLOCK],
+    ) {
+        let head = queries.len() / QUERY_BLOCK;
+        for tile in (0..stride).step_by(LANES) {
+            let mut sums = [[0f32; LANES]; QUERY_BLOCK];
+            for d in 0..head {
+                let keys = &keys_t[d * stride + tile..][..LANES];
+                for (r, sums) in sums.iter_mut().enumerate() {
+                    let q = queries[r * head + d];
+                    for (s, &k) in sums.iter_mut().zip(keys) {
+                        *s = q.mul_add(k, *s);
+                    }
+                }
+            }
+            for (r, sums) in sums.iter().enumerate() {
+                scores[r * stride + tile..][..LANES].copy_from_slice(sums);
+            }
+        }
+        let mut inverse = [0f32; QUERY_BLOCK];
+        for (r, inverse) in inverse.iter_mut().enumerate() {
+            let row = &mut scores[r * stride..][..frames];
+            let largest = max(row) * scale;
+            for s in row.iter_mut() {
+                *s = exp(*s * scale - largest);
+            }
+            *inverse = 1.0 / sum(row, |s| s);
+        }
+        for tile in (0..head).step_by(LANES) {
+            let mut sums = [[0f32; LANES]; QUERY_BLOCK];
+            for j in 0..frames {
+                let value = &values[j * head + tile..][..LANES];
+                for (r, sums) in sums.iter_mut().enumerate() {
+                    let w = scores[r * stride + j];
+                    for (s, &v) in sums.iter_mut().zip(value) {
+                        *s = w.mul_add(v, *s);
+                    }
+                }
+            }
+            for ((out, sums), &inverse) in out.iter_mut().zip(&sums).zip(&inverse) {
+                for (o, &s) in out[tile..][..LANES].iter_mut().zip(sums) {
+                    *o = s * inverse;
+                }
             }
         }
     }
@@ -447,39 +541,65 @@ impl CustomOp3 for Attention {
         }
         let head = l / self.heads;
         let scale = 1.0 / (head as f32).sqrt();
+        // The keys' rows are padded to whole SIMD tiles for the blocked kernel.
+        let stride = key_frames.div_ceil(LANES) * LANES;
         let source = (key_frames, kv_width, self.key_column);
-        let keys_t = self.gather(keys_values, source, &bias[l..2 * l], true);
+        let keys_t = self.gather(keys_values, source, &bias[l..2 * l], Some(stride));
         let source = (key_frames, kv_width, self.key_column + l);
-        let vals = self.gather(keys_values, source, &bias[2 * l..], false);
-        let per_head = key_frames * head;
+        let vals = self.gather(keys_values, source, &bias[2 * l..], None);
+        let (keys_per_head, values_per_head) = (stride * head, key_frames * head);
+        let keys_of =
+            |n: usize, h: usize| &keys_t[(n * self.heads + h) * keys_per_head..][..keys_per_head];
+        let values_of =
+            |n: usize, h: usize| &vals[(n * self.heads + h) * values_per_head..][..values_per_head];
+        let load_query = |row: usize, h: usize, into: &mut [f32]| {
+            let q_row = &queries[row * query_width + self.query_column + h * head..][..head];
+            for ((into, &x), &b) in into.iter_mut().zip(q_row).zip(&bias[h * head..]) {
+                *into = x + b;
+            }
+        };
+        // Tasks of QUERY_BLOCK rows: whole blocks of one sequence when the frames divide.
+        let blocked = head.is_multiple_of(LANES) && query_frames.is_multiple_of(QUERY_BLOCK);
         let mut out = vec![0f32; sequences * query_frames * l];
-        out.par_chunks_mut((l * ATTENTION_ROWS_PER_TASK).max(1)).enumerate().for_each(
-            |(task, out)| {
-                simd(
-                    #[inline(always)]
-                    || {
-                        let mut query = vec![0f32; head];
-                        let mut scores = vec![0f32; key_frames];
-                        for (k, o) in out.chunks_exact_mut(l).enumerate() {
-                            let row = task * ATTENTION_ROWS_PER_TASK + k;
+        out.par_chunks_mut((l * QUERY_BLOCK).max(1)).enumerate().for_each(|(task, out)| {
+            simd(
+                #[inline(always)]
+                || {
+                    let first = task * QUERY_BLOCK;
+                    let mut query = vec![0f32; QUERY_BLOCK * head];
+                    let mut scores = vec![0f32; QUERY_BLOCK * stride];
+                    if blocked {
+                        let n = first / query_frames;
+                        let sizes = (key_frames, stride, scale);
+                        for h in 0..self.heads {
+                            for (r, query) in query.chunks_exact_mut(head).enumerate() {
+                                load_query(first + r, h, query);
+                            }
+                            let mut rows =
+                                out.chunks_exact_mut(l).map(|o| &mut o[h * head..][..head]);
+                            let mut outs: [&mut [f32]; QUERY_BLOCK] = std::array::from_fn(|_| {
+                                rows.next().expect("whole blocks when the frames divide")
+                            });
+                            let (keys, values) = (keys_of(n, h), values_of(n, h));
+                            Self::attend_block(&query, keys, values, sizes, &mut scores, &mut outs);
+                        }
+                    } else {
+                        for (r, o) in out.chunks_exact_mut(l).enumerate() {
+                            let row = first + r;
                             let n = row / query_frames.max(1);
-                            let q_row = &queries[row * query_width + self.query_column..][..l];
                             for h in 0..self.heads {
-                                let q = q_row[h * head..].iter().zip(&bias[h * head..]);
-                                for (query, (&x, &b)) in query.iter_mut().zip(q) {
-                                    *query = x + b;
-                                }
-                                let at = (n * self.heads + h) * per_head;
-                                let (keys_t, values) =
-                                    (&keys_t[at..][..per_head], &vals[at..][..per_head]);
-                                let out = &mut o[h * head..][..head];
-                                Self::attend(&query, keys_t, values, scale, &mut scores, out);
+                                let query = &mut query[..head];
+                                load_query(row, h, query);
+                                let (keys, values) = (keys_of(n, h), values_of(n, h));
+                                let scores = &mut scores[..key_frames];
+                                let o = &mut o[h * head..][..head];
+                                Self::attend(query, keys, values, (stride, scale), scores, o);
                             }
                         }
-                    },
-                )
-            },
-        );
+                    }
+                },
+            )
+        });
         Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
     }
 }

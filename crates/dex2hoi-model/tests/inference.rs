@@ -103,9 +103,17 @@ fn composite_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Tens
 #[test]
 fn attention_equals_the_composite_for_self_and_cross_layouts() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
-    for (n, tq, tk, l, heads) in
-        [(2, 7, 7, 12, 3), (4, 60, 60, 64, 4), (1, 5, 11, 16, 1), (3, 1, 1, 8, 2)]
-    {
+    // Blocked kernel (heads of a multiple of 8, query frames of a multiple of 4; keys padded
+    // when their count is not a multiple of 8) and the row-by-row one.
+    let cases = [
+        (2, 7, 7, 12, 3),
+        (4, 60, 60, 64, 4),
+        (2, 8, 13, 32, 2),
+        (1, 5, 11, 16, 1),
+        (3, 1, 1, 8, 2),
+        (2, 4, 4, 8, 1),
+    ];
+    for (n, tq, tk, l, heads) in cases {
         let bias = random(&[3 * l], &mut rng);
         let (bq, bk, bv) = (
             bias.narrow(0, 0, l).unwrap(),
