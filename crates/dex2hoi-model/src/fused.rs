@@ -32,7 +32,8 @@ fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
 /// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
 /// workspace's default target is baseline x86-64 (SSE2), which runs anywhere. The kernel must
 /// be an `#[inline(always)]` closure (and call only `#[inline(always)]` functions), or it is
-/// compiled apart, for the baseline.
+/// compiled apart, for the baseline. On a CPU without AVX2 and FMA pulp runs the scalar
+/// version, correct but slow (`mul_add` is then computed in software).
 #[inline(always)]
 fn simd<R>(kernel: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(kernel)
