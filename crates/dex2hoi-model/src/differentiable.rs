@@ -13,14 +13,15 @@ use std::ops::{Add, Div, Mul, Sub};
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-/// The layer norm's epsilon, added to the variance (as [`crate::layers::layer_norm`]).
-const EPS: f64 = 1e-6;
+use crate::layers::LAYER_NORM_EPS;
 
-/// Rows per rayon task.
-const ROWS_PER_TASK: usize = 16;
+/// Rows per rayon task of the row-wise operations (here and in [`crate::fused`]): enough work
+/// per task to hide the scheduling cost (a few microseconds), enough tasks to keep both cores
+/// busy on a 240-row batch.
+pub(crate) const ROWS_PER_TASK: usize = 16;
 
 /// The float types the operations run in.
-trait Real:
+pub(crate) trait Real:
     Copy
     + Send
     + Sync
@@ -68,17 +69,17 @@ macro_rules! real {
 real!(f32, F32);
 real!(f64, F64);
 
-fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
+pub(crate) fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
 }
 
 /// The values of a contiguous tensor of type `T`.
-fn values<'a, T: Real>(
+pub(crate) fn values<'a, T: Real>(
     op: &str,
     storage: &'a CpuStorage,
     layout: &Layout,
 ) -> candle_core::Result<&'a [T]> {
-    let all = T::values(storage).ok_or_else(|| op_error(op, "expects one f32 or f64 dtype"))?;
+    let all = T::values(storage).ok_or_else(|| op_error(op, "expects f32 or f64 tensors"))?;
     match layout.contiguous_offsets() {
         Some((start, end)) => Ok(&all[start..end]),
         None => Err(op_error(op, "expects contiguous tensors")),
@@ -116,7 +117,7 @@ fn normalise<T: Real>(row: &[T], out: &mut [T]) -> T {
         *o = x - mu;
     }
     let variance = out.iter().map(|&c| c * c).sum::<T>() / T::of(row.len() as f64);
-    let inverse = T::of(1.0) / (variance + T::of(EPS)).sqrt();
+    let inverse = T::of(1.0) / (variance + T::of(LAYER_NORM_EPS)).sqrt();
     for o in out.iter_mut() {
         *o = *o * inverse;
     }

@@ -11,22 +11,23 @@
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-/// The layer norm's epsilon, added to the variance (as [`crate::layers::layer_norm`]).
-const EPS: f32 = 1e-6;
+use crate::differentiable::{ROWS_PER_TASK, op_error};
+use crate::layers::LAYER_NORM_EPS;
 
-/// Rows per rayon task of the row-wise operations: enough work per task to hide the scheduling
-/// cost (a few microseconds), enough tasks to keep both cores busy on a 240-row batch.
-const ROWS_PER_TASK: usize = 16;
+/// The values of a contiguous f32 tensor.
+fn values<'a>(
+    op: &str,
+    storage: &'a CpuStorage,
+    layout: &Layout,
+) -> candle_core::Result<&'a [f32]> {
+    crate::differentiable::values::<f32>(op, storage, layout)
+}
 
 /// Query rows per rayon task of the attention, attended together by the blocked kernel.
 const QUERY_BLOCK: usize = 4;
 
 /// Floats per SIMD tile of the blocked attention kernel (one AVX register).
 const LANES: usize = 8;
-
-fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
-    candle_core::Error::Msg(format!("{op}: {message}"))
-}
 
 /// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
 /// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
@@ -37,21 +38,6 @@ fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
 #[inline(always)]
 fn simd<R>(kernel: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(kernel)
-}
-
-/// The values of a contiguous f32 tensor.
-fn values<'a>(
-    op: &str,
-    storage: &'a CpuStorage,
-    layout: &Layout,
-) -> candle_core::Result<&'a [f32]> {
-    let CpuStorage::F32(all) = storage else {
-        return Err(op_error(op, "expects f32 tensors"));
-    };
-    match layout.contiguous_offsets() {
-        Some((start, end)) => Ok(&all[start..end]),
-        None => Err(op_error(op, "expects contiguous tensors")),
-    }
 }
 
 /// The last dimension and the number of rows before it.
@@ -71,7 +57,7 @@ fn normalise_row(row: &[f32], out: &mut [f32]) {
         *o = x - mean;
     }
     let variance = sum(out, |c| c * c);
-    let inverse = 1.0 / (variance / n + EPS).sqrt();
+    let inverse = 1.0 / (variance / n + LAYER_NORM_EPS as f32).sqrt();
     for o in out.iter_mut() {
         *o *= inverse;
     }

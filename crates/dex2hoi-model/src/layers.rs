@@ -11,7 +11,11 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::error::Result;
 
-/// Layer norm over the last dimension without affine parameters, `eps = 1e-6`: fused with a
+/// The layer norm's epsilon, added to the variance (every implementation: composite, fused
+/// for inference, fused with a backward pass).
+pub const LAYER_NORM_EPS: f64 = 1e-6;
+
+/// Layer norm over the last dimension without affine parameters, [`LAYER_NORM_EPS`]: fused with a
 /// hand-written backward pass on the CPU ([`crate::differentiable`]), composed elsewhere.
 ///
 /// # Shapes
@@ -28,7 +32,7 @@ pub fn layer_norm_composite(x: &Tensor) -> Result<Tensor> {
     let mean = x.mean_keepdim(D::Minus1)?;
     let centred = x.broadcast_sub(&mean)?;
     let variance = centred.sqr()?.mean_keepdim(D::Minus1)?;
-    Ok(centred.broadcast_div(&(variance + 1e-6)?.sqrt()?)?)
+    Ok(centred.broadcast_div(&(variance + LAYER_NORM_EPS)?.sqrt()?)?)
 }
 
 /// Softmax over the last dimension: fused with a hand-written backward pass on the CPU

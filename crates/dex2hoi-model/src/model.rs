@@ -162,18 +162,26 @@ impl Denoiser {
     /// # Shapes
     /// - `frames`: `[batch, T_p + T_f, features]`; returns `[batch, T_p + T_f, latent]`
     fn tokens(&self, frames: &Tensor) -> Result<Tensor> {
-        let latent = self.positions.dims()[1];
         let frames = match &self.channel_mask {
             Some(mask) => frames.broadcast_mul(mask)?,
             None => frames.clone(),
         };
+        Ok(self.input.forward(&frames)?.broadcast_add(&self.frame_embedding()?)?)
+    }
+
+    /// What each frame's token adds to its projection: its position and its type (prefix or
+    /// noisy).
+    ///
+    /// # Shapes
+    /// - returns `[T_p + T_f, latent]`
+    fn frame_embedding(&self) -> Result<Tensor> {
+        let latent = self.positions.dims()[1];
         let kind = |k: usize, count: usize| -> Result<Tensor> {
             Ok(self.frame_types.get(k)?.unsqueeze(0)?.broadcast_as((count, latent))?)
         };
         let types =
             Tensor::cat(&[kind(0, self.prefix_frames)?, kind(1, self.predicted_frames)?], 0)?;
-        let position = (self.positions.clone() + types)?;
-        Ok(self.input.forward(&frames)?.broadcast_add(&position)?)
+        Ok((self.positions.clone() + types)?)
     }
 
     /// The clean predicted frames (x0). With `other_condition` the batch stacks both streams
@@ -264,6 +272,18 @@ impl FusionNetwork {
         presence_b: &Tensor,
         rng: Option<&mut ChaCha8Rng>,
     ) -> Result<Tensor> {
+        self.fuse(body_a, body_b, presence_b, |x| self.layers.forward(x, None, rng))
+    }
+
+    /// [`Self::forward`] with the trunk (blocks and final norm) given by `encode`: the
+    /// inference path runs its fused blocks there.
+    fn fuse(
+        &self,
+        body_a: &Tensor,
+        body_b: &Tensor,
+        presence_b: &Tensor,
+        encode: impl FnOnce(&Tensor) -> Result<Tensor>,
+    ) -> Result<Tensor> {
         let (batch, frames, _) = body_a.dims3()?;
         let present = presence_b.reshape((batch, 1, 1))?;
         let masked_b = body_b.broadcast_mul(&present)?;
@@ -271,7 +291,7 @@ impl FusionNetwork {
         let average = body_average(body_a, &masked_b, &present)?;
         let tokens = self.input.forward(&Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
         let x = tokens.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        Ok((average + self.output.forward(&self.layers.forward(&x, None, rng)?)?)?)
+        Ok((average + self.output.forward(&encode(&x)?)?)?)
     }
 }
 
@@ -295,12 +315,19 @@ impl Fusion {
     ) -> Result<Tensor> {
         match self {
             Self::Network(network) => network.forward(body_a, body_b, presence_b, rng),
-            Self::Average => {
-                let present = presence_b.reshape((presence_b.dim(0)?, 1, 1))?;
-                body_average(body_a, &body_b.broadcast_mul(&present)?, &present)
-            }
+            Self::Average => present_average(body_a, body_b, presence_b),
         }
     }
+}
+
+/// [`body_average`] with stream B's body masked by its presence (Table 3 "fusion -> average").
+///
+/// # Shapes
+/// - `body_a`, `body_b`: `[batch, T_f, 6J + 3]`; `presence_b`: `[batch]`
+/// - returns `[batch, T_f, 6J + 3]`
+fn present_average(body_a: &Tensor, body_b: &Tensor, presence_b: &Tensor) -> Result<Tensor> {
+    let present = presence_b.reshape((presence_b.dim(0)?, 1, 1))?;
+    body_average(body_a, &body_b.broadcast_mul(&present)?, &present)
 }
 
 /// The dual layout (Eq. 5): one stream per object through the same denoiser, cross-attending

@@ -15,8 +15,8 @@
 
 use candle_core::{DType, Device, Tensor};
 
-use super::{Denoiser, body_average, streams_into_batch};
-use super::{DualStream, Fusion, FusionNetwork, Layout, Model, ModelInput, SingleStream};
+use super::{Denoiser, DualStream, Fusion, Layout, Model, ModelInput, SingleStream};
+use super::{present_average, streams_into_batch};
 use crate::error::Result;
 use crate::fused;
 use crate::layers::{Dense, Modulation};
@@ -234,15 +234,7 @@ struct FastDenoiser {
 
 impl FastDenoiser {
     fn new(denoiser: &Denoiser) -> Result<Self> {
-        let latent = denoiser.positions.dims()[1];
-        let kind = |k: usize, count: usize| -> Result<Tensor> {
-            Ok(denoiser.frame_types.get(k)?.unsqueeze(0)?.broadcast_as((count, latent))?)
-        };
-        let types = Tensor::cat(
-            &[kind(0, denoiser.prefix_frames)?, kind(1, denoiser.predicted_frames)?],
-            0,
-        )?;
-        let tokens = (&denoiser.positions + types)?.broadcast_add(&denoiser.input.bias)?.detach();
+        let tokens = denoiser.frame_embedding()?.broadcast_add(&denoiser.input.bias)?.detach();
         let mut table = TableBuilder::default();
         let blocks =
             denoiser.blocks.iter().map(|b| Block::new(b, &mut table)).collect::<Result<_>>()?;
@@ -279,66 +271,47 @@ impl FastDenoiser {
     }
 }
 
-/// The Motion Fusion Network for inference (see [`FusionNetwork`]).
+/// The body fusion for inference (see [`Fusion`]): the Motion Fusion Network's blocks; its
+/// input and output layers, and the average, are the model's own.
 #[derive(Debug, Clone)]
-struct FastFusionNetwork {
-    input: Linear,
-    positions: Tensor,
-    blocks: Vec<Block>,
-    output: Linear,
+enum FastFusion {
+    Network(Vec<Block>),
+    Average,
 }
 
-impl FastFusionNetwork {
-    fn new(network: &FusionNetwork) -> Result<Self> {
-        let mut table = TableBuilder::default();
-        let blocks = network
-            .layers
-            .blocks
-            .iter()
-            .map(|b| Block::new(b, &mut table))
-            .collect::<Result<_>>()?;
-        Ok(Self {
-            input: Linear::of(&network.input),
-            positions: network.positions.detach(),
-            blocks,
-            output: Linear::of(&network.output),
+impl FastFusion {
+    fn new(fusion: &Fusion) -> Result<Self> {
+        Ok(match fusion {
+            Fusion::Network(network) => {
+                let mut table = TableBuilder::default();
+                let blocks = network.layers.blocks.iter().map(|b| Block::new(b, &mut table));
+                Self::Network(blocks.collect::<Result<_>>()?)
+            }
+            Fusion::Average => Self::Average,
         })
     }
 
     /// # Shapes
     /// - `body_a`, `body_b`: `[batch, T_f, 6J + 3]`; `presence_b`: `[batch]`
     /// - returns the fused body `[batch, T_f, 6J + 3]`
-    fn forward(&self, body_a: &Tensor, body_b: &Tensor, presence_b: &Tensor) -> Result<Tensor> {
-        let (batch, frames, _) = body_a.dims3()?;
-        let present = presence_b.reshape((batch, 1, 1))?;
-        let masked_b = body_b.broadcast_mul(&present)?;
-        let flag = present.broadcast_as((batch, frames, 1))?.contiguous()?;
-        let average = body_average(body_a, &masked_b, &present)?;
-        let inputs = Tensor::cat(&[body_a, &masked_b, &flag], 2)?;
-        let mut x =
-            self.input.forward(&inputs)?.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        for block in &self.blocks {
-            x = block.forward(&x, None)?;
-        }
-        Ok((average + self.output.forward(&fused::layer_norm(&x)?)?)?)
-    }
-}
-
-/// The body fusion for inference (see [`Fusion`]).
-#[derive(Debug, Clone)]
-enum FastFusion {
-    Network(FastFusionNetwork),
-    Average,
-}
-
-impl FastFusion {
-    fn forward(&self, body_a: &Tensor, body_b: &Tensor, presence_b: &Tensor) -> Result<Tensor> {
-        match self {
-            Self::Network(network) => network.forward(body_a, body_b, presence_b),
-            Self::Average => {
-                let present = presence_b.reshape((presence_b.dim(0)?, 1, 1))?;
-                body_average(body_a, &body_b.broadcast_mul(&present)?, &present)
+    fn forward(
+        &self,
+        fusion: &Fusion,
+        body_a: &Tensor,
+        body_b: &Tensor,
+        presence_b: &Tensor,
+    ) -> Result<Tensor> {
+        match (self, fusion) {
+            (Self::Network(blocks), Fusion::Network(network)) => {
+                network.fuse(body_a, body_b, presence_b, |x| {
+                    let mut x = x.clone();
+                    for block in blocks {
+                        x = block.forward(&x, None)?;
+                    }
+                    Ok(fused::layer_norm(&x)?)
+                })
             }
+            _ => present_average(body_a, body_b, presence_b),
         }
     }
 }
@@ -385,12 +358,7 @@ impl InferenceModel {
             Some(match &model.layout {
                 Layout::Dual(DualStream { denoiser, fusion, .. }) => FastLayout::Dual {
                     denoiser: FastDenoiser::new(denoiser)?,
-                    fusion: match fusion {
-                        Fusion::Network(network) => {
-                            FastFusion::Network(FastFusionNetwork::new(network)?)
-                        }
-                        Fusion::Average => FastFusion::Average,
-                    },
+                    fusion: FastFusion::new(fusion)?,
                 },
                 Layout::Single(SingleStream { denoiser, .. }) => {
                     FastLayout::Single { denoiser: FastDenoiser::new(denoiser)? }
@@ -478,7 +446,7 @@ impl InferenceModel {
                 let time = dual.conditioning.time(&timesteps, dtype)?.detach();
                 let out = denoiser.forward(&frames, &(time + &condition.fixed)?)?;
                 dual.assemble(&out, &condition.presence, |a, b, presence_b| {
-                    fusion.forward(a, b, presence_b)
+                    fusion.forward(&dual.fusion, a, b, presence_b)
                 })
             }
             (FastLayout::Single { denoiser }, Layout::Single(single)) => {
