@@ -29,7 +29,8 @@ pub struct WindowCondition {
 pub struct ModelDenoiser<'a> {
     model: &'a InferenceModel,
     condition: &'a WindowCondition,
-    prepared: Mutex<Option<(Vec<bool>, PreparedCondition)>>,
+    /// The rows' null flags, their prepared condition and their repeated prefix.
+    prepared: Mutex<Option<(Vec<bool>, PreparedCondition, Tensor)>>,
 }
 
 impl<'a> ModelDenoiser<'a> {
@@ -38,17 +39,17 @@ impl<'a> ModelDenoiser<'a> {
         Self { model, condition, prepared: Mutex::new(None) }
     }
 
-    /// The condition of `rows` rows with the given null flags, prepared once.
+    /// The condition and the prefix of `rows` rows with the given null flags, prepared once.
     fn prepared(
         &self,
         null_condition: &[bool],
         rows: usize,
-    ) -> Result<PreparedCondition, DiffusionError> {
+    ) -> Result<(PreparedCondition, Tensor), DiffusionError> {
         let mut cache = self.prepared.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some((flags, prepared)) = cache.as_ref()
+        if let Some((flags, prepared, prefix)) = cache.as_ref()
             && flags == null_condition
         {
-            return Ok(prepared.clone());
+            return Ok((prepared.clone(), prefix.clone()));
         }
         let times = rows / self.condition.text.dims()[0];
         let device = self.condition.text.device();
@@ -60,8 +61,9 @@ impl<'a> ModelDenoiser<'a> {
         let bps = repeat_rows(&self.condition.bps, times)?;
         let presence = repeat_rows(&self.condition.presence, times)?;
         let prepared = self.model.prepare(&text, &bps, &presence).map_err(denoiser_error)?;
-        *cache = Some((null_condition.to_vec(), prepared.clone()));
-        Ok(prepared)
+        let prefix = repeat_rows(&self.condition.prefix, times)?;
+        *cache = Some((null_condition.to_vec(), prepared.clone(), prefix.clone()));
+        Ok((prepared, prefix))
     }
 }
 
@@ -92,8 +94,7 @@ impl Denoiser for ModelDenoiser<'_> {
                 format!("{rows} rows, {} flags", null_condition.len()),
             ));
         }
-        let prepared = self.prepared(null_condition, rows)?;
-        let prefix = repeat_rows(&self.condition.prefix, rows / batch)?;
+        let (prepared, prefix) = self.prepared(null_condition, rows)?;
         self.model.forward(&prefix, noisy, timesteps, &prepared).map_err(denoiser_error)
     }
 }
