@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 
+use dex2hoi_import::humoto::PickleRig;
 use dex2hoi_import::smplx::UpAxis;
 use dex2hoi_import::{HandPoseSource, PrepareOptions, SourceFormat, prepare};
 
@@ -16,7 +17,8 @@ use dex2hoi_import::{HandPoseSource, PrepareOptions, SourceFormat, prepare};
 pub enum FormatArg {
     /// GRAB: `ROOT/grab/s1..s10/*.npz` and `ROOT/tools/` (SMPL-X, 120 fps, split s1-s9 / s10).
     Grab,
-    /// HUMOTO: sequence folders `<seq>/<seq>.pkl` + `.yaml`, objects in `humoto_objects/`.
+    /// HUMOTO: sequence folders `<seq>/<seq>.glb` as published (texts from animations.json),
+    /// or the authors' `<seq>/<seq>.pkl` + `.yaml` (objects in `humoto_objects/`).
     Humoto,
     /// HIMO: `data/{smplx,object_pose,text,object_mesh}` (2-object sequences).
     Himo,
@@ -36,8 +38,17 @@ pub enum HandPoseArg {
 pub enum UpAxisArg {
     /// Y up (no conversion).
     Y,
-    /// Z up (the default of all three datasets).
+    /// Z up (the default of GRAB and HUMOTO's pickles).
     Z,
+}
+
+/// The rig of HUMOTO pickles (the authors' Blender scripts transfer the motion to one).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PickleRigArg {
+    /// `up_bone`: every bone's rest frame is Rx(+90 deg) (read).
+    UpBone,
+    /// `mixamo_bone`: Mixamo's own bone frames (refused: read the published .glb instead).
+    MixamoBone,
 }
 
 /// Arguments of `dex2hoi data prepare`.
@@ -77,9 +88,13 @@ pub struct PrepareArgs {
     /// Seed of the hash split.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Override the up axis of the source world.
+    /// Override the up axis of the source world (default: z for GRAB and HUMOTO's pickles, y
+    /// for HIMO; HUMOTO's GLBs are always Y up).
     #[arg(long, value_enum)]
     up_axis: Option<UpAxisArg>,
+    /// HUMOTO pickles: the rig the authors' scripts transferred them to.
+    #[arg(long, value_enum, default_value_t = PickleRigArg::UpBone)]
+    humoto_rig: PickleRigArg,
 }
 
 /// Runs `dex2hoi data prepare`.
@@ -113,6 +128,10 @@ pub fn run(args: PrepareArgs) -> Result<()> {
         UpAxisArg::Y => UpAxis::Y,
         UpAxisArg::Z => UpAxis::Z,
     });
+    options.pickle_rig = match args.humoto_rig {
+        PickleRigArg::UpBone => PickleRig::UpBone,
+        PickleRigArg::MixamoBone => PickleRig::MixamoBone,
+    };
 
     let start = Instant::now();
     let bar = indicatif::ProgressBar::new(0);

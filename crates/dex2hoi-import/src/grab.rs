@@ -299,16 +299,19 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
     let object = mesh.object(&object_name, &rotations, &translations, to_y_up);
     let texts =
         options.text_templates.iter().map(|t| fill_template(t, &intent, &object_name)).collect();
-    Ok(Outcome::Sequence(Box::new(Sequence {
-        skeleton,
-        fps,
-        local_rotations,
-        root_positions,
-        objects: vec![object],
-        texts,
-        action: Some(intent),
-        source_id: format!("grab/{}", item.id),
-    })))
+    Ok(Outcome::Sequence {
+        sequence: Box::new(Sequence {
+            skeleton,
+            fps,
+            local_rotations,
+            root_positions,
+            objects: vec![object],
+            texts,
+            action: Some(intent),
+            source_id: format!("grab/{}", item.id),
+        }),
+        warnings: Vec::new(),
+    })
 }
 
 #[cfg(test)]

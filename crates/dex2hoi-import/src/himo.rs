@@ -196,14 +196,17 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
         let mesh = context.mesh(&data.join("object_mesh").join(format!("{}.obj", object.name)))?;
         objects.push(mesh.object(&object.name, &object.rotations, &object.translations, to_y_up));
     }
-    Ok(Outcome::Sequence(Box::new(Sequence {
-        skeleton,
-        fps: FPS,
-        local_rotations,
-        root_positions,
-        objects,
-        texts: himo.texts,
-        action: None,
-        source_id: format!("himo/{}", item.id),
-    })))
+    Ok(Outcome::Sequence {
+        sequence: Box::new(Sequence {
+            skeleton,
+            fps: FPS,
+            local_rotations,
+            root_positions,
+            objects,
+            texts: himo.texts,
+            action: None,
+            source_id: format!("himo/{}", item.id),
+        }),
+        warnings: Vec::new(),
+    })
 }

@@ -1,35 +1,42 @@
-//! HUMOTO (docs/CONVENTIONS.md, "HUMOTO"): per sequence a folder `<seq>/` with the pickle
-//! `<seq>.pkl` (`armature`: per frame `{bone: [qw,qx,qy,qz, lx,ly,lz]}`; `objects`:
-//! `{name: [[qw,qx,qy,qz, x,y,z] per frame]}`; optional `object_models`:
-//! `{name: {'mesh': (V, F)}}`) and the text `<seq>.yaml` (`short_script`); object meshes in
-//! `humoto_objects/<name>/<name>.obj`; the Mixamo 65-joint rig; Z up; 30 fps.
+//! HUMOTO (docs/CONVENTIONS.md, "HUMOTO"), from either of its two forms:
+//! - **the published release**: one folder per sequence holding `<seq>.glb` (and `<seq>.fbx`, a
+//!   PNG), with `animations.json` (each sequence's `short_script`) in the root or its parent.
+//!   The GLB holds the 65-joint `mixamorig:*` skin under an `Armature` node (scale 0.01), the
+//!   body's node animation, and one mesh node per object with its own animation; Y up (glTF).
+//! - **the authors' pickle** `<seq>.pkl` (+ `<seq>.yaml`), made from the FBX by their Blender
+//!   scripts with the `up_bone` rig: per frame `{bone: [qw,qx,qy,qz, lx,ly,lz]}` where every
+//!   bone's rest frame is `Rx(+90 deg)` of the Z-up world, so each quaternion is the bone's
+//!   parent-relative rotation in Y-up axes and each location a translation in its parent's
+//!   (Y-up) axes from the rest offset (`Hips`: from the rest hips); objects as Z-up world poses;
+//!   `object_models` (meshes) or `humoto_objects/<name>/<name>.obj`.
+//!
+//! Both are read onto HUMOTO's character ([`Skeleton::humoto_character`]; the GLB's own bind
+//! pose when it has one). The few animated bone translations are folded into rotations
+//! ([`crate::rig`]). One keyframe is one frame at 30 fps: the files' time stamps step by 1/24 s,
+//! a mark left by Blender, not the capture rate (docs/FORMATS.md, "HUMOTO").
 //!
 //! The paper keeps clips with at most two moving objects; static objects (furniture the
 //! person never moves) are left out of the sequence.
-//!
-//! Reading of the armature (it differs from HUMOTO's own description of the bone frames in
-//! docs/CONVENTIONS.md, "HUMOTO", and is unchecked against a real file; this is the convention
-//! assumed and documented in `docs/FORMATS.md`): each bone's quaternion is its rotation
-//! relative to its parent with rest frames aligned to the Z-up world, and the `Hips` location
-//! is the root joint's world position in metres; the other bones' locations are their rest
-//! offsets, for which the rig's own rest pose (`Skeleton::mixamo`) is used.
 
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use glam::{Mat3, Vec3};
+use glam::{Mat3, Mat4, Vec3};
 
-use dex2hoi_data::Sequence;
+use dex2hoi_data::{Sequence, SequenceObject};
 use dex2hoi_repr::rotation::{geodesic_angle, quaternion_from_wxyz, quaternion_to_matrix};
 use dex2hoi_repr::skeleton::MIXAMO_PREFIX;
 use dex2hoi_repr::{Mesh, Skeleton};
 
 use crate::error::{ImportError, Result};
+use crate::glb::GlbScene;
 use crate::pickle::read_pickle;
 use crate::prepare::{Context, Item, Outcome, PrepareOptions, Skipped, SplitRule};
+use crate::rig::{FoldedRig, PosedRig, orthonormalised};
 use crate::value::Field;
 use crate::yaml::top_level_text;
 
-/// HUMOTO's frame rate.
+/// HUMOTO's frame rate: one keyframe of the GLB (and one row of the pickle) per 1/30 s.
 pub const FPS: f32 = 30.0;
 
 /// The most moving objects a clip may have (the paper's filter).
@@ -40,32 +47,70 @@ pub const MOVING_DISTANCE: f32 = 0.02;
 /// ... or turns this far (radians, about 6 degrees): more than capture jitter.
 pub const MOVING_ANGLE: f32 = 0.1;
 
-/// Every `*.pkl` below the root (outside the object folder), in path order.
+/// The file that holds the published texts.
+pub const SCRIPTS_FILE: &str = "animations.json";
+
+/// A folded rig whose joints end further than this on average from the data's (metres) is
+/// reported: HUMOTO's captured stretch leaves well under a millimetre.
+const FOLD_WARNING: f32 = 0.005;
+
+/// Which rig the authors' Blender scripts transferred a pickle's motion to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PickleRig {
+    /// `up_bone`: every bone's rest frame is `Rx(+90 deg)` (read).
+    #[default]
+    UpBone,
+    /// `mixamo_bone`: Mixamo's own rest frame per bone (refused: its rest frames are not in
+    /// the pickle, and no such file has been seen to check a reading against).
+    MixamoBone,
+}
+
+impl PickleRig {
+    /// The name in the authors' scripts.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::UpBone => "up_bone",
+            Self::MixamoBone => "mixamo_bone",
+        }
+    }
+}
+
+/// Every sequence below the root (outside the object folder): a `.glb`, or a `.pkl`, per
+/// folder and name; the GLB when both are there (it is the published source). The id is the
+/// file name without its extension, which is the folder name in the published layout.
 pub fn discover(options: &PrepareOptions) -> Result<(Vec<Item>, Vec<Skipped>)> {
     let rule = SplitRule::new(options)?;
     let mut files = Vec::new();
-    collect_pickles(&options.root, &mut files)?;
-    files.sort();
+    collect_sequences(&options.root, &mut files)?;
+    let mut chosen: BTreeMap<(PathBuf, String), PathBuf> = BTreeMap::new();
+    for path in files {
+        let stem = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+        let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        let entry = chosen.entry((folder, stem)).or_insert_with(|| path.clone());
+        if path.extension().is_some_and(|e| e == "glb") {
+            *entry = path;
+        }
+    }
     let mut items = Vec::new();
     let mut skipped = Vec::new();
-    for path in files {
-        let id = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+    for ((_, id), path) in chosen {
         match rule.split(&id) {
             Some(split) => items.push(Item { id, path, split }),
             None => skipped.push(Skipped { id, reason: "not listed in the split file".into() }),
         }
     }
+    items.sort_by(|a, b| a.id.cmp(&b.id).then_with(|| a.path.cmp(&b.path)));
     Ok((items, skipped))
 }
 
-fn collect_pickles(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+fn collect_sequences(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
     for entry in std::fs::read_dir(dir).map_err(ImportError::io(dir))? {
         let path = entry.map_err(ImportError::io(dir))?.path();
         if path.is_dir() {
             if path.file_name().is_some_and(|n| n != "humoto_objects") {
-                collect_pickles(&path, out)?;
+                collect_sequences(&path, out)?;
             }
-        } else if path.extension().is_some_and(|e| e == "pkl") {
+        } else if path.extension().is_some_and(|e| e == "pkl" || e == "glb") {
             out.push(path);
         }
     }
@@ -138,52 +183,253 @@ fn embedded_mesh(field: &Field<'_>) -> Result<Mesh> {
     Ok(Mesh::new(vertices, faces, &format!("{}[{}]", field.source_name(), mesh.path()))?)
 }
 
-/// Reads one HUMOTO sequence (at 30 fps, in the project's axes).
+/// Reads one HUMOTO sequence (at 30 fps, in the project's axes) from its GLB or its pickle.
 pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
+    let motion = if item.path.extension().is_some_and(|e| e == "glb") {
+        read_glb(&item.path)?
+    } else {
+        read_pickle_motion(&item.path, context)?
+    };
+    let text = script(item, context)?;
+    assemble(item, context, motion, text)
+}
+
+/// A HUMOTO motion as read, before the protocol's object filter.
+struct Motion {
+    skeleton: Skeleton,
+    folded: FoldedRig,
+    /// Every object with a pose per frame, in the project's axes, and how to get its mesh.
+    objects: Vec<ObjectTrack>,
+}
+
+struct ObjectTrack {
+    name: String,
+    rotations: Vec<Mat3>,
+    translations: Vec<Vec3>,
+    mesh: MeshSource,
+}
+
+enum MeshSource {
+    /// A mesh read from the sequence's own file (GLB mesh node, pickle `object_models`).
+    Embedded(Box<dyn FnOnce() -> Result<Mesh> + Send>),
+    /// `humoto_objects/<name>/<name>.obj`.
+    File(PathBuf),
+}
+
+/// The sequence's text: its `short_script` in `animations.json` (in the root or its parent, as
+/// published), else in `<seq>.yaml` beside its file.
+fn script(item: &Item, context: &Context) -> Result<String> {
+    let scripts = context.humoto_scripts.get_or_init(|| read_scripts(&context.options.root));
+    let scripts = scripts
+        .as_ref()
+        .map_err(|e| ImportError::format(SCRIPTS_FILE, "texts", "a readable file", e))?;
+    if let Some((file, scripts)) = scripts {
+        if let Some(text) = scripts.get(&item.id) {
+            return Ok(text.clone());
+        }
+        let yaml = item.path.with_extension("yaml");
+        if !yaml.is_file() {
+            return Err(ImportError::missing(
+                file.display(),
+                format!("{}'s short_script", item.id),
+                "the sequence's text (or a .yaml beside its file)",
+            ));
+        }
+    }
+    let yaml_path = item.path.with_extension("yaml");
+    let yaml = std::fs::read_to_string(&yaml_path).map_err(ImportError::io(&yaml_path))?;
+    let yaml_name = yaml_path.display().to_string();
+    top_level_text(&yaml, &yaml_name)?
+        .remove("short_script")
+        .map(|t| t.trim().to_string())
+        .filter(|t| !t.is_empty())
+        .ok_or_else(|| ImportError::missing(&yaml_name, "short_script", "the sequence's text"))
+}
+
+/// `animations.json` of the root or its parent: sequence name -> `short_script`.
+pub type Scripts = Option<(PathBuf, HashMap<String, String>)>;
+
+fn read_scripts(root: &Path) -> std::result::Result<Scripts, String> {
+    let candidates = [Some(root.join(SCRIPTS_FILE)), root.parent().map(|p| p.join(SCRIPTS_FILE))];
+    let Some(path) = candidates.into_iter().flatten().find(|p| p.is_file()) else {
+        return Ok(None);
+    };
+    #[derive(serde::Deserialize)]
+    struct Entry {
+        #[serde(rename = "fileName")]
+        file_name: String,
+        short_script: String,
+    }
+    let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let entries: Vec<Entry> = serde_json::from_slice(&bytes).map_err(|e| {
+        format!(
+            "{}: expected a JSON list of {{\"fileName\", \"short_script\", ...}}: {e}",
+            path.display()
+        )
+    })?;
+    let scripts = entries
+        .into_iter()
+        .filter(|e| !e.short_script.trim().is_empty())
+        .map(|e| (e.file_name, e.short_script.trim().to_string()))
+        .collect();
+    Ok(Some((path, scripts)))
+}
+
+/// The body and objects of a published GLB.
+fn read_glb(path: &Path) -> Result<Motion> {
+    let scene = GlbScene::read(path)?;
+    let source = scene.source_name().to_string();
+    let builtin = Skeleton::humoto_character();
+    let skin = scene
+        .skins
+        .iter()
+        .find(|s| s.joints.iter().any(|&j| scene.nodes[j].name.starts_with(MIXAMO_PREFIX)))
+        .ok_or_else(|| ImportError::missing(&source, "skin", "a skin of `mixamorig:*` joints"))?;
+    let mut order = Vec::with_capacity(builtin.joint_count());
+    let mut missing = Vec::new();
+    for name in builtin.joint_names() {
+        let full = format!("{MIXAMO_PREFIX}{name}");
+        match skin.joints.iter().position(|&j| scene.nodes[j].name == full) {
+            Some(k) => order.push(k),
+            None => missing.push(full),
+        }
+    }
+    if !missing.is_empty() {
+        return Err(ImportError::format(
+            &source,
+            "skin joints",
+            "the 65 bones of the Mixamo rig (docs/CONVENTIONS.md, \"Mixamo 65\")",
+            format!("no {}", missing.join(", ")),
+        ));
+    }
+    // The bind pose: each joint's world matrix when the skin was bound.
+    let bind: Vec<Mat4> = order.iter().map(|&k| skin.inverse_bind_matrices[k].inverse()).collect();
+    if bind.iter().any(|m| !m.is_finite()) {
+        return Err(ImportError::format(
+            &source,
+            "inverse bind matrices",
+            "invertible",
+            "singular",
+        ));
+    }
+    let rest: Vec<Vec3> = bind.iter().map(|m| m.w_axis.truncate()).collect();
+    let rest_rotations: Vec<Mat3> =
+        bind.iter().map(|m| orthonormalised(Mat3::from_mat4(*m))).collect();
+    let offsets = builtin
+        .parents()
+        .iter()
+        .enumerate()
+        .map(|(j, p)| p.map_or(rest[j], |p| rest[j] - rest[p]))
+        .collect();
+    let skeleton = builtin.with_rest_offsets(offsets)?;
+    let nodes: Vec<usize> = order.iter().map(|&k| skin.joints[k]).collect();
+    let times = scene.keyframe_times();
+    let frames = times.len();
+    let joints = nodes.len();
+    let mut world_rotations = Vec::with_capacity(frames * joints);
+    let mut positions = Vec::with_capacity(frames * joints);
+    let object_nodes: Vec<usize> = (0..scene.nodes.len())
+        .filter(|&n| scene.nodes[n].mesh.is_some() && scene.nodes[n].skin.is_none())
+        .filter(|n| !nodes.contains(n))
+        .collect();
+    let mut object_poses: Vec<Vec<(Vec3, glam::Quat, Vec3)>> = vec![Vec::new(); object_nodes.len()];
+    for &time in &times {
+        let world = scene.world_matrices(time);
+        for (j, &node) in nodes.iter().enumerate() {
+            let m = world[node];
+            positions.push(m.w_axis.truncate());
+            world_rotations
+                .push(orthonormalised(Mat3::from_mat4(m)) * rest_rotations[j].transpose());
+        }
+        for (k, &node) in object_nodes.iter().enumerate() {
+            object_poses[k].push(world[node].to_scale_rotation_translation());
+        }
+    }
+    if positions.iter().any(|p| !p.is_finite()) {
+        return Err(ImportError::format(&source, "joint positions", "finite", "NaN or infinity"));
+    }
+    let folded = PosedRig { skeleton: skeleton.clone(), world_rotations, positions }.fold();
+    let mut objects = Vec::with_capacity(object_nodes.len());
+    for (node, poses) in object_nodes.into_iter().zip(object_poses) {
+        let name = scene.nodes[node].name.clone();
+        let scale = poses[0].0;
+        if poses.iter().any(|(s, ..)| !s.abs_diff_eq(scale, 1e-4 * scale.abs().max_element()))
+            || scale.min_element() <= 0.0
+        {
+            return Err(ImportError::format(
+                &source,
+                format!("object node `{name}`"),
+                "a constant positive scale",
+                "a scale that changes or flips",
+            ));
+        }
+        let (vertices, faces) = scene.mesh(scene.nodes[node].mesh.unwrap_or_default()).clone();
+        let mesh_name = format!("{source}[{name}]");
+        objects.push(ObjectTrack {
+            name,
+            rotations: poses.iter().map(|(_, r, _)| Mat3::from_quat(*r)).collect(),
+            translations: poses.iter().map(|(.., t)| *t).collect(),
+            mesh: MeshSource::Embedded(Box::new(move || {
+                let vertices = vertices.into_iter().map(|v| v * scale).collect();
+                Ok(Mesh::new(vertices, faces, &mesh_name)?)
+            })),
+        });
+    }
+    Ok(Motion { skeleton, folded, objects })
+}
+
+/// The body and objects of an authors' pickle (`up_bone` rig).
+fn read_pickle_motion(path: &Path, context: &Context) -> Result<Motion> {
     let options = &context.options;
-    let path = &item.path;
     let source_name = path.display().to_string();
+    if options.pickle_rig != PickleRig::UpBone {
+        return Err(ImportError::invalid(
+            "--humoto-rig",
+            "up_bone: a pickle made with the mixamo_bone rig keeps Mixamo's own bone frames, \
+             which the pickle does not store; read the sequence's published .glb instead",
+            options.pickle_rig.name(),
+        ));
+    }
     let bytes = std::fs::read(path).map_err(ImportError::io(path))?;
     let (value, _) = read_pickle(&bytes, &source_name)?;
     let root = Field::root(&source_name, "", &value);
-
-    let yaml_path = path.with_extension("yaml");
-    let yaml = std::fs::read_to_string(&yaml_path).map_err(ImportError::io(&yaml_path))?;
-    let yaml_name = yaml_path.display().to_string();
-    let text = top_level_text(&yaml, &yaml_name)?
-        .remove("short_script")
-        .filter(|t| !t.trim().is_empty())
-        .ok_or_else(|| ImportError::missing(&yaml_name, "short_script", "the sequence's text"))?;
-
-    let skeleton = Skeleton::mixamo();
+    let skeleton = Skeleton::humoto_character();
     let joints = skeleton.joint_count();
-    let to_y_up = options.up_axis().to_y_up();
-    let from_y_up = to_y_up.transpose();
+    let parents = skeleton.parents();
+    let offsets = skeleton.rest_offsets();
     let armature = root.get("armature", "the bone transforms per frame")?.items()?;
     let frames = armature.len();
     if frames == 0 {
         return Err(ImportError::format(&source_name, "`armature`", "at least one frame", 0));
     }
-    let mut local_rotations = Vec::with_capacity(frames * joints);
-    let mut root_positions = Vec::with_capacity(frames);
+    let mut world_rotations = Vec::with_capacity(frames * joints);
+    let mut positions = Vec::with_capacity(frames * joints);
     for frame in &armature {
+        let first = world_rotations.len();
         for (j, name) in skeleton.joint_names().iter().enumerate() {
             let prefixed = format!("{MIXAMO_PREFIX}{name}");
             let key = if frame.has(&prefixed) { prefixed } else { name.clone() };
             let values = seven(&frame.get(&key, "the bone's [qw,qx,qy,qz, x,y,z]")?)?;
-            let (rotation, location) = pose(&values);
-            // A rotation in Z-up axes, conjugated into Y-up axes.
-            local_rotations.push(to_y_up * rotation * from_y_up);
-            if j == 0 {
-                root_positions.push(to_y_up * location);
-            }
+            // `up_bone`: the rotation and location are already in Y-up parent axes.
+            let (local, location) = pose(&values);
+            let (world, position) = match parents[j] {
+                Some(p) => {
+                    let parent = world_rotations[first + p];
+                    let parent_position: Vec3 = positions[first + p];
+                    (parent * local, parent_position + parent * (offsets[j] + location))
+                }
+                None => (local, offsets[0] + location),
+            };
+            world_rotations.push(world);
+            positions.push(position);
         }
     }
-
+    let folded = PosedRig { skeleton: skeleton.clone(), world_rotations, positions }.fold();
+    let to_y_up = options.up_axis().to_y_up();
     let objects_field = root.get("objects", "the object poses per frame")?;
     let models = root.has("object_models").then(|| root.get("object_models", "")).transpose()?;
-    let mut moving = Vec::new();
-    let mut static_count = 0;
+    let folder = objects_dir(options);
+    let mut objects = Vec::new();
     for (name, track) in objects_field.entries()? {
         let poses = track.items()?;
         if poses.len() != frames {
@@ -198,19 +444,48 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
         let mut translations = Vec::with_capacity(frames);
         for p in &poses {
             let (r, t) = pose(&seven(p)?);
-            rotations.push(r);
-            translations.push(t);
+            // Object poses are Z-up world poses: the world turns, the mesh frame stays.
+            rotations.push(to_y_up * r);
+            translations.push(to_y_up * t);
         }
-        let travels = translations.iter().any(|t| t.distance(translations[0]) > MOVING_DISTANCE);
-        let turns = rotations.iter().any(|r| geodesic_angle(rotations[0], *r) > MOVING_ANGLE);
+        let mesh = match models.as_ref().filter(|m| m.has(&name)) {
+            Some(models) => {
+                let mesh = embedded_mesh(&models.get(&name, "the object's model")?);
+                MeshSource::Embedded(Box::new(move || mesh))
+            }
+            None => MeshSource::File(folder.join(&name).join(format!("{name}.obj"))),
+        };
+        objects.push(ObjectTrack { name, rotations, translations, mesh });
+    }
+    Ok(Motion { skeleton, folded, objects })
+}
+
+/// The protocol's object filter, the meshes, and the sequence.
+fn assemble(item: &Item, context: &Context, motion: Motion, text: String) -> Result<Outcome> {
+    let Motion { skeleton, folded, objects: tracks } = motion;
+    let frames = folded.root_positions.len();
+    let mut moving = Vec::new();
+    let mut static_count = 0;
+    for track in tracks {
+        if track.rotations.len() != frames {
+            return Err(ImportError::format(
+                item.path.display(),
+                format!("object `{}`", track.name),
+                format!("{frames} poses (one per body frame)"),
+                track.rotations.len(),
+            ));
+        }
+        let (r0, t0) = (track.rotations[0], track.translations[0]);
+        let travels = track.translations.iter().any(|t| t.distance(t0) > MOVING_DISTANCE);
+        let turns = track.rotations.iter().any(|r| geodesic_angle(r0, *r) > MOVING_ANGLE);
         if travels || turns {
-            moving.push((name, rotations, translations));
+            moving.push(track);
         } else {
             static_count += 1;
         }
     }
     if moving.len() > MAX_MOVING_OBJECTS {
-        let names: Vec<&str> = moving.iter().map(|(n, ..)| n.as_str()).collect();
+        let names: Vec<&str> = moving.iter().map(|t| t.name.as_str()).collect();
         return Ok(Outcome::Skipped(format!(
             "{} moving objects ({}): the paper keeps clips with at most {MAX_MOVING_OBJECTS}",
             moving.len(),
@@ -222,29 +497,43 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
             "no moving object ({static_count} static): not an object interaction"
         )));
     }
-    let folder = objects_dir(options);
-    let mut objects = Vec::with_capacity(moving.len());
-    for (name, rotations, translations) in moving {
-        let embedded = models.as_ref().filter(|m| m.has(&name));
-        let mesh = match embedded {
-            Some(models) => {
-                let key = path.join("object_models").join(&name);
-                let field = models.get(&name, "the object's model")?;
-                context.mesh_from(&key, || embedded_mesh(&field))?
+    let mut objects: Vec<SequenceObject> = Vec::with_capacity(moving.len());
+    for track in moving {
+        let mesh = match track.mesh {
+            MeshSource::Embedded(build) => {
+                context.mesh_from(&item.path.join(&track.name), build)?
             }
-            None => context.mesh(&folder.join(&name).join(format!("{name}.obj")))?,
+            MeshSource::File(path) => context.mesh(&path)?,
         };
-        // Object poses are world poses (Z up): only the world turns, the mesh frame stays.
-        objects.push(mesh.object(&name, &rotations, &translations, to_y_up));
+        objects.push(mesh.object(
+            &track.name,
+            &track.rotations,
+            &track.translations,
+            Mat3::IDENTITY,
+        ));
     }
-    Ok(Outcome::Sequence(Box::new(Sequence {
-        skeleton,
-        fps: FPS,
-        local_rotations,
-        root_positions,
-        objects,
-        texts: vec![text.trim().to_string()],
-        action: None,
-        source_id: format!("humoto/{}", item.id),
-    })))
+    let mut warnings = Vec::new();
+    let (max_error, joint) = folded.max_error;
+    if folded.mean_error > FOLD_WARNING {
+        warnings.push(format!(
+            "the rig's animated bone translations could not all be folded into rotations: \
+             the joints end {:.1} mm from the file's on average ({} up to {:.1} cm)",
+            folded.mean_error * 1000.0,
+            skeleton.joint_names()[joint],
+            max_error * 100.0,
+        ));
+    }
+    Ok(Outcome::Sequence {
+        sequence: Box::new(Sequence {
+            skeleton,
+            fps: FPS,
+            local_rotations: folded.local_rotations,
+            root_positions: folded.root_positions,
+            objects,
+            texts: vec![text],
+            action: None,
+            source_id: format!("humoto/{}", item.id),
+        }),
+        warnings,
+    })
 }

@@ -9,12 +9,14 @@
 
 pub mod array;
 pub mod error;
+pub mod glb;
 pub mod grab;
 pub mod himo;
 pub mod humoto;
 pub mod npy;
 pub mod pickle;
 pub mod prepare;
+pub mod rig;
 pub mod smplx;
 pub mod value;
 pub mod yaml;

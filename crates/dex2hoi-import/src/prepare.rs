@@ -21,6 +21,7 @@ use dex2hoi_repr::bps::DEFAULT_BPS_POINTS;
 use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SkeletonKind};
 
 use crate::error::{ImportError, Result};
+use crate::humoto::PickleRig;
 use crate::smplx::{SmplxModels, UpAxis};
 use crate::{grab, himo, humoto};
 
@@ -63,9 +64,14 @@ impl SourceFormat {
         }
     }
 
-    /// The up axis of the format's capture world (docs/CONVENTIONS.md, "Datasets").
+    /// The up axis of the format's capture world (docs/CONVENTIONS.md, "Datasets"): Z for GRAB
+    /// and HUMOTO's pickles (HUMOTO's GLBs are Y up, as all glTF, whatever this says); Y for
+    /// HIMO, whose own viewer shows its data unrotated in a Y-up viewer.
     pub fn default_up_axis(self) -> UpAxis {
-        UpAxis::Z
+        match self {
+            Self::Grab | Self::Humoto => UpAxis::Z,
+            Self::Himo => UpAxis::Y,
+        }
     }
 }
 
@@ -106,6 +112,8 @@ pub struct PrepareOptions {
     pub seed: u64,
     /// Overrides the format's up axis.
     pub up_axis: Option<UpAxis>,
+    /// The rig of HUMOTO pickles.
+    pub pickle_rig: PickleRig,
 }
 
 impl PrepareOptions {
@@ -123,6 +131,7 @@ impl PrepareOptions {
             split_file: None,
             seed: 0,
             up_axis: None,
+            pickle_rig: PickleRig::default(),
         }
     }
 
@@ -146,8 +155,14 @@ pub struct Item {
 /// What reading one sequence gave.
 #[derive(Debug)]
 pub enum Outcome {
-    /// A sequence at the dataset's frame rate, in the project's axes, with canonical meshes.
-    Sequence(Box<Sequence>),
+    /// A sequence at the dataset's frame rate, in the project's axes, with canonical meshes,
+    /// and what the reader found doubtful about it.
+    Sequence {
+        /// The sequence.
+        sequence: Box<Sequence>,
+        /// Doubts, in words (reported, not fatal).
+        warnings: Vec<String>,
+    },
     /// A readable sequence that the dataset's protocol leaves out, and why.
     Skipped(String),
 }
@@ -159,6 +174,8 @@ pub struct Context {
     pub options: PrepareOptions,
     /// The SMPL-X models (GRAB, HIMO).
     pub smplx: Option<SmplxModels>,
+    /// HUMOTO's `animations.json`, read once.
+    pub humoto_scripts: OnceLock<std::result::Result<humoto::Scripts, String>>,
     meshes: MeshCache,
 }
 
@@ -180,7 +197,7 @@ impl Context {
                 ));
             }
         };
-        Ok(Self { options, smplx, meshes: MeshCache::default() })
+        Ok(Self { options, smplx, humoto_scripts: OnceLock::new(), meshes: MeshCache::default() })
     }
 
     /// The SMPL-X models (present for GRAB and HIMO, checked by [`Context::new`]).
@@ -282,8 +299,10 @@ pub struct PrepareReport {
     /// Sequences the protocol leaves out (too many objects, not in the split file, ...).
     pub skipped: Vec<Skipped>,
     /// Sequences that could not be read (a missing key, a wrong shape, a truncated file, a
-    /// NaN, a refused pickle), with the error.
+    /// NaN, a refused pickle, a body lying down), with the error.
     pub failed: Vec<Skipped>,
+    /// Sequences read with a doubt (feet away from the floor, rig stretch left over).
+    pub warnings: Vec<Skipped>,
     /// Distinct objects in the dataset.
     pub objects: usize,
 }
@@ -301,11 +320,12 @@ impl PrepareReport {
             })
             .collect();
         lines.push(format!(
-            "found {} sequences: read {read} ({}), skipped {}, failed {}; {} objects",
+            "found {} sequences: read {read} ({}), skipped {}, failed {}, warnings {}; {} objects",
             self.found,
             if splits.is_empty() { "none".to_string() } else { splits.join(", ") },
             self.skipped.len(),
             self.failed.len(),
+            self.warnings.len(),
             self.objects
         ));
         for s in &self.skipped {
@@ -313,6 +333,9 @@ impl PrepareReport {
         }
         for s in &self.failed {
             lines.push(format!("failed {}: {}", s.id, s.reason));
+        }
+        for s in &self.warnings {
+            lines.push(format!("warning {}: {}", s.id, s.reason));
         }
         lines.join("\n")
     }
@@ -460,24 +483,96 @@ impl Queries {
     }
 }
 
+/// A body is upright when its head stands at least this share of its rest height above the
+/// pelvis on the median frame (a body read with the wrong up axis lies down or stands on its
+/// head).
+pub const UPRIGHT_SHARE: f32 = 0.5;
+
+/// The feet touch the floor (height 0) when the lower foot joint's median height lies in this
+/// range (metres): a foot joint sits a few centimetres up; seated or lying clips lift it more.
+pub const FLOOR_RANGE: std::ops::RangeInclusive<f32> = -0.10..=0.30;
+
+/// Checks from the data that a read sequence stands up in the project's Y-up world: the head
+/// above the pelvis (else an error: the up axis is wrong) and the feet near the floor (else a
+/// warning, with the numbers).
+pub fn check_posture(sequence: &Sequence) -> Result<Vec<String>> {
+    let skeleton = &sequence.skeleton;
+    let fk = dex2hoi_repr::fk::forward_kinematics(
+        skeleton,
+        &sequence.local_rotations,
+        &sequence.root_positions,
+    )?;
+    let rest = skeleton.rest_positions();
+    let head = (0..rest.len()).max_by(|&a, &b| rest[a].y.total_cmp(&rest[b].y)).unwrap_or(0);
+    let rest_height = rest[head].y - rest[0].y;
+    let groups = skeleton.groups();
+    let feet: Vec<usize> = groups.left_foot.iter().chain(&groups.right_foot).copied().collect();
+    let mut heights = Vec::with_capacity(fk.frames);
+    let mut floors = Vec::with_capacity(fk.frames);
+    for frame in 0..fk.frames {
+        heights.push(fk.position(frame, head).y - fk.position(frame, 0).y);
+        floors.push(feet.iter().map(|&j| fk.position(frame, j).y).fold(f32::INFINITY, f32::min));
+    }
+    let height = median(&mut heights);
+    let floor = median(&mut floors);
+    // NaN heights (no frame) fail too.
+    if height.is_nan() || height < UPRIGHT_SHARE * rest_height {
+        return Err(ImportError::format(
+            &sequence.source_id,
+            "posture",
+            format!(
+                "the head ({}) above the pelvis by at least {:.2} m on the median frame",
+                skeleton.joint_names()[head],
+                UPRIGHT_SHARE * rest_height
+            ),
+            format!(
+                "{height:.2} m: the body lies down or stands on its head, so the up axis is most \
+                 likely wrong (see --up-axis)"
+            ),
+        ));
+    }
+    let mut warnings = Vec::new();
+    if !FLOOR_RANGE.contains(&floor) {
+        warnings.push(format!(
+            "the lower foot is {floor:.2} m above the floor (y = 0) on the median frame, \
+             expected {:.2} to {:.2} m: check the up axis and the root translation",
+            FLOOR_RANGE.start(),
+            FLOOR_RANGE.end()
+        ));
+    }
+    Ok(warnings)
+}
+
+fn median(values: &mut [f32]) -> f32 {
+    if values.is_empty() {
+        return f32::NAN;
+    }
+    values.sort_by(f32::total_cmp);
+    values[values.len() / 2]
+}
+
+/// One sequence read into features, with its warnings; or the reason it was skipped.
+type ReadOne = std::result::Result<(ProcessedSequence, Vec<String>), String>;
+
 /// Reads one sequence into features.
 fn read_one(
     item: &Item,
     context: &Context,
     queries: &Queries,
     config: &TargetConfig,
-) -> Result<std::result::Result<ProcessedSequence, String>> {
-    let sequence = match load(item, context)? {
-        Outcome::Sequence(sequence) => *sequence,
+) -> Result<ReadOne> {
+    let (sequence, mut warnings) = match load(item, context)? {
+        Outcome::Sequence { sequence, warnings } => (*sequence, warnings),
         Outcome::Skipped(reason) => return Ok(Err(reason)),
     };
+    warnings.extend(check_posture(&sequence)?);
     let fps = context.options.fps;
     let sequence =
         if (sequence.fps - fps).abs() > 1e-3 { resample(&sequence, fps)? } else { sequence };
     let object_queries: Vec<Arc<MeshQuery>> =
         sequence.objects.iter().map(|o| queries.get(o)).collect::<Result<_>>()?;
     let refs: Vec<&MeshQuery> = object_queries.iter().map(Arc::as_ref).collect();
-    Ok(Ok(process_sequence(&sequence, &refs, config)?))
+    Ok(Ok((process_sequence(&sequence, &refs, config)?, warnings)))
 }
 
 /// Reads a published dataset into a dex2hoi dataset. `progress(done, total)` is called as
@@ -501,7 +596,7 @@ pub fn prepare(
     let done = AtomicUsize::new(0);
     let queries = Queries::default();
     let config = TargetConfig::default();
-    let results: Vec<Result<std::result::Result<ProcessedSequence, String>>> = items
+    let results: Vec<Result<ReadOne>> = items
         .par_iter()
         .map(|item| {
             let result = read_one(item, &context, &queries, &config);
@@ -513,7 +608,12 @@ pub fn prepare(
     let mut splits: BTreeMap<Split, Vec<ProcessedSequence>> = BTreeMap::new();
     for (item, result) in items.iter().zip(results) {
         match result {
-            Ok(Ok(sequence)) => splits.entry(item.split).or_default().push(sequence),
+            Ok(Ok((sequence, warnings))) => {
+                report.warnings.extend(
+                    warnings.into_iter().map(|reason| Skipped { id: item.id.clone(), reason }),
+                );
+                splits.entry(item.split).or_default().push(sequence)
+            }
             Ok(Err(reason)) => skipped.push(Skipped { id: item.id.clone(), reason }),
             Err(error) => {
                 report.failed.push(Skipped { id: item.id.clone(), reason: error.to_string() })

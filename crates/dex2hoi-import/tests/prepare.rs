@@ -257,7 +257,7 @@ fn humoto_round_trip_filter_and_meshes() {
     let (lo, hi) = spoon.mesh.bounding_box();
     assert!((hi.x - lo.x - 0.024).abs() < 1e-5, "the embedded spoon, not the folder's");
 
-    let skeleton = Skeleton::mixamo();
+    let skeleton = Skeleton::humoto_character();
     for seq in ["pick_mug", "stir_bowl"] {
         let mut archive = Npz::open(&fixtures.join(format!("expected/humoto/{seq}.npz"))).unwrap();
         let (local, shape) = number_array(&mut archive, "local");
@@ -314,4 +314,26 @@ fn himo_round_trip_and_three_object_sequences() {
     assert_eq!(three.objects.len(), 3);
     assert_eq!(three.objects[2].name, "Plate");
     assert_eq!(three.params.frames(), 31);
+}
+
+#[test]
+fn a_wrong_up_axis_is_refused_with_the_numbers() {
+    // HIMO's fixture is Y up (the format's default); read as Z up, every body lies down.
+    let fixtures = common::fixtures();
+    let mut options = PrepareOptions::new(SourceFormat::Himo, &fixtures.join("himo"));
+    options.smplx_model = Some(fixtures.join("smplx"));
+    options.up_axis = Some(dex2hoi_import::smplx::UpAxis::Z);
+    let prepared = run(options);
+    assert!(prepared.dataset.is_none());
+    let report = &prepared.report;
+    assert_eq!(report.failed.len(), 2, "{}", report.summary());
+    for failed in &report.failed {
+        assert!(
+            failed.reason.contains("posture")
+                && failed.reason.contains("up axis")
+                && failed.reason.contains(" m: the body lies down"),
+            "{}",
+            failed.reason
+        );
+    }
 }

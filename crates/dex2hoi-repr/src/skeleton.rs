@@ -198,49 +198,76 @@ pub const MIXAMO65_PARENTS: [i32; 65] = [
     49, 34, 51, 52, 53, 0, 55, 56, 57, 58, 0, 60, 61, 62, 63,
 ];
 
-/// Rest positions (not offsets) of the left side of the Mixamo rig, by name: the public figures
-/// for the body, our design for the fingers (bases at x 0.66-0.73, tips at 0.73-0.82).
-const MIXAMO_LEFT_REST: [(&str, [f32; 3]); 30] = [
-    ("LeftShoulder", [0.062, 1.278, -0.059]),
-    ("LeftArm", [0.179, 1.248, -0.060]),
-    ("LeftForeArm", [0.421, 1.249, -0.060]),
-    ("LeftHand", [0.634, 1.248, -0.060]),
-    ("LeftHandThumb1", [0.660, 1.228, -0.030]),
-    ("LeftHandThumb2", [0.685, 1.218, -0.005]),
-    ("LeftHandThumb3", [0.707, 1.212, 0.012]),
-    ("LeftHandThumb4", [0.727, 1.208, 0.026]),
-    ("LeftHandIndex1", [0.724, 1.240, -0.032]),
-    ("LeftHandIndex2", [0.762, 1.238, -0.030]),
-    ("LeftHandIndex3", [0.786, 1.236, -0.029]),
-    ("LeftHandIndex4", [0.806, 1.234, -0.028]),
-    ("LeftHandMiddle1", [0.728, 1.240, -0.055]),
-    ("LeftHandMiddle2", [0.770, 1.238, -0.055]),
-    ("LeftHandMiddle3", [0.796, 1.236, -0.055]),
-    ("LeftHandMiddle4", [0.818, 1.234, -0.055]),
-    ("LeftHandRing1", [0.722, 1.238, -0.076]),
-    ("LeftHandRing2", [0.760, 1.236, -0.078]),
-    ("LeftHandRing3", [0.785, 1.234, -0.079]),
-    ("LeftHandRing4", [0.806, 1.232, -0.080]),
-    ("LeftHandPinky1", [0.710, 1.236, -0.095]),
-    ("LeftHandPinky2", [0.740, 1.234, -0.099]),
-    ("LeftHandPinky3", [0.759, 1.232, -0.101]),
-    ("LeftHandPinky4", [0.776, 1.230, -0.102]),
-    ("LeftUpLeg", [0.090, 0.837, 0.003]),
-    ("LeftLeg", [0.085, 0.458, 0.003]),
-    ("LeftFoot", [0.087, 0.074, -0.047]),
-    ("LeftToeBase", [0.075, 0.006, 0.099]),
-    ("LeftToe_End", [0.071, 0.004, 0.159]),
-    ("Hips", [0.0, 0.883, 0.0]),
-];
-
-/// Rest positions of the Mixamo spine and head.
-const MIXAMO_SPINE_REST: [(&str, f32); 6] = [
-    ("Spine", 0.947),
-    ("Spine1", 1.030),
-    ("Spine2", 1.114),
-    ("Neck", 1.288),
-    ("Head", 1.371),
-    ("HeadTop_End", 1.572),
+/// Rest positions (not offsets) of the 65 Mixamo joints of HUMOTO's character, in joint order,
+/// metres, Y up, facing +Z: the bind pose of the published GLB release (the skin's inverse bind
+/// matrices times the `Armature` node's scale 0.01; every sequence of the release shares it).
+/// docs/CONVENTIONS.md, "Rest offsets".
+pub const HUMOTO_REST_POSITIONS: [(&str, [f32; 3]); 65] = [
+    ("Hips", [0.0000, 0.8827, 0.0000]),
+    ("Spine", [0.0000, 0.9474, -0.0093]),
+    ("Spine1", [0.0000, 1.0296, -0.0212]),
+    ("Spine2", [0.0000, 1.1138, -0.0333]),
+    ("Neck", [0.0000, 1.2882, -0.0367]),
+    ("Head", [0.0000, 1.3709, -0.0381]),
+    ("HeadTop_End", [0.0000, 1.5724, -0.0374]),
+    ("LeftShoulder", [0.0616, 1.2782, -0.0591]),
+    ("LeftArm", [0.1785, 1.2484, -0.0589]),
+    ("LeftForeArm", [0.4214, 1.2487, -0.0587]),
+    ("LeftHand", [0.6342, 1.2485, -0.0598]),
+    ("LeftHandThumb1", [0.6516, 1.2304, -0.0366]),
+    ("LeftHandThumb2", [0.6804, 1.2158, -0.0197]),
+    ("LeftHandThumb3", [0.7068, 1.2010, -0.0064]),
+    ("LeftHandThumb4", [0.7281, 1.1876, 0.0062]),
+    ("LeftHandIndex1", [0.7228, 1.2467, -0.0374]),
+    ("LeftHandIndex2", [0.7519, 1.2473, -0.0372]),
+    ("LeftHandIndex3", [0.7837, 1.2476, -0.0370]),
+    ("LeftHandIndex4", [0.8089, 1.2470, -0.0368]),
+    ("LeftHandMiddle1", [0.7274, 1.2499, -0.0591]),
+    ("LeftHandMiddle2", [0.7636, 1.2487, -0.0579]),
+    ("LeftHandMiddle3", [0.7858, 1.2486, -0.0571]),
+    ("LeftHandMiddle4", [0.8169, 1.2487, -0.0560]),
+    ("LeftHandRing1", [0.7251, 1.2498, -0.0802]),
+    ("LeftHandRing2", [0.7556, 1.2487, -0.0816]),
+    ("LeftHandRing3", [0.7759, 1.2489, -0.0825]),
+    ("LeftHandRing4", [0.8026, 1.2500, -0.0838]),
+    ("LeftHandPinky1", [0.7153, 1.2455, -0.0980]),
+    ("LeftHandPinky2", [0.7443, 1.2471, -0.0989]),
+    ("LeftHandPinky3", [0.7635, 1.2470, -0.0995]),
+    ("LeftHandPinky4", [0.7820, 1.2454, -0.1001]),
+    ("RightShoulder", [-0.0616, 1.2782, -0.0592]),
+    ("RightArm", [-0.1776, 1.2484, -0.0594]),
+    ("RightForeArm", [-0.4214, 1.2487, -0.0585]),
+    ("RightHand", [-0.6341, 1.2485, -0.0597]),
+    ("RightHandThumb1", [-0.6516, 1.2311, -0.0362]),
+    ("RightHandThumb2", [-0.6805, 1.2170, -0.0188]),
+    ("RightHandThumb3", [-0.7067, 1.2020, -0.0051]),
+    ("RightHandThumb4", [-0.7281, 1.1910, 0.0080]),
+    ("RightHandIndex1", [-0.7227, 1.2463, -0.0367]),
+    ("RightHandIndex2", [-0.7517, 1.2465, -0.0358]),
+    ("RightHandIndex3", [-0.7833, 1.2463, -0.0349]),
+    ("RightHandIndex4", [-0.8087, 1.2484, -0.0341]),
+    ("RightHandMiddle1", [-0.7267, 1.2492, -0.0591]),
+    ("RightHandMiddle2", [-0.7630, 1.2487, -0.0594]),
+    ("RightHandMiddle3", [-0.7856, 1.2484, -0.0596]),
+    ("RightHandMiddle4", [-0.8160, 1.2500, -0.0598]),
+    ("RightHandRing1", [-0.7242, 1.2494, -0.0782]),
+    ("RightHandRing2", [-0.7553, 1.2482, -0.0778]),
+    ("RightHandRing3", [-0.7753, 1.2492, -0.0775]),
+    ("RightHandRing4", [-0.8008, 1.2476, -0.0771]),
+    ("RightHandPinky1", [-0.7145, 1.2463, -0.0977]),
+    ("RightHandPinky2", [-0.7429, 1.2460, -0.0982]),
+    ("RightHandPinky3", [-0.7622, 1.2458, -0.0985]),
+    ("RightHandPinky4", [-0.7840, 1.2454, -0.0989]),
+    ("LeftUpLeg", [0.0897, 0.8372, 0.0034]),
+    ("LeftLeg", [0.0854, 0.4582, -0.0026]),
+    ("LeftFoot", [0.0872, 0.0740, -0.0473]),
+    ("LeftToeBase", [0.0754, 0.0058, 0.0986]),
+    ("LeftToe_End", [0.0709, 0.0040, 0.1590]),
+    ("RightUpLeg", [-0.0897, 0.8372, 0.0057]),
+    ("RightLeg", [-0.0854, 0.4582, 0.0049]),
+    ("RightFoot", [-0.0873, 0.0734, -0.0451]),
+    ("RightToeBase", [-0.0756, 0.0058, 0.0963]),
+    ("RightToe_End", [-0.0711, 0.0040, 0.1559]),
 ];
 
 /// The name of the mirror joint: left and right swapped (`left_`/`right_`, `Left`/`Right`).
@@ -387,21 +414,25 @@ impl Skeleton {
         skeleton.with_rest_offsets(symmetric).expect("symmetrising keeps the skeleton valid")
     }
 
-    /// The Mixamo rig of HUMOTO with 65 joints (names without the `mixamorig:` prefix): the
-    /// public rest figures for the body and our finger design.
+    /// The Mixamo rig of HUMOTO with 65 joints (names without the `mixamorig:` prefix): HUMOTO's
+    /// character ([`HUMOTO_REST_POSITIONS`]) made exactly left/right symmetric like
+    /// [`Skeleton::smplx`] (the published bind pose differs by up to 2.5 mm between sides), so
+    /// that mirroring is an exact augmentation.
     pub fn mixamo() -> Self {
+        let skeleton = Self::humoto_character();
+        let symmetric = skeleton.symmetrised_offsets();
+        skeleton.with_rest_offsets(symmetric).expect("symmetrising keeps the skeleton valid")
+    }
+
+    /// HUMOTO's character exactly as published ([`HUMOTO_REST_POSITIONS`], not symmetrised): the
+    /// rest skeleton of every HUMOTO sequence.
+    pub fn humoto_character() -> Self {
         let names = mixamo_names();
         let parents = parents_from_i32(&MIXAMO65_PARENTS);
         let index = |name: &str| names.iter().position(|n| n == name).expect("known Mixamo bone");
         let mut rest = vec![Vec3::ZERO; names.len()];
-        for (name, position) in MIXAMO_LEFT_REST {
-            let p = Vec3::from_array(position);
-            rest[index(name)] = p;
-            let mirrored = mirror_name(name);
-            rest[index(&mirrored)] = Vec3::new(-p.x, p.y, p.z);
-        }
-        for (name, height) in MIXAMO_SPINE_REST {
-            rest[index(name)] = Vec3::new(0.0, height, 0.0);
+        for (name, position) in HUMOTO_REST_POSITIONS {
+            rest[index(name)] = Vec3::from_array(position);
         }
         let offsets = (0..names.len())
             .map(|j| match parents[j] {

@@ -1,0 +1,357 @@
+//! Binary glTF (`.glb`) scenes as animation sources, through the `gltf` crate: the node tree with
+//! its rest transforms, node animations sampled at any time (`LINEAR` with spherical
+//! interpolation of rotations, `STEP`), world matrices, skins with their inverse bind matrices,
+//! and triangle meshes. Only the GLB's own binary chunk is read: a file that points at external
+//! or embedded-URI buffers is refused.
+
+use std::path::Path;
+
+use glam::{Mat4, Quat, Vec3};
+use gltf::animation::util::ReadOutputs;
+use gltf::animation::{Interpolation, Property};
+
+use crate::error::{ImportError, Result};
+
+/// The most keyframes one animation channel may have (an hour at 240 fps): a guard against a
+/// file that claims more than any capture holds.
+pub const MAX_KEYFRAMES: usize = 864_000;
+
+/// A node of the scene tree.
+#[derive(Debug, Clone)]
+pub struct Node {
+    /// Its name (empty when the file gives none).
+    pub name: String,
+    /// Its parent node.
+    pub parent: Option<usize>,
+    /// Rest translation, rotation and scale.
+    pub rest: (Vec3, Quat, Vec3),
+    /// The mesh it instantiates.
+    pub mesh: Option<usize>,
+    /// The skin its mesh is bound to.
+    pub skin: Option<usize>,
+}
+
+/// How a track interpolates between keyframes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Step {
+    Linear,
+    Constant,
+}
+
+/// One animated property of one node.
+#[derive(Debug, Clone)]
+struct Track {
+    node: usize,
+    property: Property,
+    times: Vec<f32>,
+    /// Translations and scales as `[x, y, z, 0]`, rotations as `[x, y, z, w]`.
+    values: Vec<[f32; 4]>,
+    step: Step,
+}
+
+/// A skin: its joint nodes and their inverse bind matrices.
+#[derive(Debug, Clone)]
+pub struct Skin {
+    /// Joint node indices, in the skin's order.
+    pub joints: Vec<usize>,
+    /// Inverse bind matrix per joint (identity when the file gives none).
+    pub inverse_bind_matrices: Vec<Mat4>,
+}
+
+/// A GLB scene read into memory.
+#[derive(Debug, Clone)]
+pub struct GlbScene {
+    source_name: String,
+    /// The nodes, in file order.
+    pub nodes: Vec<Node>,
+    /// The skins.
+    pub skins: Vec<Skin>,
+    meshes: Vec<(Vec<Vec3>, Vec<[u32; 3]>)>,
+    tracks: Vec<Track>,
+}
+
+impl GlbScene {
+    /// Reads a `.glb` file.
+    pub fn read(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(ImportError::io(path))?;
+        Self::from_bytes(&bytes, &path.display().to_string())
+    }
+
+    /// Reads a GLB from memory; `source_name` names it in errors.
+    pub fn from_bytes(bytes: &[u8], source_name: &str) -> Result<Self> {
+        let bad = |what: &str, expected: &str, got: &dyn std::fmt::Display| {
+            ImportError::format(source_name, what, expected, got)
+        };
+        if bytes.get(..4) != Some(b"glTF".as_slice()) {
+            return Err(bad("header", "a binary glTF file (magic `glTF`)", &"other bytes"));
+        }
+        let gltf = gltf::Gltf::from_slice(bytes)
+            .map_err(|e| bad("glTF", "a valid glTF 2.0 binary", &e))?;
+        let blob = gltf.blob.as_deref().unwrap_or(&[]);
+        let document = &gltf.document;
+        for buffer in document.buffers() {
+            match buffer.source() {
+                gltf::buffer::Source::Bin if buffer.length() <= blob.len() => {}
+                gltf::buffer::Source::Bin => {
+                    return Err(bad(
+                        &format!("buffer {}", buffer.index()),
+                        &format!("{} bytes in the binary chunk", buffer.length()),
+                        &blob.len(),
+                    ));
+                }
+                gltf::buffer::Source::Uri(_) => {
+                    return Err(bad(
+                        &format!("buffer {}", buffer.index()),
+                        "the GLB's binary chunk",
+                        &"an external or URI buffer",
+                    ));
+                }
+            }
+        }
+        let data = |_: gltf::Buffer<'_>| Some(blob);
+        let mut nodes: Vec<Node> = document
+            .nodes()
+            .map(|n| {
+                let (t, r, s) = n.transform().decomposed();
+                Node {
+                    name: n.name().unwrap_or_default().to_string(),
+                    parent: None,
+                    rest: (Vec3::from_array(t), Quat::from_array(r), Vec3::from_array(s)),
+                    mesh: n.mesh().map(|m| m.index()),
+                    skin: n.skin().map(|s| s.index()),
+                }
+            })
+            .collect();
+        for node in document.nodes() {
+            for child in node.children() {
+                nodes[child.index()].parent = Some(node.index());
+            }
+        }
+        // glTF's validation refuses cycles only partly: walk each chain to be sure.
+        for start in 0..nodes.len() {
+            let mut node = start;
+            for _ in 0..=nodes.len() {
+                match nodes[node].parent {
+                    Some(p) => node = p,
+                    None => break,
+                }
+            }
+            if nodes[node].parent.is_some() {
+                return Err(bad("node tree", "a tree", &format!("a cycle through node {start}")));
+            }
+        }
+        let mut skins = Vec::new();
+        for skin in document.skins() {
+            let joints: Vec<usize> = skin.joints().map(|j| j.index()).collect();
+            let inverse_bind_matrices = match skin.reader(data).read_inverse_bind_matrices() {
+                Some(matrices) => matrices.map(|m| Mat4::from_cols_array_2d(&m)).collect(),
+                None if skin.inverse_bind_matrices().is_some() => {
+                    return Err(bad(
+                        &format!("skin {}", skin.index()),
+                        "readable inverse bind matrices",
+                        &"an accessor outside the binary chunk",
+                    ));
+                }
+                None => vec![Mat4::IDENTITY; joints.len()],
+            };
+            if inverse_bind_matrices.len() != joints.len() {
+                return Err(bad(
+                    &format!("skin {}", skin.index()),
+                    &format!("{} inverse bind matrices (one per joint)", joints.len()),
+                    &inverse_bind_matrices.len(),
+                ));
+            }
+            skins.push(Skin { joints, inverse_bind_matrices });
+        }
+        let mut meshes = Vec::new();
+        for mesh in document.meshes() {
+            let mut vertices = Vec::new();
+            let mut faces = Vec::new();
+            for primitive in mesh.primitives() {
+                let what = format!("mesh {} ({})", mesh.index(), mesh.name().unwrap_or_default());
+                if primitive.mode() != gltf::mesh::Mode::Triangles {
+                    return Err(bad(&what, "triangles", &format!("{:?}", primitive.mode())));
+                }
+                let reader = primitive.reader(data);
+                let base = vertices.len();
+                let positions = reader
+                    .read_positions()
+                    .ok_or_else(|| bad(&what, "readable vertex positions", &"none"))?;
+                vertices.extend(positions.map(Vec3::from_array));
+                let count = vertices.len() - base;
+                let indices: Vec<u32> = match reader.read_indices() {
+                    Some(indices) => indices.into_u32().collect(),
+                    None => (0..count as u32).collect(),
+                };
+                if !indices.len().is_multiple_of(3) {
+                    return Err(bad(&what, "a multiple of 3 indices", &indices.len()));
+                }
+                if let Some(&i) = indices.iter().find(|&&i| i as usize >= count) {
+                    return Err(bad(&what, &format!("indices below {count}"), &i));
+                }
+                faces.extend(
+                    indices.chunks_exact(3).map(|f| [f[0], f[1], f[2]].map(|i| i + base as u32)),
+                );
+            }
+            meshes.push((vertices, faces));
+        }
+        let mut tracks = Vec::new();
+        for animation in document.animations() {
+            for channel in animation.channels() {
+                let what = format!("animation {} channel", animation.index());
+                let step = match channel.sampler().interpolation() {
+                    Interpolation::Linear => Step::Linear,
+                    Interpolation::Step => Step::Constant,
+                    Interpolation::CubicSpline => {
+                        return Err(bad(&what, "LINEAR or STEP interpolation", &"CUBICSPLINE"));
+                    }
+                };
+                let property = channel.target().property();
+                if property == Property::MorphTargetWeights {
+                    continue;
+                }
+                if channel.sampler().input().count() > MAX_KEYFRAMES {
+                    return Err(bad(
+                        &what,
+                        &format!("at most {MAX_KEYFRAMES} keyframes"),
+                        &channel.sampler().input().count(),
+                    ));
+                }
+                let reader = channel.reader(data);
+                let times: Vec<f32> = reader
+                    .read_inputs()
+                    .ok_or_else(|| bad(&what, "readable keyframe times", &"none"))?
+                    .collect();
+                let values: Vec<[f32; 4]> = match reader.read_outputs() {
+                    Some(ReadOutputs::Translations(v) | ReadOutputs::Scales(v)) => {
+                        v.map(|[x, y, z]| [x, y, z, 0.0]).collect()
+                    }
+                    Some(ReadOutputs::Rotations(r)) => r.into_f32().collect(),
+                    _ => return Err(bad(&what, "readable keyframe values", &"none")),
+                };
+                if times.is_empty() || values.len() != times.len() {
+                    return Err(bad(
+                        &what,
+                        "one value per keyframe time, at least one",
+                        &format!("{} times, {} values", times.len(), values.len()),
+                    ));
+                }
+                if times
+                    .windows(2)
+                    .any(|w| w[1].partial_cmp(&w[0]) != Some(std::cmp::Ordering::Greater))
+                    || !times[0].is_finite()
+                {
+                    return Err(bad(&what, "increasing finite keyframe times", &"others"));
+                }
+                if values.iter().flatten().any(|v| !v.is_finite()) {
+                    return Err(bad(&what, "finite keyframe values", &"NaN or infinity"));
+                }
+                let node = channel.target().node().index();
+                tracks.push(Track { node, property, times, values, step });
+            }
+        }
+        Ok(Self { source_name: source_name.to_string(), nodes, skins, meshes, tracks })
+    }
+
+    /// The name used in errors (the file).
+    pub fn source_name(&self) -> &str {
+        &self.source_name
+    }
+
+    /// The index of the node named `name`.
+    pub fn node_named(&self, name: &str) -> Option<usize> {
+        self.nodes.iter().position(|n| n.name == name)
+    }
+
+    /// The keyframe times of the animation: those of the track with the most keyframes (the
+    /// exporters write every animated property of a clip on one time grid; shorter tracks are
+    /// constant ones). A scene without animation has one frame at time 0.
+    pub fn keyframe_times(&self) -> Vec<f32> {
+        self.tracks
+            .iter()
+            .max_by_key(|t| t.times.len())
+            .map_or_else(|| vec![0.0], |t| t.times.clone())
+    }
+
+    /// Whether any track animates node `node`.
+    pub fn is_animated(&self, node: usize) -> bool {
+        self.tracks.iter().any(|t| t.node == node)
+    }
+
+    /// The local transform of every node at `time`.
+    fn local_transforms(&self, time: f32) -> Vec<(Vec3, Quat, Vec3)> {
+        let mut local: Vec<(Vec3, Quat, Vec3)> = self.nodes.iter().map(|n| n.rest).collect();
+        for track in &self.tracks {
+            let value = track.sample(time);
+            let entry = &mut local[track.node];
+            match track.property {
+                Property::Translation => entry.0 = Vec3::new(value[0], value[1], value[2]),
+                Property::Rotation => entry.1 = Quat::from_array(value).normalize(),
+                Property::Scale => entry.2 = Vec3::new(value[0], value[1], value[2]),
+                Property::MorphTargetWeights => {}
+            }
+        }
+        local
+    }
+
+    /// The world matrix of every node at `time`.
+    pub fn world_matrices(&self, time: f32) -> Vec<Mat4> {
+        let local = self.local_transforms(time);
+        let mut world: Vec<Option<Mat4>> = vec![None; self.nodes.len()];
+        for node in 0..self.nodes.len() {
+            self.world_of(node, &local, &mut world);
+        }
+        world.into_iter().map(|m| m.unwrap_or(Mat4::IDENTITY)).collect()
+    }
+
+    fn world_of(
+        &self,
+        node: usize,
+        local: &[(Vec3, Quat, Vec3)],
+        world: &mut [Option<Mat4>],
+    ) -> Mat4 {
+        if let Some(m) = world[node] {
+            return m;
+        }
+        let (t, r, s) = local[node];
+        let own = Mat4::from_scale_rotation_translation(s, r, t);
+        // Parent chains are acyclic (checked on reading), so this recursion ends.
+        let m = match self.nodes[node].parent {
+            Some(p) => self.world_of(p, local, world) * own,
+            None => own,
+        };
+        world[node] = Some(m);
+        m
+    }
+
+    /// The vertices and triangles of mesh `mesh` (all its primitives).
+    pub fn mesh(&self, mesh: usize) -> &(Vec<Vec3>, Vec<[u32; 3]>) {
+        &self.meshes[mesh]
+    }
+}
+
+impl Track {
+    /// The value at `time`: clamped outside the keyframes, linear (spherical for rotations) or
+    /// constant between them.
+    fn sample(&self, time: f32) -> [f32; 4] {
+        let last = self.times.len() - 1;
+        if time <= self.times[0] {
+            return self.values[0];
+        }
+        if time >= self.times[last] {
+            return self.values[last];
+        }
+        let next = self.times.partition_point(|&t| t <= time);
+        let k = next - 1;
+        if self.step == Step::Constant {
+            return self.values[k];
+        }
+        let alpha = (time - self.times[k]) / (self.times[next] - self.times[k]);
+        let (a, b) = (self.values[k], self.values[next]);
+        if self.property == Property::Rotation {
+            let q = Quat::from_array(a).normalize().slerp(Quat::from_array(b).normalize(), alpha);
+            return q.to_array();
+        }
+        std::array::from_fn(|i| a[i] + (b[i] - a[i]) * alpha)
+    }
+}
