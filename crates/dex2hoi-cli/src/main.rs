@@ -5,6 +5,8 @@
 //! - `dex2hoi data info DIR`: summarise a dataset directory.
 //! - `dex2hoi data prepare --format grab|humoto|himo --root DIR [--smplx-model FILE] --out DIR`:
 //!   read a downloaded real dataset as published into the dataset format.
+//! - `dex2hoi data show DIR --sequence ID|INDEX --out DIR`: export one sequence of a dataset
+//!   (npz, glb, bvh, preview gif) to look at it.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
 //! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR`: generate and export.
 //! - `dex2hoi evaluator train --data DIR --out EVAL [--steps N] [--seed S]`: train the
@@ -23,6 +25,7 @@ mod evaluate;
 mod evaluator;
 mod prepare;
 mod sample;
+mod show;
 mod train;
 
 #[derive(Debug, Parser)]
@@ -80,6 +83,9 @@ enum DataCommand {
     },
     /// Read a downloaded GRAB, HUMOTO or HIMO dataset as published and write it as a dataset.
     Prepare(prepare::PrepareArgs),
+    /// Export one sequence of a dataset (motion.npz, motion.glb, motion.bvh, preview.gif) as
+    /// the dataset's features decode it, to look at what `prepare` or `synth` produced.
+    Show(show::ShowArgs),
 }
 
 fn main() -> Result<()> {
@@ -89,6 +95,7 @@ fn main() -> Result<()> {
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
         Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
+        Command::Data { command: DataCommand::Show(args) } => show::run(args),
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Evaluate(args) => evaluate::run(args),

@@ -1,0 +1,133 @@
+//! `dex2hoi data show` end to end: a procedural sequence by index and by id, the real HUMOTO
+//! release prepared and shown (skipped when `../shared/realdata` is absent, failing under
+//! `CI=1`), and bad input.
+
+use std::path::{Path, PathBuf};
+
+use dex2hoi_data::dataset::Dataset;
+
+mod common;
+use common::dex2hoi;
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-show-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    dir
+}
+
+fn succeed(args: &[&str]) -> String {
+    let run = dex2hoi(args);
+    assert!(run.status.success(), "{args:?}:\n{}", String::from_utf8_lossy(&run.stderr));
+    String::from_utf8_lossy(&run.stdout).into_owned()
+}
+
+/// The four files, each non-trivial, and the npz's frame count.
+fn check_files(out: &Path, frames: usize) {
+    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif"] {
+        let size = std::fs::metadata(out.join(file)).map(|m| m.len()).unwrap_or(0);
+        assert!(size > 1000, "{file}: {size} bytes");
+    }
+    let bvh = std::fs::read_to_string(out.join("motion.bvh")).unwrap();
+    assert!(bvh.contains(&format!("Frames: {frames}")), "the BVH has {frames} frames");
+}
+
+#[test]
+fn a_procedural_sequence_is_shown_by_index_and_by_id() {
+    let data = temp_dir("synth");
+    let data_arg = data.to_str().unwrap();
+    succeed(&["data", "synth", "--out", data_arg, "--sequences", "80", "--seed", "3"]);
+    let dataset = Dataset::load(&data).unwrap();
+    let test = &dataset.splits[&dex2hoi_data::dataset::Split::Test][0];
+    let out = temp_dir("synth-out");
+    let stdout = succeed(&[
+        "data",
+        "show",
+        data_arg,
+        "--sequence",
+        &test.source_id,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(stdout.contains(&test.source_id) && stdout.contains("test split"), "{stdout}");
+    assert!(stdout.contains(&test.texts[0]), "{stdout}");
+    check_files(&out, test.frames);
+    // Index 0 of the test split is the same sequence.
+    let by_index = temp_dir("synth-index");
+    let stdout = succeed(&[
+        "data",
+        "show",
+        data_arg,
+        "--sequence",
+        "0",
+        "--split",
+        "test",
+        "--out",
+        by_index.to_str().unwrap(),
+    ]);
+    assert!(stdout.contains(&test.source_id), "{stdout}");
+    assert_eq!(
+        std::fs::read(out.join("motion.npz")).unwrap(),
+        std::fs::read(by_index.join("motion.npz")).unwrap()
+    );
+    // Unknown ids and indices name the dataset and what is accepted; nothing is written.
+    let nowhere = temp_dir("synth-nowhere");
+    for wanted in ["no-such-sequence", "80"] {
+        let run = dex2hoi(&[
+            "data",
+            "show",
+            data_arg,
+            "--sequence",
+            wanted,
+            "--out",
+            nowhere.to_str().unwrap(),
+        ]);
+        assert!(!run.status.success());
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert!(
+            stderr.contains(data_arg) && stderr.contains(wanted) && stderr.contains("below 80"),
+            "{stderr}"
+        );
+        assert!(!nowhere.exists());
+    }
+    for dir in [data, out, by_index] {
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
+
+#[test]
+fn the_real_humoto_release_is_prepared_and_shown() {
+    let glb = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/humoto/glb");
+    if !glb.is_dir() {
+        assert!(std::env::var("CI").as_deref() != Ok("1"), "CI needs {}", glb.display());
+        eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
+        return;
+    }
+    let data = temp_dir("humoto");
+    let stdout = succeed(&[
+        "data",
+        "prepare",
+        "--format",
+        "humoto",
+        "--root",
+        glb.to_str().unwrap(),
+        "--out",
+        data.to_str().unwrap(),
+    ]);
+    assert!(stdout.contains("read 2") && stdout.contains("failed 0, warnings 0"), "{stdout}");
+    let out = temp_dir("humoto-out");
+    let stdout = succeed(&[
+        "data",
+        "show",
+        data.to_str().unwrap(),
+        "--sequence",
+        "examining_cutting_board-141",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(stdout.contains("cutting_board") && stdout.contains("lifts the cutting board"));
+    // 235 frames at 30 fps are 157 at 20 fps.
+    check_files(&out, 157);
+    for dir in [data, out] {
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
