@@ -11,7 +11,6 @@ use clap::{Args, ValueEnum};
 use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
 use dex2hoi_export::{ExportMotion, ExportObject, ExportOptions, export_all};
-use dex2hoi_repr::{Skeleton, SkeletonKind};
 
 /// A dataset split on the command line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -74,8 +73,7 @@ pub fn run(args: ShowArgs) -> Result<()> {
         ),
     };
     let manifest = &dataset.manifest;
-    let kind = SkeletonKind::from_name(&manifest.skeleton)?;
-    let skeleton = Skeleton::builtin(kind);
+    let skeleton = manifest.builtin_skeleton()?;
     let motion = decode_features(
         &skeleton,
         &sequence.body,

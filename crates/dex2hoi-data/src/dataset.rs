@@ -270,6 +270,11 @@ impl Manifest {
     pub fn layout(&self) -> FeatureLayout {
         FeatureLayout::new(self.joints)
     }
+
+    /// The built-in skeleton of the dataset's kind: the one its decoded features are posed on.
+    pub fn builtin_skeleton(&self) -> Result<dex2hoi_repr::Skeleton> {
+        Ok(dex2hoi_repr::Skeleton::builtin(SkeletonKind::from_name(&self.skeleton)?))
+    }
 }
 
 fn io_error<'a>(

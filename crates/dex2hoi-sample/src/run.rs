@@ -9,7 +9,7 @@ use dex2hoi_data::dataset::{FeatureStats, Manifest};
 use dex2hoi_model::checkpoint::{assign_parameters, read_tensors};
 use dex2hoi_model::text::{TextEncoder, Vocabulary};
 use dex2hoi_model::{InferenceModel, Model, SeededVarMap};
-use dex2hoi_repr::{Skeleton, SkeletonKind};
+use dex2hoi_repr::Skeleton;
 
 use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
@@ -111,7 +111,7 @@ impl TrainedRun {
             )?;
         }
         let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
-        let skeleton = Skeleton::builtin(SkeletonKind::from_name(&manifest.skeleton)?);
+        let skeleton = manifest.builtin_skeleton()?;
         let inference = InferenceModel::new(&model)?;
         Ok(Self {
             config,

@@ -91,8 +91,7 @@ pub struct BatchOptions {
 impl TrainingSet {
     /// The training split of a dataset cut into windows.
     pub fn new(dataset: &Dataset, window: WindowConfig) -> Result<Self> {
-        let skeleton =
-            Skeleton::builtin(dex2hoi_repr::SkeletonKind::from_name(&dataset.manifest.skeleton)?);
+        let skeleton = dataset.manifest.builtin_skeleton()?;
         let sequences = dataset.splits.get(&Split::Train).cloned().unwrap_or_default();
         if sequences.is_empty() {
             return Err(TrainError::config(
