@@ -8,11 +8,13 @@
 //! - `ablate [--preset NAME] [--steps N]`: the paper's Table 3 on the procedural dataset: the
 //!   full model, its variants and the MDM-style baseline trained with equal budgets, evaluated
 //!   with one evaluator, written to `docs/results/ablation.md`; resumable (see [`ablate`]).
+//! - `fuzz NAME|all [SECONDS]`, `fuzz check`: the fuzz targets of the file readers (see [`fuzz`]).
 //! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
 //!   through, so that a checkout drives everything through xtask.
 
 mod ablate;
 mod compare;
+mod fuzz;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -22,12 +24,15 @@ use anyhow::{Context, Result, bail};
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  ci            format check, clippy with warnings denied, then every test (optimised profile)
+  ci            format check, clippy with warnings denied, every test (optimised profile), fuzz check
   bench [NAME]  run the benchmarks (all, or one of: repr, sample, train) and print their medians
   bench compare sampling and training side by side with the PyTorch reference (bench/torch_reference.py)
   ablate [--preset NAME] [--steps N]
                 train and evaluate the full model and the Table 3 variants, write docs/results/ablation.md
   demo          generate the procedural dataset, train the demo preset, sample and render two prompts
+  fuzz NAME|all [SECONDS]
+                fuzz a file reader (pickle, npy, glb, mesh) with libFuzzer for SECONDS (600) each
+  fuzz check    build the fuzz targets without sanitizers and run each over its seed corpus
   train|sample|evaluate ARGS...
                 run `dex2hoi <command> ARGS...` from a release build (see `dex2hoi --help`)";
 
@@ -46,6 +51,7 @@ fn main() -> Result<()> {
         Some("bench") => bench(&root, args.get(1).map(String::as_str)),
         Some("demo") => demo(&root),
         Some("ablate") => ablate::ablate(&root, &args[1..]),
+        Some("fuzz") => fuzz::fuzz(&root, &args[1..]),
         Some(command @ ("train" | "sample" | "evaluate")) => {
             let mut forwarded =
                 vec!["run", "--release", "--quiet", "--locked", "-p", "dex2hoi-cli", "--"];
@@ -84,6 +90,7 @@ fn ci(root: &Path) -> Result<()> {
     cargo(root, &["fmt", "--all", "--", "--check"])?;
     cargo(root, &["clippy", "--workspace", "--all-targets", "--locked", "--", "-D", "warnings"])?;
     cargo(root, &["test", "--workspace", "--locked"])?;
+    fuzz::check(root)?;
     eprintln!("\nci: all checks passed");
     Ok(())
 }

@@ -2,7 +2,6 @@
 //! and binary) loading, validation, re-centring on the bounding-box centre, and seeded,
 //! area-weighted surface sampling with normals.
 
-use std::fs::File;
 use std::io::BufReader;
 use std::path::Path;
 
@@ -78,26 +77,29 @@ impl Mesh {
     /// Loads a Wavefront OBJ file; every object and group goes into one mesh, polygons are
     /// fan-triangulated, materials, normals and texture coordinates are ignored.
     pub fn load_obj(path: &Path) -> Result<Self> {
-        let file =
-            File::open(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        let bytes =
+            std::fs::read(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
+        Self::parse_obj(&bytes, &path.display().to_string())
+    }
+
+    /// [`Mesh::load_obj`] from memory; `name` names the source in errors.
+    pub fn parse_obj(bytes: &[u8], name: &str) -> Result<Self> {
         let options = tobj::LoadOptions {
             triangulate: true,
             single_index: false,
             ignore_points: true,
             ignore_lines: true,
         };
-        let (models, _materials) = tobj::load_obj_buf(&mut BufReader::new(file), &options, |_| {
+        let (models, _materials) = tobj::load_obj_buf(&mut BufReader::new(bytes), &options, |_| {
             // Materials are not used; a missing .mtl file must not fail the load.
             Ok((Vec::new(), Default::default()))
         })
-        .map_err(|error| {
-            ReprError::format(path.display(), "OBJ content", "a valid OBJ file", error)
-        })?;
+        .map_err(|error| ReprError::format(name, "OBJ content", "a valid OBJ file", error))?;
         let mut vertices = Vec::new();
         let mut faces = Vec::new();
         for model in &models {
             let base = u32::try_from(vertices.len()).map_err(|_| {
-                ReprError::format(path.display(), "vertex count", "fewer than 2^32", vertices.len())
+                ReprError::format(name, "vertex count", "fewer than 2^32", vertices.len())
             })?;
             let mesh = &model.mesh;
             vertices.extend(mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
@@ -105,7 +107,7 @@ impl Mesh {
                 mesh.indices.chunks_exact(3).map(|t| [t[0] + base, t[1] + base, t[2] + base]),
             );
         }
-        Self::new(vertices, faces, &path.display().to_string())
+        Self::new(vertices, faces, name)
     }
 
     /// Loads a PLY file (ASCII, binary little- or big-endian): `x, y, z` of the `vertex`
@@ -114,27 +116,31 @@ impl Mesh {
     /// exporters write free text there, as Blender 2.47 did) are read as comments, as assimp
     /// reads them.
     pub fn load_ply(path: &Path) -> Result<Self> {
-        use ply_rs_bw::parser::Parser;
-        use ply_rs_bw::ply::{DefaultElement, Property};
-        let name = path.display().to_string();
         let bytes =
             std::fs::read(path).map_err(|source| ReprError::Io { path: path.into(), source })?;
-        let bytes = tolerant_ply_header(&bytes).ok_or_else(|| {
-            ReprError::format(&name, "PLY header", "a header ending in `end_header`", "none")
+        Self::parse_ply(&bytes, &path.display().to_string())
+    }
+
+    /// [`Mesh::load_ply`] from memory; `name` names the source in errors.
+    pub fn parse_ply(bytes: &[u8], name: &str) -> Result<Self> {
+        use ply_rs_bw::parser::Parser;
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        let bytes = tolerant_ply_header(bytes).ok_or_else(|| {
+            ReprError::format(name, "PLY header", "a header ending in `end_header`", "none")
         })?;
         let ply = Parser::<DefaultElement>::new()
             .read_ply(&mut bytes.as_slice())
-            .map_err(|error| ReprError::format(&name, "PLY content", "a valid PLY file", error))?;
+            .map_err(|error| ReprError::format(name, "PLY content", "a valid PLY file", error))?;
         let vertex_elements = ply
             .payload
             .get("vertex")
-            .ok_or_else(|| ReprError::format(&name, "elements", "a `vertex` element", "none"))?;
+            .ok_or_else(|| ReprError::format(name, "elements", "a `vertex` element", "none"))?;
         let mut vertices = Vec::with_capacity(vertex_elements.len());
         for (index, element) in vertex_elements.iter().enumerate() {
             let coordinate = |key: &str| -> Result<f32> {
                 element.get(key).and_then(Property::to_f32_lossy).ok_or_else(|| {
                     ReprError::format(
-                        &name,
+                        name,
                         format!("vertex {index}"),
                         format!("a numeric `{key}`"),
                         "none",
@@ -152,7 +158,7 @@ impl Mesh {
                 .and_then(Property::to_u32_list)
                 .ok_or_else(|| {
                     ReprError::format(
-                        &name,
+                        name,
                         format!("face {index}"),
                         "a `vertex_indices` list",
                         "none",
@@ -160,7 +166,7 @@ impl Mesh {
                 })?;
             fan_triangulate(&polygon, &mut faces);
         }
-        Self::new(vertices, faces, &name)
+        Self::new(vertices, faces, name)
     }
 
     /// The axis-aligned bounding box `(min, max)`.
