@@ -30,11 +30,11 @@ pub fn fuzz(root: &Path, args: &[String]) -> Result<()> {
         Some("check") => check(root),
         Some(name) => {
             let seconds = match args.get(1) {
-                Some(text) => text
-                    .parse::<u64>()
-                    .ok()
-                    .filter(|s| *s > 0)
-                    .with_context(|| format!("SECONDS must be a positive number, got `{text}`"))?,
+                Some(text) => {
+                    text.parse::<u64>().ok().filter(|s| *s > 0).with_context(|| {
+                        format!("SECONDS must be a positive number, got `{text}`")
+                    })?
+                }
                 None => DEFAULT_SECONDS,
             };
             let targets: Vec<&str> = match name {
@@ -48,7 +48,10 @@ pub fn fuzz(root: &Path, args: &[String]) -> Result<()> {
             }
             Ok(())
         }
-        None => bail!("usage: cargo xtask fuzz NAME|all [SECONDS] | check; targets: {}", TARGETS.join(", ")),
+        None => bail!(
+            "usage: cargo xtask fuzz NAME|all [SECONDS] | check; targets: {}",
+            TARGETS.join(", ")
+        ),
     }
 }
 
@@ -58,15 +61,17 @@ fn ensure_cargo_fuzz(root: &Path) -> Result<()> {
         .output()
         .is_ok_and(|o| o.status.success());
     if !installed {
-        crate::cargo(root, &["install", "cargo-fuzz", "--locked", "--version", CARGO_FUZZ_VERSION])?;
+        crate::cargo(
+            root,
+            &["install", "cargo-fuzz", "--locked", "--version", CARGO_FUZZ_VERSION],
+        )?;
     }
     Ok(())
 }
 
 fn run(root: &Path, target: &str, seconds: u64) -> Result<()> {
     let corpus = root.join("target/fuzz/corpus").join(target);
-    std::fs::create_dir_all(&corpus)
-        .with_context(|| format!("creating {}", corpus.display()))?;
+    std::fs::create_dir_all(&corpus).with_context(|| format!("creating {}", corpus.display()))?;
     let seeds = root.join("fuzz/corpus").join(target);
     let time = format!("-max_total_time={seconds}");
     let args = [

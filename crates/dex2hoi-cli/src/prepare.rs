@@ -81,10 +81,20 @@ pub struct PrepareArgs {
     /// HUMOTO: the object mesh folder (default: humoto_objects in or beside the root).
     #[arg(long)]
     objects: Option<PathBuf>,
-    /// HUMOTO, HIMO: a JSON file {"train": [ids], "test": [ids]}; unlisted sequences are
-    /// skipped. Without it a seeded hash puts one sequence in ten in the test split.
+    /// A split file, repeatable: JSON {"train": [ids], "test": [ids]}, or a JSON list of ids
+    /// in a file whose name says its split (HOIDiNi's grab_train_split.json and
+    /// grab_test_split.json, ids like s1/airplane_fly_1). Unlisted sequences are skipped.
+    /// Without one, GRAB splits by subject (s10 tests) and HUMOTO and HIMO by a seeded hash.
+    #[arg(long = "split-file")]
+    split_files: Vec<PathBuf>,
+    /// GRAB: leave out the sequences of an intent (repeatable; HOIDiNi's benchmark leaves out
+    /// `lift`).
+    #[arg(long = "exclude-intent")]
+    exclude_intents: Vec<String>,
+    /// GRAB: a prompt table, CSV with the columns dp_ind and Prompt (HOIDiNi's
+    /// grab_prompts.csv); a listed sequence takes its prompt instead of the templates.
     #[arg(long)]
-    split_file: Option<PathBuf>,
+    prompts: Option<PathBuf>,
     /// Seed of the hash split.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -122,7 +132,9 @@ pub fn run(args: PrepareArgs) -> Result<()> {
         options.text_templates = args.text_templates;
     }
     options.objects_dir = args.objects;
-    options.split_file = args.split_file;
+    options.split_files = args.split_files;
+    options.exclude_intents = args.exclude_intents;
+    options.prompts = args.prompts;
     options.seed = args.seed;
     options.up_axis = args.up_axis.map(|a| match a {
         UpAxisArg::Y => UpAxis::Y,

@@ -16,7 +16,7 @@ use dex2hoi_repr::rotation::axis_angle_to_matrix;
 
 use crate::error::{ImportError, Result};
 use crate::npy::{Npz, read_npy};
-use crate::prepare::{Context, HandPoseSource, Item, Outcome};
+use crate::prepare::{Context, HandPoseSource, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::smplx::{HAND_JOINTS, SmplxParams};
 use crate::value::{Field, Value};
 
@@ -121,8 +121,35 @@ fn subject_number(name: &str) -> Option<u32> {
     name.strip_prefix('s')?.parse().ok()
 }
 
-/// Every sequence file, subjects in numeric order, files in name order.
-pub fn discover(root: &Path) -> Result<Vec<Item>> {
+/// Every sequence file, subjects in numeric order, files in name order, with the sequences that
+/// the split files do not list or whose intent is excluded.
+pub fn discover(options: &PrepareOptions) -> Result<(Vec<Item>, Vec<Skipped>)> {
+    let rule = SplitRule::new(options)?;
+    let mut items = Vec::new();
+    let mut skipped = Vec::new();
+    for item in sequence_files(&options.root)? {
+        let stem = item.path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+        let intent = intent_from_file_name(&stem).unwrap_or_default();
+        if options.exclude_intents.iter().any(|i| i.eq_ignore_ascii_case(intent)) {
+            let reason = format!("intent `{intent}` left out (--exclude-intent)");
+            skipped.push(Skipped { id: item.id, reason });
+            continue;
+        }
+        if !rule.has_files() {
+            items.push(item);
+            continue;
+        }
+        match rule.split(&item.id) {
+            Some(split) => items.push(Item { split, ..item }),
+            None => skipped
+                .push(Skipped { id: item.id, reason: "not listed in the split files".into() }),
+        }
+    }
+    Ok((items, skipped))
+}
+
+/// Every sequence file with the subject split (s10 is the test subject).
+fn sequence_files(root: &Path) -> Result<Vec<Item>> {
     let (sequences, _) = layout(root);
     let read_dir = |dir: &Path| -> Result<Vec<PathBuf>> {
         let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -162,6 +189,15 @@ pub fn discover(root: &Path) -> Result<Vec<Item>> {
         }
     }
     Ok(items)
+}
+
+/// `body.vtemp`, the subject's template mesh relative to the GRAB root, when the body has one.
+fn body_value_vtemp(body: &Value, body_name: &str) -> Result<Option<String>> {
+    let body = Field::root(body_name, "body", body);
+    if !body.has("vtemp") {
+        return Ok(None);
+    }
+    Ok(Some(body.get("vtemp", "the template mesh's path")?.text()?))
 }
 
 /// Numbers of one archive entry (a dict of parameters) at a key path, `(T, width)`.
@@ -272,12 +308,23 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
         grab_root.join(format!("tools/object_meshes/contact_meshes/{object_name}.ply"))
     };
 
-    let betas_path = grab_root.join(format!("tools/subject_meshes/{gender}/{subject}_betas.npy"));
-    let betas_value = read_npy(&betas_path)?;
-    let betas_name = betas_path.display().to_string();
-    let (betas, _) = Field::root(&betas_name, "", &betas_value).numbers_any_shape()?;
-    let betas: Vec<f32> = betas.into_iter().map(|b| b as f32).collect();
-    let skeleton = smplx.skeleton(&betas)?;
+    // The subject's body: its personalised template mesh (`body.vtemp`) when it is there, as
+    // GRAB's own code builds it; else the subject's betas.
+    let template = match body_value_vtemp(&body_value, &body_name)? {
+        Some(relative) => grab_root.join(relative),
+        None => grab_root.join(format!("tools/subject_meshes/{gender}/{subject}.ply")),
+    };
+    let skeleton = if template.is_file() {
+        smplx.skeleton_of_template(&template)?
+    } else {
+        let betas_path =
+            grab_root.join(format!("tools/subject_meshes/{gender}/{subject}_betas.npy"));
+        let betas_value = read_npy(&betas_path)?;
+        let betas_name = betas_path.display().to_string();
+        let (betas, _) = Field::root(&betas_name, "", &betas_value).numbers_any_shape()?;
+        let betas: Vec<f32> = betas.into_iter().map(|b| b as f32).collect();
+        smplx.skeleton(&betas)?
+    };
 
     let smplx_params = SmplxParams { global_orient, body_pose, left_hand, right_hand, transl };
     let (mut local_rotations, mut root_positions) = smplx_params.to_motion(&skeleton);
@@ -297,8 +344,17 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
         .collect();
     let mesh = context.mesh(&mesh_path)?;
     let object = mesh.object(&object_name, &rotations, &translations, to_y_up);
-    let texts =
-        options.text_templates.iter().map(|t| fill_template(t, &intent, &object_name)).collect();
+    let mut warnings = Vec::new();
+    let texts = match context.prompts.as_ref().map(|p| p.get(&item.id)) {
+        Some(Some(prompt)) => vec![prompt.clone()],
+        listed => {
+            if listed.is_some() {
+                warnings
+                    .push("no prompt in the prompt table: the text templates give its text".into());
+            }
+            options.text_templates.iter().map(|t| fill_template(t, &intent, &object_name)).collect()
+        }
+    };
     Ok(Outcome::Sequence {
         sequence: Box::new(Sequence {
             skeleton,
@@ -310,7 +366,7 @@ pub fn load(item: &Item, context: &Context) -> Result<Outcome> {
             action: Some(intent),
             source_id: format!("grab/{}", item.id),
         }),
-        warnings: Vec::new(),
+        warnings,
     })
 }
 

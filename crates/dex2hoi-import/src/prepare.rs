@@ -105,9 +105,15 @@ pub struct PrepareOptions {
     pub text_templates: Vec<String>,
     /// HUMOTO's object folder (default: `humoto_objects` in or beside the root).
     pub objects_dir: Option<PathBuf>,
-    /// A JSON file `{"train": [ids], "test": [ids]}` (HUMOTO, HIMO); sequences it does not list
-    /// are skipped. Without it, a seeded hash of the sequence id puts one in ten in `test`.
-    pub split_file: Option<PathBuf>,
+    /// Split files (see [`read_split_file`]): sequences they do not list are skipped. Without
+    /// one, GRAB splits by subject (s10 is the test subject) and HUMOTO and HIMO by a seeded
+    /// hash of the sequence id (one in ten in `test`).
+    pub split_files: Vec<PathBuf>,
+    /// GRAB: intents whose sequences are left out (HOIDiNi's benchmark leaves out `lift`).
+    pub exclude_intents: Vec<String>,
+    /// GRAB: a prompt table (HOIDiNi's `grab_prompts.csv`, see [`read_prompts`]); a sequence it
+    /// lists takes its prompt instead of the templates.
+    pub prompts: Option<PathBuf>,
     /// Seed of the hash split.
     pub seed: u64,
     /// Overrides the format's up axis.
@@ -128,7 +134,9 @@ impl PrepareOptions {
             hand_pose: HandPoseSource::Full,
             text_templates: vec![grab::DEFAULT_TEMPLATE.to_string()],
             objects_dir: None,
-            split_file: None,
+            split_files: Vec::new(),
+            exclude_intents: Vec::new(),
+            prompts: None,
             seed: 0,
             up_axis: None,
             pickle_rig: PickleRig::default(),
@@ -174,6 +182,8 @@ pub struct Context {
     pub options: PrepareOptions,
     /// The SMPL-X models (GRAB, HIMO).
     pub smplx: Option<SmplxModels>,
+    /// The prompt table, by sequence id.
+    pub prompts: Option<HashMap<String, String>>,
     /// HUMOTO's `animations.json`, read once.
     pub humoto_scripts: OnceLock<std::result::Result<humoto::Scripts, String>>,
     meshes: MeshCache,
@@ -197,7 +207,14 @@ impl Context {
                 ));
             }
         };
-        Ok(Self { options, smplx, humoto_scripts: OnceLock::new(), meshes: MeshCache::default() })
+        let prompts = options.prompts.as_deref().map(read_prompts).transpose()?;
+        Ok(Self {
+            options,
+            smplx,
+            prompts,
+            humoto_scripts: OnceLock::new(),
+            meshes: MeshCache::default(),
+        })
     }
 
     /// The SMPL-X models (present for GRAB and HIMO, checked by [`Context::new`]).
@@ -364,12 +381,50 @@ pub fn hash_split(id: &str, seed: u64) -> Split {
     if hash.is_multiple_of(HASH_TEST_SHARE) { Split::Test } else { Split::Train }
 }
 
-/// The splits of a split file: `{"train": [ids], "test": [ids]}`.
+/// A sequence id as split files and prompt tables write it: `s1/mug_pass_1`, also accepted
+/// with a `.npz` ending (HOIDiNi's prompt table writes `s5/cubemedium_inspect_1.npz`).
+fn listed_id(entry: &str) -> String {
+    let entry = entry.trim();
+    entry.strip_suffix(".npz").unwrap_or(entry).to_string()
+}
+
+/// The splits of a split file, in either form:
+/// - an object `{"train": [ids], "test": [ids]}`;
+/// - a JSON list of ids whose file name says its split (`train` or `test` in it, as HOIDiNi's
+///   `grab_train_split.json` and `grab_test_split.json` do).
+///
+/// Ids are sequence ids (`s1/airplane_fly_1` for GRAB, a HUMOTO sequence name, a HIMO id).
 pub fn read_split_file(path: &Path) -> Result<HashMap<String, Split>> {
+    #[derive(serde::Deserialize)]
+    #[serde(untagged)]
+    enum SplitFile {
+        Lists(BTreeMap<String, Vec<String>>),
+        One(Vec<String>),
+    }
     let bytes = std::fs::read(path).map_err(ImportError::io(path))?;
-    let lists: BTreeMap<String, Vec<String>> = serde_json::from_slice(&bytes).map_err(|e| {
-        ImportError::format(path.display(), "split file", r#"{"train": [ids], "test": [ids]}"#, e)
-    })?;
+    let expected =
+        r#"{"train": [ids], "test": [ids]}, or a list of ids in a file named for its split"#;
+    let file: SplitFile = serde_json::from_slice(&bytes)
+        .map_err(|e| ImportError::format(path.display(), "split file", expected, e))?;
+    let lists = match file {
+        SplitFile::Lists(lists) => lists,
+        SplitFile::One(ids) => {
+            let name = path.file_name().unwrap_or_default().to_string_lossy().to_lowercase();
+            let split = match (name.contains("train"), name.contains("test")) {
+                (true, false) => "train",
+                (false, true) => "test",
+                _ => {
+                    return Err(ImportError::format(
+                        path.display(),
+                        "split of a list of ids",
+                        "`train` or `test` (one of them) in the file name",
+                        name,
+                    ));
+                }
+            };
+            BTreeMap::from([(split.to_string(), ids)])
+        }
+    };
     let mut splits = HashMap::new();
     for (name, ids) in lists {
         let split = match name.as_str() {
@@ -385,13 +440,21 @@ pub fn read_split_file(path: &Path) -> Result<HashMap<String, Split>> {
             }
         };
         for id in ids {
-            splits.insert(id, split);
+            let id = listed_id(&id);
+            if let Some(other) = splits.insert(id.clone(), split).filter(|o| *o != split) {
+                return Err(ImportError::format(
+                    path.display(),
+                    format!("sequence `{id}`"),
+                    "one split per sequence",
+                    format!("both {} and {}", other.name(), split.name()),
+                ));
+            }
         }
     }
     Ok(splits)
 }
 
-/// How items get their split in HUMOTO and HIMO: a split file, or the hash split.
+/// How items get their split: the split files when there are any, else the format's rule.
 #[derive(Debug)]
 pub struct SplitRule {
     listed: Option<HashMap<String, Split>>,
@@ -399,19 +462,142 @@ pub struct SplitRule {
 }
 
 impl SplitRule {
-    /// The rule of the options.
+    /// The rule of the options: the union of the split files (an id listed in two splits is
+    /// an error naming it).
     pub fn new(options: &PrepareOptions) -> Result<Self> {
-        let listed = options.split_file.as_deref().map(read_split_file).transpose()?;
-        Ok(Self { listed, seed: options.seed })
+        if options.split_files.is_empty() {
+            return Ok(Self { listed: None, seed: options.seed });
+        }
+        let mut listed: HashMap<String, Split> = HashMap::new();
+        for path in &options.split_files {
+            for (id, split) in read_split_file(path)? {
+                if let Some(other) = listed.insert(id.clone(), split).filter(|o| *o != split) {
+                    return Err(ImportError::format(
+                        path.display(),
+                        format!("sequence `{id}`"),
+                        "one split per sequence",
+                        format!("both {} and {}", other.name(), split.name()),
+                    ));
+                }
+            }
+        }
+        Ok(Self { listed: Some(listed), seed: options.seed })
     }
 
-    /// The split of an id; `None` when a split file does not list it.
+    /// Whether split files decide.
+    pub fn has_files(&self) -> bool {
+        self.listed.is_some()
+    }
+
+    /// The split of an id; `None` when the split files do not list it.
     pub fn split(&self, id: &str) -> Option<Split> {
         match &self.listed {
             Some(listed) => listed.get(id).copied(),
             None => Some(hash_split(id, self.seed)),
         }
     }
+}
+
+/// A prompt table: CSV with a header naming the columns `dp_ind` (the sequence, as
+/// `s5/cubemedium_inspect_1.npz`) and `Prompt` (HOIDiNi's `grab_prompts.csv`); fields may be
+/// quoted (`"..."`, with `""` for a quote). Returns sequence id -> prompt.
+pub fn read_prompts(path: &Path) -> Result<HashMap<String, String>> {
+    let text = std::fs::read_to_string(path).map_err(ImportError::io(path))?;
+    let rows = parse_csv(&text).map_err(|(line, what)| {
+        ImportError::format(path.display(), format!("line {line}"), "CSV", what)
+    })?;
+    let Some((header, body)) = rows.split_first() else {
+        return Err(ImportError::format(path.display(), "header", "`dp_ind,Prompt`", "nothing"));
+    };
+    let column = |name: &str| {
+        header.1.iter().position(|c| c.trim().eq_ignore_ascii_case(name)).ok_or_else(|| {
+            ImportError::missing(path.display(), name, "a column of the prompt table's header")
+        })
+    };
+    let (id_column, prompt_column) = (column("dp_ind")?, column("Prompt")?);
+    let mut prompts = HashMap::new();
+    for (line, fields) in body {
+        if fields.iter().all(|f| f.trim().is_empty()) {
+            continue;
+        }
+        let (Some(id), Some(prompt)) = (fields.get(id_column), fields.get(prompt_column)) else {
+            return Err(ImportError::format(
+                path.display(),
+                format!("line {line}"),
+                format!("{} fields", header.1.len()),
+                fields.len(),
+            ));
+        };
+        if prompt.trim().is_empty() {
+            return Err(ImportError::format(
+                path.display(),
+                format!("line {line}"),
+                "a prompt",
+                "an empty field",
+            ));
+        }
+        prompts.insert(listed_id(id), prompt.trim().to_string());
+    }
+    Ok(prompts)
+}
+
+/// Rows of a CSV text with their line numbers (1-based); `Err((line, what))` for an unclosed
+/// quote or a character after a closing quote.
+fn parse_csv(text: &str) -> std::result::Result<Vec<(usize, Vec<String>)>, (usize, String)> {
+    let mut rows = Vec::new();
+    let mut fields = Vec::new();
+    let mut field = String::new();
+    let (mut line, mut row_line) = (1, 1);
+    let mut chars = text.chars().peekable();
+    let mut quoted = false;
+    let mut after_quote = false;
+    while let Some(c) = chars.next() {
+        if quoted {
+            match c {
+                '"' if chars.peek() == Some(&'"') => {
+                    chars.next();
+                    field.push('"');
+                }
+                '"' => {
+                    quoted = false;
+                    after_quote = true;
+                }
+                '\n' => {
+                    line += 1;
+                    field.push(c);
+                }
+                _ => field.push(c),
+            }
+            continue;
+        }
+        match c {
+            ',' => {
+                fields.push(std::mem::take(&mut field));
+                after_quote = false;
+            }
+            '\n' => {
+                fields.push(std::mem::take(&mut field));
+                rows.push((row_line, std::mem::take(&mut fields)));
+                after_quote = false;
+                line += 1;
+                row_line = line;
+            }
+            '\r' if chars.peek() == Some(&'\n') => {}
+            '"' if field.is_empty() && !after_quote => quoted = true,
+            _ if after_quote => {
+                return Err((line, format!("`{c}` after a closing quote")));
+            }
+            _ => field.push(c),
+        }
+    }
+    if quoted {
+        return Err((row_line, "a quote that is never closed".into()));
+    }
+    if !field.is_empty() || !fields.is_empty() {
+        fields.push(field);
+        rows.push((row_line, fields));
+    }
+    Ok(rows)
 }
 
 /// The BPS radius for a set of objects: the synthetic dataset's 0.25 m ball when every object
@@ -431,7 +617,7 @@ pub fn bps_radius<'a>(meshes: impl IntoIterator<Item = &'a Mesh>) -> f32 {
 
 fn discover(context: &Context) -> Result<(Vec<Item>, Vec<Skipped>)> {
     match context.options.format {
-        SourceFormat::Grab => Ok((grab::discover(&context.options.root)?, Vec::new())),
+        SourceFormat::Grab => grab::discover(&context.options),
         SourceFormat::Humoto => humoto::discover(&context.options),
         SourceFormat::Himo => himo::discover(&context.options),
     }

@@ -29,6 +29,7 @@ pub struct SmplxBody {
     model: SmplxModel,
     hand_components: OnceLock<Result<[HandComponents; 2], String>>,
     skeletons: Mutex<HashMap<Vec<u32>, Skeleton>>,
+    templates: Mutex<HashMap<PathBuf, Skeleton>>,
 }
 
 impl std::fmt::Debug for SmplxBody {
@@ -69,6 +70,7 @@ impl SmplxBody {
             model: SmplxModel::load(path)?,
             hand_components: OnceLock::new(),
             skeletons: Mutex::new(HashMap::new()),
+            templates: Mutex::new(HashMap::new()),
         })
     }
 
@@ -85,7 +87,28 @@ impl SmplxBody {
         if let Some(skeleton) = self.lock_skeletons().get(&key) {
             return Ok(skeleton.clone());
         }
-        let joints55 = self.model.rest_joints(betas)?;
+        let skeleton = self.skeleton_of_joints(&self.model.rest_joints(betas)?)?;
+        self.lock_skeletons().insert(key, skeleton.clone());
+        Ok(skeleton)
+    }
+
+    /// The 52-joint skeleton of a subject's personalised template mesh (GRAB's `vtemp`): its
+    /// rest joints by the model's `J_regressor`, as GRAB's own code builds each subject's body.
+    /// Cached per file.
+    pub fn skeleton_of_template(&self, template: &Path) -> Result<Skeleton> {
+        let lock = || self.templates.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(skeleton) = lock().get(template) {
+            return Ok(skeleton.clone());
+        }
+        let mesh = dex2hoi_repr::Mesh::load(template)?;
+        let skeleton = self.skeleton_of_joints(
+            &self.model.joints_of(&mesh.vertices, &template.display().to_string())?,
+        )?;
+        lock().insert(template.to_path_buf(), skeleton.clone());
+        Ok(skeleton)
+    }
+
+    fn skeleton_of_joints(&self, joints55: &[Vec3]) -> Result<Skeleton> {
         let to55 = smplx52_to_55();
         let template = Skeleton::smplx();
         let offsets = template
@@ -97,9 +120,7 @@ impl SmplxBody {
                 parent.map_or(own, |p| own - joints55[to55[p]])
             })
             .collect();
-        let skeleton = template.with_rest_offsets(offsets)?;
-        self.lock_skeletons().insert(key, skeleton.clone());
-        Ok(skeleton)
+        Ok(template.with_rest_offsets(offsets)?)
     }
 
     fn lock_skeletons(&self) -> std::sync::MutexGuard<'_, HashMap<Vec<u32>, Skeleton>> {

@@ -237,7 +237,7 @@ fn check_even_frames(s: &ProcessedSequence, expected_world: &[Vec3], joints: usi
 fn humoto_round_trip_filter_and_meshes() {
     let fixtures = common::fixtures();
     let mut options = PrepareOptions::new(SourceFormat::Humoto, &fixtures.join("humoto"));
-    options.split_file = Some(fixtures.join("humoto_split.json"));
+    options.split_files = vec![fixtures.join("humoto_split.json")];
     let prepared = run(options);
     let dataset = prepared.dataset.as_ref().expect("a dataset");
     check_structure(dataset, "humoto", "mixamo65", 65, "humoto");
@@ -280,7 +280,7 @@ fn himo_round_trip_and_three_object_sequences() {
     let fixtures = common::fixtures();
     let mut options = PrepareOptions::new(SourceFormat::Himo, &fixtures.join("himo"));
     options.smplx_model = Some(fixtures.join("smplx"));
-    options.split_file = Some(fixtures.join("himo_split.json"));
+    options.split_files = vec![fixtures.join("himo_split.json")];
     let prepared = run(options);
     let dataset = prepared.dataset.as_ref().expect("a dataset");
     check_structure(dataset, "himo", "smplx52", 52, "himo");
@@ -336,4 +336,81 @@ fn a_wrong_up_axis_is_refused_with_the_numbers() {
             failed.reason
         );
     }
+}
+
+#[test]
+fn grab_hoidini_protocol_split_lists_intents_and_prompts() {
+    let fixtures = common::fixtures();
+    let mut options = grab_options(HandPoseSource::Full);
+    options.split_files =
+        vec![fixtures.join("grab_train_split.json"), fixtures.join("grab_test_split.json")];
+    options.exclude_intents = vec!["lift".into()];
+    options.prompts = Some(fixtures.join("grab_prompts.csv"));
+    let prepared = run(options);
+    let report = &prepared.report;
+    assert!(report.failed.is_empty(), "{}", report.summary());
+    let dataset = prepared.dataset.as_ref().expect("a dataset");
+    // The lists decide the split; the lift sequence is left out by its intent; the s2 files
+    // (the broken ones included) are not listed, so they are not even read.
+    let reason = |id: &str| {
+        report.skipped.iter().find(|s| s.id == id).map(|s| s.reason.clone()).unwrap_or_default()
+    };
+    assert!(reason("s1/mug_lift").contains("intent `lift` left out"), "{}", report.summary());
+    assert!(reason("s2/mug_pass_nan").contains("not listed"), "{}", report.summary());
+    assert_eq!(dataset.splits[&Split::Train].len(), 1);
+    assert_eq!(dataset.splits[&Split::Test].len(), 1);
+    // The prompt table's text (quoted, with a comma); a sequence it does not list keeps the
+    // templates and says so.
+    let pass = sequence(dataset, "grab/s1/mug_pass_1");
+    assert_eq!(pass.texts, ["The person is passing a mug, carefully."]);
+    let drink = sequence(dataset, "grab/s10/mug_drink_1");
+    assert_eq!(drink.texts, ["The person is drinking from the mug."]);
+    assert!(
+        report.warnings.iter().any(|w| w.id == "s10/mug_drink_1" && w.reason.contains("no prompt")),
+        "{}",
+        report.summary()
+    );
+}
+
+#[test]
+fn bad_split_files_and_prompt_tables_are_named() {
+    let dir = common::temp_dir("bad-protocol-files");
+    std::fs::create_dir_all(&dir).unwrap();
+    let write = |name: &str, text: &str| {
+        let path = dir.join(name);
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    let cases = [
+        (write("ids.json", r#"["s1/mug_pass_1"]"#), None, "`train` or `test`"),
+        (
+            write(
+                "clash_train.json",
+                r#"{"train": ["s1/mug_pass_1"], "test": ["s1/mug_pass_1.npz"]}"#,
+            ),
+            None,
+            "one split per sequence",
+        ),
+        (write("no_header.json", "{}"), Some(write("p.csv", "id,text\na,b\n")), "dp_ind"),
+        (
+            write("ok_train.json", "[]"),
+            Some(write("q.csv", "dp_ind,Prompt\n\"s1/x,oops\n")),
+            "never closed",
+        ),
+    ];
+    for (split, prompts, needle) in cases {
+        let mut options = grab_options(HandPoseSource::Full);
+        options.split_files = vec![split.clone()];
+        options.prompts = prompts.clone();
+        let error = match prepare(options, &|_, _| {}) {
+            Ok(prepared) => panic!("{needle}: accepted: {}", prepared.report.summary()),
+            Err(error) => error.to_string(),
+        };
+        let named = prompts.as_ref().unwrap_or(&split);
+        assert!(
+            error.contains(needle) && error.contains(&named.display().to_string()),
+            "{needle}: {error}"
+        );
+    }
+    std::fs::remove_dir_all(dir).ok();
 }

@@ -208,7 +208,29 @@ impl SmplxModel {
                 vertices[v * 3 + axis] += blend;
             }
         }
-        Ok((0..55)
+        Ok(self.regress(&vertices))
+    }
+
+    /// The 55 joints the model's `J_regressor` gives for a mesh of its topology: a subject's
+    /// personalised template (GRAB's `tools/subject_meshes/{gender}/s{n}.ply`, its `vtemp`).
+    /// `source_name` names the mesh in errors.
+    pub fn joints_of(&self, vertices: &[Vec3], source_name: &str) -> Result<Vec<Vec3>> {
+        let vertex_count = self.v_template.shape[0];
+        if vertices.len() != vertex_count {
+            return Err(ReprError::invalid(
+                format!("template mesh {source_name}"),
+                format!("{vertex_count} vertices (the topology of {})", self.path.display()),
+                vertices.len(),
+            ));
+        }
+        let flat: Vec<f64> = vertices.iter().flat_map(|v| v.to_array().map(f64::from)).collect();
+        Ok(self.regress(&flat))
+    }
+
+    /// `J_regressor @ vertices` for flat `(V * 3)` vertices.
+    fn regress(&self, vertices: &[f64]) -> Vec<Vec3> {
+        let vertex_count = self.v_template.shape[0];
+        (0..55)
             .map(|joint| {
                 let row =
                     &self.j_regressor.values[joint * vertex_count..(joint + 1) * vertex_count];
@@ -222,7 +244,7 @@ impl SmplxModel {
                 }
                 Vec3::new(sum[0] as f32, sum[1] as f32, sum[2] as f32)
             })
-            .collect())
+            .collect()
     }
 }
 
