@@ -541,9 +541,12 @@ pub fn read_prompts(path: &Path) -> Result<HashMap<String, String>> {
     Ok(prompts)
 }
 
-/// Rows of a CSV text with their line numbers (1-based); `Err((line, what))` for an unclosed
-/// quote or a character after a closing quote.
-fn parse_csv(text: &str) -> std::result::Result<Vec<(usize, Vec<String>)>, (usize, String)> {
+/// CSV rows, each with the line it starts on (1-based).
+type CsvRows = Vec<(usize, Vec<String>)>;
+
+/// Rows of a CSV text; `Err((line, what))` for an unclosed quote or a character after a
+/// closing quote.
+fn parse_csv(text: &str) -> std::result::Result<CsvRows, (usize, String)> {
     let mut rows = Vec::new();
     let mut fields = Vec::new();
     let mut field = String::new();
