@@ -355,3 +355,53 @@ impl Track {
         std::array::from_fn(|i| a[i] + (b[i] - a[i]) * alpha)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The fuzz corpus's seed GLB (`fuzz/make_seeds.py`): a skinned two-joint scene under a
+    /// scaled `Armature`, a LINEAR translation and a STEP rotation, an animated object.
+    fn seed() -> GlbScene {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../fuzz/corpus/glb/skinned_animated.glb");
+        GlbScene::read(&path).unwrap()
+    }
+
+    #[test]
+    fn a_skinned_animated_scene_is_read_and_sampled() {
+        let scene = seed();
+        assert_eq!(scene.nodes.len(), 5);
+        assert_eq!(scene.nodes[2].parent, Some(1));
+        assert_eq!(scene.skins.len(), 1);
+        assert_eq!(scene.skins[0].joints, [1, 2]);
+        let times = scene.keyframe_times();
+        assert_eq!(times.len(), 3);
+        // Halfway between the first two keys: the hips' translation is interpolated, the
+        // spine's STEP rotation is still the first key's; the Armature's scale applies.
+        let world = scene.world_matrices(times[0] * 0.5 + times[1] * 0.5);
+        let hips = world[1].w_axis.truncate();
+        assert!(hips.abs_diff_eq(Vec3::new(0.0, 0.00905, 0.00005), 1e-6), "{hips}");
+        let spine = Quat::from_mat4(&world[2]).normalize();
+        assert!(spine.abs_diff_eq(Quat::IDENTITY, 1e-5) || spine.abs_diff_eq(-Quat::IDENTITY, 1e-5));
+        // After the last key, every track holds its last value.
+        let end = scene.world_matrices(10.0);
+        assert!(end[3].w_axis.truncate().abs_diff_eq(Vec3::new(0.0, 0.92, 0.02), 1e-6));
+        let (vertices, faces) = scene.mesh(0);
+        assert_eq!((vertices.len(), faces.as_slice()), (3, [[0, 1, 2]].as_slice()));
+    }
+
+    #[test]
+    fn broken_files_are_refused_with_the_file_named() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../fuzz/corpus/glb/skinned_animated.glb");
+        let bytes = std::fs::read(path).unwrap();
+        for (bytes, needle) in [
+            (b"not a glb".to_vec(), "magic `glTF`"),
+            (bytes[..bytes.len() / 2].to_vec(), "a valid glTF 2.0 binary"),
+        ] {
+            let error = GlbScene::from_bytes(&bytes, "broken.glb").unwrap_err().to_string();
+            assert!(error.contains("broken.glb") && error.contains(needle), "{error}");
+        }
+    }
+}
