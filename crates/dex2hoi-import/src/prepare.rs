@@ -442,16 +442,21 @@ pub fn read_split_file(path: &Path) -> Result<HashMap<String, Split>> {
         for id in ids {
             let id = listed_id(&id);
             if let Some(other) = splits.insert(id.clone(), split).filter(|o| *o != split) {
-                return Err(ImportError::format(
-                    path.display(),
-                    format!("sequence `{id}`"),
-                    "one split per sequence",
-                    format!("both {} and {}", other.name(), split.name()),
-                ));
+                return Err(split_clash(path, &id, other, split));
             }
         }
     }
     Ok(splits)
+}
+
+/// The error of a sequence listed in two splits.
+fn split_clash(path: &Path, id: &str, one: Split, other: Split) -> ImportError {
+    ImportError::format(
+        path.display(),
+        format!("sequence `{id}`"),
+        "one split per sequence",
+        format!("both {} and {}", one.name(), other.name()),
+    )
 }
 
 /// How items get their split: the split files when there are any, else the format's rule.
@@ -472,12 +477,7 @@ impl SplitRule {
         for path in &options.split_files {
             for (id, split) in read_split_file(path)? {
                 if let Some(other) = listed.insert(id.clone(), split).filter(|o| *o != split) {
-                    return Err(ImportError::format(
-                        path.display(),
-                        format!("sequence `{id}`"),
-                        "one split per sequence",
-                        format!("both {} and {}", other.name(), split.name()),
-                    ));
+                    return Err(split_clash(path, &id, other, split));
                 }
             }
         }
