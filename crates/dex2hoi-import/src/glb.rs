@@ -383,7 +383,9 @@ mod tests {
         let hips = world[1].w_axis.truncate();
         assert!(hips.abs_diff_eq(Vec3::new(0.0, 0.00905, 0.00005), 1e-6), "{hips}");
         let spine = Quat::from_mat4(&world[2]).normalize();
-        assert!(spine.abs_diff_eq(Quat::IDENTITY, 1e-5) || spine.abs_diff_eq(-Quat::IDENTITY, 1e-5));
+        assert!(
+            spine.abs_diff_eq(Quat::IDENTITY, 1e-5) || spine.abs_diff_eq(-Quat::IDENTITY, 1e-5)
+        );
         // After the last key, every track holds its last value.
         let end = scene.world_matrices(10.0);
         assert!(end[3].w_axis.truncate().abs_diff_eq(Vec3::new(0.0, 0.92, 0.02), 1e-6));

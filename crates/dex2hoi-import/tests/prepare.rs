@@ -414,3 +414,27 @@ fn bad_split_files_and_prompt_tables_are_named() {
     }
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn humoto_discovery_prefers_the_published_glb() {
+    let root = common::temp_dir("humoto-discovery");
+    for (folder, files) in
+        [("both", ["both.glb", "both.pkl"].as_slice()), ("pickle", ["pickle.pkl"].as_slice())]
+    {
+        std::fs::create_dir_all(root.join(folder)).unwrap();
+        for file in files {
+            std::fs::write(root.join(folder).join(file), b"").unwrap();
+        }
+    }
+    std::fs::create_dir_all(root.join("humoto_objects/mug")).unwrap();
+    std::fs::write(root.join("humoto_objects/mug/mug.pkl"), b"").unwrap();
+    let options = PrepareOptions::new(SourceFormat::Humoto, &root);
+    let (items, skipped) = dex2hoi_import::humoto::discover(&options).unwrap();
+    assert!(skipped.is_empty());
+    let found: Vec<(String, String)> = items
+        .iter()
+        .map(|i| (i.id.clone(), i.path.file_name().unwrap().to_string_lossy().into_owned()))
+        .collect();
+    assert_eq!(found, [("both".into(), "both.glb".into()), ("pickle".into(), "pickle.pkl".into())]);
+    std::fs::remove_dir_all(root).ok();
+}
