@@ -89,6 +89,9 @@ impl GlbScene {
             .map_err(|e| bad("glTF", "a valid glTF 2.0 binary", &e))?;
         let blob = gltf.blob.as_deref().unwrap_or(&[]);
         let document = &gltf.document;
+        check_channel_targets(document.as_json()).map_err(|(what, got)| {
+            bad(&what, "a target node and one of translation, rotation, scale, weights", &got)
+        })?;
         for buffer in document.buffers() {
             match buffer.source() {
                 gltf::buffer::Source::Bin if buffer.length() <= blob.len() => {}
@@ -330,6 +333,25 @@ impl GlbScene {
     }
 }
 
+/// `gltf` 1.4's validation leaves animation channel targets unchecked, and reading an invalid
+/// target path (`"tr`nslation"`) or node index through its wrappers panics (found by the `glb`
+/// fuzz target): checked here on the JSON first.
+fn check_channel_targets(root: &gltf::json::Root) -> std::result::Result<(), (String, String)> {
+    for (a, animation) in root.animations.iter().enumerate() {
+        for (c, channel) in animation.channels.iter().enumerate() {
+            let target = &channel.target;
+            let what = || format!("animation {a} channel {c}");
+            if !matches!(target.path, gltf::json::validation::Checked::Valid(_)) {
+                return Err((what(), "an unknown path".into()));
+            }
+            if target.node.value() >= root.nodes.len() {
+                return Err((what(), format!("node {}", target.node.value())));
+            }
+        }
+    }
+    Ok(())
+}
+
 impl Track {
     /// The value at `time`: clamped outside the keyframes, linear (spherical for rotations) or
     /// constant between them.
@@ -404,6 +426,33 @@ mod tests {
         ] {
             let error = GlbScene::from_bytes(&bytes, "broken.glb").unwrap_err().to_string();
             assert!(error.contains("broken.glb") && error.contains(needle), "{error}");
+        }
+    }
+
+    /// Fuzz findings, kept as regression tests: each must be a clear error, not a panic.
+    #[test]
+    fn fuzz_findings_are_errors() {
+        let seed = std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../fuzz/corpus/glb/skinned_animated.glb"),
+        )
+        .unwrap();
+        let patch = |from: &str, to: &str| {
+            // Same length: the GLB's chunk lengths stay right.
+            assert_eq!(from.len(), to.len());
+            let at = seed.windows(from.len()).position(|w| w == from.as_bytes()).expect(from);
+            let mut bytes = seed.clone();
+            bytes[at..at + to.len()].copy_from_slice(to.as_bytes());
+            bytes
+        };
+        for (bytes, needle) in [
+            // A channel target path gltf 1.4 does not validate.
+            (patch(r#""path":"translation""#, r#""path":"tr`nslation""#), "unknown path"),
+            // A channel target node out of range.
+            (patch(r#""node":1,"path""#, r#""node":9,"path""#), "node 9"),
+        ] {
+            let error = GlbScene::from_bytes(&bytes, "fuzzed.glb").unwrap_err().to_string();
+            assert!(error.contains("fuzzed.glb") && error.contains(needle), "{error}");
         }
     }
 }
