@@ -85,6 +85,20 @@ impl GlbScene {
         if bytes.get(..4) != Some(b"glTF".as_slice()) {
             return Err(bad("header", "a binary glTF file (magic `glTF`)", &"other bytes"));
         }
+        // The header's length is checked here: `gltf` 1.4 subtracts the header size from it
+        // unchecked, which overflows (a panic with overflow checks) below 12 (found by the `glb`
+        // fuzz target).
+        let declared = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+            .unwrap_or_default();
+        if !(12..=bytes.len()).contains(&declared) {
+            return Err(bad(
+                "header length",
+                &format!("12 to {} bytes (the header and the file's size)", bytes.len()),
+                &declared,
+            ));
+        }
         let gltf = gltf::Gltf::from_slice(bytes)
             .map_err(|e| bad("glTF", "a valid glTF 2.0 binary", &e))?;
         let blob = gltf.blob.as_deref().unwrap_or(&[]);
@@ -422,7 +436,17 @@ mod tests {
         let bytes = std::fs::read(path).unwrap();
         for (bytes, needle) in [
             (b"not a glb".to_vec(), "magic `glTF`"),
-            (bytes[..bytes.len() / 2].to_vec(), "a valid glTF 2.0 binary"),
+            (bytes[..bytes.len() / 2].to_vec(), "header length"),
+            (
+                {
+                    // The JSON without its required `asset`.
+                    let at = bytes.windows(7).position(|w| w == b"\"asset\"").unwrap();
+                    let mut broken = bytes.clone();
+                    broken[at + 5] = b'x';
+                    broken
+                },
+                "a valid glTF 2.0 binary",
+            ),
         ] {
             let error = GlbScene::from_bytes(&bytes, "broken.glb").unwrap_err().to_string();
             assert!(error.contains("broken.glb") && error.contains(needle), "{error}");
@@ -450,6 +474,15 @@ mod tests {
             (patch(r#""path":"translation""#, r#""path":"tr`nslation""#), "unknown path"),
             // A channel target node out of range.
             (patch(r#""node":1,"path""#, r#""node":9,"path""#), "node 9"),
+            // A header length below the header's own 12 bytes.
+            (
+                {
+                    let mut bytes = seed.clone();
+                    bytes[8..12].copy_from_slice(&4u32.to_le_bytes());
+                    bytes
+                },
+                "header length",
+            ),
         ] {
             let error = GlbScene::from_bytes(&bytes, "fuzzed.glb").unwrap_err().to_string();
             assert!(error.contains("fuzzed.glb") && error.contains(needle), "{error}");
