@@ -1,6 +1,7 @@
 """Writes the seed corpora of the fuzz targets into fuzz/corpus/<target>/ (committed; rerun to
 regenerate). Small valid files of every kind each reader accepts, so that the fuzzer starts
-from the formats' structure. Needs numpy."""
+from the formats' structure. Needs numpy. The `regression-*` files beside them are inputs the
+fuzzers once crashed on (kept as seeds: `cargo xtask fuzz check`, part of CI, replays them)."""
 import io
 import json
 import os

@@ -100,13 +100,16 @@ impl GlbScene {
                 &declared,
             ));
         }
-        let gltf = gltf::Gltf::from_slice(bytes)
+        // Parsed first, checked for the references gltf's own validation trips over, then
+        // validated.
+        let gltf::Gltf { document, blob } = gltf::Gltf::from_slice_without_validation(bytes)
             .map_err(|e| bad("glTF", "a valid glTF 2.0 binary", &e))?;
-        let blob = gltf.blob.as_deref().unwrap_or(&[]);
-        let document = &gltf.document;
-        check_channel_targets(document.as_json()).map_err(|(what, got)| {
-            bad(&what, "a target node and one of translation, rotation, scale, weights", &got)
-        })?;
+        check_references(document.as_json())
+            .map_err(|(what, expected, got)| bad(&what, expected, &got))?;
+        let document = gltf::Document::from_json(document.into_json())
+            .map_err(|e| bad("glTF", "a valid glTF 2.0 binary", &e))?;
+        let document = &document;
+        let blob = blob.as_deref().unwrap_or(&[]);
         for buffer in document.buffers() {
             match buffer.source() {
                 gltf::buffer::Source::Bin if buffer.length() <= blob.len() => {}
@@ -422,19 +425,34 @@ fn check_accessor(
     }
 }
 
-/// `gltf` 1.4's validation leaves animation channel targets unchecked, and reading an invalid
-/// target path (`"tr`nslation"`) or node index through its wrappers panics (found by the `glb`
-/// fuzz target): checked here on the JSON first.
-fn check_channel_targets(root: &gltf::json::Root) -> std::result::Result<(), (String, String)> {
+/// A reference that is wrong: where, what was expected, what was found.
+type BadReference = (String, &'static str, String);
+
+/// References that `gltf` 1.4 does not check before it follows them (each found by the `glb`
+/// fuzz target): its validation indexes a primitive's `POSITION` accessor unchecked, and it
+/// leaves animation channel targets unvalidated, so reading an unknown target path
+/// (`"tr`nslation"`) or node through its wrappers panics.
+fn check_references(root: &gltf::json::Root) -> std::result::Result<(), BadReference> {
+    let accessors = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            let used = primitive.attributes.values().chain(&primitive.indices);
+            if let Some(index) = used.map(|i| i.value()).find(|&i| i >= accessors) {
+                let what = format!("mesh {m} primitive {p}");
+                return Err((what, "accessors that exist", format!("accessor {index}")));
+            }
+        }
+    }
     for (a, animation) in root.animations.iter().enumerate() {
         for (c, channel) in animation.channels.iter().enumerate() {
             let target = &channel.target;
             let what = || format!("animation {a} channel {c}");
+            let expected = "a target node and one of translation, rotation, scale, weights";
             if !matches!(target.path, gltf::json::validation::Checked::Valid(_)) {
-                return Err((what(), "an unknown path".into()));
+                return Err((what(), expected, "an unknown path".into()));
             }
             if target.node.value() >= root.nodes.len() {
-                return Err((what(), format!("node {}", target.node.value())));
+                return Err((what(), expected, format!("node {}", target.node.value())));
             }
         }
     }
@@ -551,6 +569,8 @@ mod tests {
             (patch(r#""node":1,"path""#, r#""node":9,"path""#), "node 9"),
             // Positions whose accessor is not VEC3 (gltf asserts the type only in debug builds).
             (patch(r#""type":"VEC3""#, r#""type":"VEC4""#), "VEC3 float"),
+            // A primitive whose POSITION accessor does not exist (gltf's validation indexes it).
+            (patch(r#""POSITION":0"#, r#""POSITION":9"#), "accessor 9"),
             // A header length below the header's own 12 bytes.
             (
                 {

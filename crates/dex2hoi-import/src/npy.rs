@@ -17,6 +17,9 @@ use crate::value::Value;
 /// enough that a zip bomb fails instead of filling memory.
 pub const MAX_ENTRY_BYTES: u64 = 8 << 30;
 
+/// The most an archive entry's declared size reserves before its data is read.
+const PREALLOCATE_BYTES: u64 = 64 << 20;
+
 /// The parsed header of an `.npy` file.
 #[derive(Debug, Clone, PartialEq, Eq)]
 struct Header {
@@ -188,7 +191,9 @@ impl Npz {
                 entry.size(),
             ));
         }
-        let mut bytes = Vec::with_capacity(entry.size() as usize);
+        // The size an entry declares is not trusted for the allocation (a lie would reserve
+        // gigabytes; found by the `npy` fuzz target): reading grows the buffer as data comes.
+        let mut bytes = Vec::with_capacity(entry.size().min(PREALLOCATE_BYTES) as usize);
         (&mut entry)
             .take(MAX_ENTRY_BYTES)
             .read_to_end(&mut bytes)
