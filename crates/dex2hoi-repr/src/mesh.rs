@@ -84,6 +84,14 @@ impl Mesh {
 
     /// [`Mesh::load_obj`] from memory; `name` names the source in errors.
     pub fn parse_obj(bytes: &[u8], name: &str) -> Result<Self> {
+        check_obj_indices(bytes).map_err(|(line, what)| {
+            ReprError::format(
+                name,
+                format!("OBJ line {line}"),
+                "face indices of existing vertices",
+                what,
+            )
+        })?;
         let options = tobj::LoadOptions {
             triangulate: true,
             single_index: false,
@@ -233,6 +241,56 @@ impl Mesh {
 }
 
 /// The PLY file with every header line that starts with no PLY keyword turned into a comment;
+/// Checks every face's vertex, texture and normal indices (1-based, or negative: relative to
+/// the elements read so far) against the elements defined before it, as OBJ requires. `tobj`
+/// 4.0 resolves them unchecked: a relative index before the start wraps around and overflows
+/// (found by the `mesh` fuzz target). `Err((line, what))` for the first bad one.
+fn check_obj_indices(bytes: &[u8]) -> std::result::Result<(), (usize, String)> {
+    let text = String::from_utf8_lossy(bytes);
+    // [v, vt, vn] defined so far.
+    let mut counts = [0i64; 3];
+    let mut pending = String::new();
+    for (number, raw) in text.lines().enumerate() {
+        // A trailing backslash continues the line.
+        if let Some(start) = raw.strip_suffix('\\') {
+            pending.push_str(start);
+            pending.push(' ');
+            continue;
+        }
+        pending.push_str(raw);
+        let line = std::mem::take(&mut pending);
+        let mut words = line.split_whitespace();
+        match words.next() {
+            Some("v") => counts[0] += 1,
+            Some("vt") => counts[1] += 1,
+            Some("vn") => counts[2] += 1,
+            Some("f") => {
+                for vertex in words {
+                    for (kind, index) in vertex.split('/').enumerate().take(3) {
+                        if index.is_empty() {
+                            continue;
+                        }
+                        let Ok(index) = index.parse::<i64>() else { continue };
+                        let resolved = if index < 0 { counts[kind] + index } else { index - 1 };
+                        if index == 0 || !(0..counts[kind]).contains(&resolved) {
+                            let kinds = ["vertex", "texture coordinate", "normal"];
+                            return Err((
+                                number + 1,
+                                format!(
+                                    "{} index {index} with {} defined before it",
+                                    kinds[kind], counts[kind]
+                                ),
+                            ));
+                        }
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
 /// `None` when there is no `end_header` line.
 fn tolerant_ply_header(bytes: &[u8]) -> Option<Vec<u8>> {
     const KEYWORDS: [&str; 7] =
@@ -325,6 +383,25 @@ pub fn uv_sphere(radius: f32, rings: u32, segments: u32) -> Mesh {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn obj_face_indices_are_checked_before_tobj() {
+        // Relative (negative) indices, texture and normal indices that exist: read.
+        let good = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf -3/1/1 -2/-1/1 -1//-1\n";
+        let mesh = Mesh::parse_obj(good, "good.obj").unwrap();
+        assert_eq!(mesh.faces, [[0, 1, 2]]);
+        // Indices before the start or past the end, found by the mesh fuzz target in `tobj`
+        // (a relative texture index wrapped around and overflowed): clear errors.
+        for (text, needle) in [
+            (b"v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nf 1//1 2/-5 3//1\n".as_slice(), "line 5"),
+            (b"v 0 0 0\nv 1 0 0\nf 1 2 3\n".as_slice(), "vertex index 3 with 2 defined"),
+            (b"v 0 0 0\nf -4 1 1\n".as_slice(), "vertex index -4"),
+            (b"v 0 0 0\nv 1 0 0\nv 1 1 0\nf 0 1 2\n".as_slice(), "vertex index 0"),
+        ] {
+            let error = Mesh::parse_obj(text, "bad.obj").unwrap_err().to_string();
+            assert!(error.contains("bad.obj") && error.contains(needle), "{error}");
+        }
+    }
 
     #[test]
     fn bad_meshes_are_refused() {
