@@ -136,6 +136,9 @@ impl Mesh {
         let bytes = tolerant_ply_header(bytes).ok_or_else(|| {
             ReprError::format(name, "PLY header", "a header ending in `end_header`", "none")
         })?;
+        check_ply_counts(&bytes).map_err(|what| {
+            ReprError::format(name, "PLY header", "element counts the data can hold", what)
+        })?;
         let ply = Parser::<DefaultElement>::new()
             .read_ply(&mut bytes.as_slice())
             .map_err(|error| ReprError::format(name, "PLY content", "a valid PLY file", error))?;
@@ -314,6 +317,49 @@ fn tolerant_ply_header(bytes: &[u8]) -> Option<Vec<u8>> {
     }
 }
 
+/// Checks the element counts of a PLY header against its payload before `ply-rs-bw` 4.0 reads
+/// it: the parser reserves an entry per declared element whatever the data hold, so a header
+/// declaring billions of entries (of an element without properties, which reads no bytes)
+/// exhausts memory (found by the `mesh` fuzz target). Every entry takes at least one byte of
+/// payload, binary or ASCII, and an element with entries must have properties.
+fn check_ply_counts(bytes: &[u8]) -> std::result::Result<(), String> {
+    let mut elements: Vec<(String, u64, usize)> = Vec::new();
+    let mut rest = bytes;
+    loop {
+        let Some(end) = rest.iter().position(|&b| b == b'\n') else { return Ok(()) };
+        let text = String::from_utf8_lossy(&rest[..end]).into_owned();
+        rest = &rest[end + 1..];
+        let mut words = text.split_whitespace();
+        match words.next() {
+            Some("element") => {
+                let name = words.next().unwrap_or_default().to_string();
+                // An unreadable count is left to the parser's own error.
+                let count = words.next().and_then(|c| c.parse().ok()).unwrap_or(0);
+                elements.push((name, count, 0));
+            }
+            Some("property") => {
+                if let Some(element) = elements.last_mut() {
+                    element.2 += 1;
+                }
+            }
+            Some("end_header") => break,
+            _ => {}
+        }
+    }
+    let payload = rest.len() as u64;
+    let mut total = 0u64;
+    for (name, count, properties) in &elements {
+        if *count > 0 && *properties == 0 {
+            return Err(format!("element `{name}` with {count} entries and no properties"));
+        }
+        total = total.saturating_add(*count);
+    }
+    if total > payload {
+        return Err(format!("{total} entries declared for a payload of {payload} bytes"));
+    }
+    Ok(())
+}
+
 /// Splits a polygon into a fan of triangles around its first vertex.
 fn fan_triangulate(polygon: &[u32], faces: &mut Vec<[u32; 3]>) {
     for k in 1..polygon.len().saturating_sub(1) {
@@ -383,6 +429,33 @@ pub fn uv_sphere(radius: f32, rings: u32, segments: u32) -> Mesh {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ply_element_counts_are_checked_before_the_parser() {
+        let header = |element: &str| {
+            format!(
+                "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n\
+                 property float y\nproperty float z\n{element}end_header\n"
+            )
+            .into_bytes()
+        };
+        // One vertex and no face passes the count check (and fails later, as an empty mesh).
+        let mut payload = header("");
+        payload.extend(std::iter::repeat_n(0u8, 12));
+        if let Err(error) = Mesh::parse_ply(&payload, "one.ply") {
+            assert!(!error.to_string().contains("entries"), "{error}");
+        }
+        // Found by the mesh fuzz target: billions of entries of an element with no properties.
+        let mut empty = header("element face 11111122222\n");
+        empty.extend(std::iter::repeat_n(0u8, 12));
+        let mut many = header("");
+        many = String::from_utf8(many).unwrap().replace("vertex 1", "vertex 99999").into_bytes();
+        many.extend(std::iter::repeat_n(0u8, 12));
+        for (bytes, needle) in [(empty, "no properties"), (many, "99999 entries declared")] {
+            let error = Mesh::parse_ply(&bytes, "bad.ply").unwrap_err().to_string();
+            assert!(error.contains("bad.ply") && error.contains(needle), "{error}");
+        }
+    }
 
     #[test]
     fn obj_face_indices_are_checked_before_tobj() {
