@@ -302,11 +302,6 @@ impl GlbScene {
         &self.source_name
     }
 
-    /// The index of the node named `name`.
-    pub fn node_named(&self, name: &str) -> Option<usize> {
-        self.nodes.iter().position(|n| n.name == name)
-    }
-
     /// The keyframe times of the animation: those of the track with the most keyframes (the
     /// exporters write every animated property of a clip on one time grid; shorter tracks are
     /// constant ones). A scene without animation has one frame at time 0.
@@ -315,11 +310,6 @@ impl GlbScene {
             .iter()
             .max_by_key(|t| t.times.len())
             .map_or_else(|| vec![0.0], |t| t.times.clone())
-    }
-
-    /// Whether any track animates node `node`.
-    pub fn is_animated(&self, node: usize) -> bool {
-        self.tracks.iter().any(|t| t.node == node)
     }
 
     /// The local transform of every node at `time`.

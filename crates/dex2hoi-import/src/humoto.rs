@@ -223,12 +223,12 @@ fn script(item: &Item, context: &Context) -> Result<String> {
     let scripts = scripts
         .as_ref()
         .map_err(|e| ImportError::format(SCRIPTS_FILE, "texts", "a readable file", e))?;
+    let yaml_path = item.path.with_extension("yaml");
     if let Some((file, scripts)) = scripts {
         if let Some(text) = scripts.get(&item.id) {
             return Ok(text.clone());
         }
-        let yaml = item.path.with_extension("yaml");
-        if !yaml.is_file() {
+        if !yaml_path.is_file() {
             return Err(ImportError::missing(
                 file.display(),
                 format!("{}'s short_script", item.id),
@@ -236,7 +236,6 @@ fn script(item: &Item, context: &Context) -> Result<String> {
             ));
         }
     }
-    let yaml_path = item.path.with_extension("yaml");
     let yaml = std::fs::read_to_string(&yaml_path).map_err(ImportError::io(&yaml_path))?;
     let yaml_name = yaml_path.display().to_string();
     top_level_text(&yaml, &yaml_name)?

@@ -20,6 +20,7 @@
 use glam::{Mat3, Quat, Vec3};
 
 use dex2hoi_repr::Skeleton;
+use dex2hoi_repr::rotation::{matrix_to_sixd, sixd_to_matrix};
 
 /// Joint errors below this (metres) are left alone.
 const FOLD_TOLERANCE: f32 = 5e-4;
@@ -170,11 +171,10 @@ fn turn(from: Vec3, to: Vec3) -> Mat3 {
     Mat3::from_quat(Quat::from_rotation_arc(from.normalize(), to.normalize()))
 }
 
-/// The nearest rotation to a matrix that is one up to rounding: Gram-Schmidt on its columns.
+/// The rotation of a matrix that is one up to rounding or a uniform scale: the project's one
+/// Gram-Schmidt, the decode of its 6D form (first two rows).
 pub fn orthonormalised(m: Mat3) -> Mat3 {
-    let x = m.x_axis.normalize();
-    let y = (m.y_axis - x * x.dot(m.y_axis)).normalize();
-    Mat3::from_cols(x, y, x.cross(y))
+    sixd_to_matrix(matrix_to_sixd(m))
 }
 
 fn subtree_sizes(children: &[Vec<usize>]) -> Vec<usize> {
