@@ -223,3 +223,36 @@ fn bad_invocations_give_clear_errors() {
         dex2hoi(&["data", "prepare", "--format", "amass", "--root", "/tmp", "--out", path(&out)]);
     assert!(!unknown.status.success());
 }
+
+#[test]
+fn grab_as_hoidinis_benchmark_from_the_command_line() {
+    let out = temp_dir("grab-hoidini");
+    let args = [
+        "data",
+        "prepare",
+        "--format",
+        "grab",
+        "--root",
+        &fixture("grab"),
+        "--smplx-model",
+        &fixture("smplx/SMPLX_NEUTRAL.npz"),
+        "--split-file",
+        &fixture("grab_train_split.json"),
+        "--split-file",
+        &fixture("grab_test_split.json"),
+        "--exclude-intent",
+        "lift",
+        "--prompts",
+        &fixture("grab_prompts.csv"),
+        "--out",
+        path(&out),
+    ];
+    let stdout = succeed(&args);
+    assert!(stdout.contains("read 2 (train 1"), "{stdout}");
+    assert!(stdout.contains("skipped s1/mug_lift: intent `lift` left out"), "{stdout}");
+    assert!(stdout.contains("warning s10/mug_drink_1: no prompt"), "{stdout}");
+    let dataset = Dataset::load(&out).unwrap();
+    let pass = dataset.splits[&Split::Train].iter().find(|s| s.source_id == "grab/s1/mug_pass_1");
+    assert_eq!(pass.unwrap().texts, ["The person is passing a mug, carefully."]);
+    std::fs::remove_dir_all(out).ok();
+}
