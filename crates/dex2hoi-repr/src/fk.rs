@@ -118,8 +118,10 @@ pub fn forward_kinematics(
 }
 
 /// Checks the shapes of a tensor FK call and returns the leading dimensions (without joints).
+/// `rest_offsets`, when given, must be `[G, joints, 3]` with `G` the first leading dimension.
 fn check_tensor_inputs(
     skeleton: &Skeleton,
+    rest_offsets: Option<&Tensor>,
     local_rotations: &Tensor,
     root_positions: &Tensor,
 ) -> Result<Vec<usize>> {
@@ -135,15 +137,25 @@ fn check_tensor_inputs(
         ));
     }
     leading.pop();
+    if let Some(rest) = rest_offsets {
+        let samples = leading.first().copied();
+        if samples.is_none() || rest.dims() != [samples.unwrap_or(0), joints, 3] {
+            return Err(ReprError::invalid(
+                "per-sample rest offsets",
+                format!("shape [samples, {joints}, 3] with samples the first leading dimension"),
+                format!("{:?} for rotations {:?}", rest.dims(), local_rotations.dims()),
+            ));
+        }
+    }
     Ok(leading)
 }
 
-/// Batched, differentiable forward kinematics.
+/// Batched, differentiable forward kinematics on the skeleton's own rest offsets.
 ///
 /// On the CPU with `f32` or `f64` tensors this is two candle operations (positions and
-/// rotations, see [`FkOp`]) with hand-written backward passes, frames in parallel; elsewhere it falls back to
-/// [`tensor_forward_kinematics_composite`], built from candle's own differentiable operations.
-/// Both give the same values and gradients (tested).
+/// rotations, see [`FkOp`]) with hand-written backward passes, frames in parallel; elsewhere it
+/// falls back to [`tensor_forward_kinematics_composite`], built from candle's own
+/// differentiable operations. Both give the same values and gradients (tested).
 ///
 /// # Shapes
 /// - `local_rotations`: `[..., joints, 3, 3]`
@@ -154,17 +166,47 @@ pub fn tensor_forward_kinematics(
     local_rotations: &Tensor,
     root_positions: &Tensor,
 ) -> Result<(Tensor, Tensor)> {
-    let leading = check_tensor_inputs(skeleton, local_rotations, root_positions)?;
+    operation_fk(skeleton, None, local_rotations, root_positions)
+}
+
+/// [`tensor_forward_kinematics`] with one set of rest offsets per sample (each sequence's own
+/// body, see docs/FORMATS.md "rest_offsets"); the skeleton gives the topology only. The offsets
+/// are data, not differentiated.
+///
+/// # Shapes
+/// - `rest_offsets`: `[G, joints, 3]`
+/// - `local_rotations`: `[G, ..., joints, 3, 3]`: every frame of sample `g` uses its offsets
+/// - `root_positions`: `[G, ..., 3]`
+/// - returns `(positions [G, ..., joints, 3], rotations [G, ..., joints, 3, 3])`
+pub fn tensor_forward_kinematics_per_sample(
+    skeleton: &Skeleton,
+    rest_offsets: &Tensor,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    operation_fk(skeleton, Some(rest_offsets), local_rotations, root_positions)
+}
+
+fn operation_fk(
+    skeleton: &Skeleton,
+    rest_offsets: Option<&Tensor>,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let leading = check_tensor_inputs(skeleton, rest_offsets, local_rotations, root_positions)?;
     let dtype = local_rotations.dtype();
     let supported = matches!(dtype, DType::F32 | DType::F64);
     if !local_rotations.device().is_cpu() || !supported {
-        return tensor_forward_kinematics_composite(skeleton, local_rotations, root_positions);
+        return composite_fk(skeleton, rest_offsets, local_rotations, root_positions);
     }
     let joints = skeleton.joint_count();
     let batch: usize = leading.iter().product();
     let local = local_rotations.reshape((batch, joints, 3, 3))?.contiguous()?;
     let root = root_positions.to_dtype(dtype)?.reshape((batch, 3))?.contiguous()?;
-    let op = FkOp::new(skeleton);
+    let op = match rest_offsets {
+        None => FkOp::new(skeleton),
+        Some(rest) => FkOp::per_sample(skeleton, rest, batch)?,
+    };
     let positions =
         local.apply_op2(&root, FkOutputOp { op: op.clone(), output: Output::Positions })?;
     let rotations = local.apply_op2(&root, FkOutputOp { op, output: Output::Rotations })?;
@@ -187,8 +229,28 @@ pub fn tensor_forward_kinematics_composite(
     local_rotations: &Tensor,
     root_positions: &Tensor,
 ) -> Result<(Tensor, Tensor)> {
+    composite_fk(skeleton, None, local_rotations, root_positions)
+}
+
+/// [`tensor_forward_kinematics_composite`] with per-sample rest offsets; shapes as in
+/// [`tensor_forward_kinematics_per_sample`].
+pub fn tensor_forward_kinematics_composite_per_sample(
+    skeleton: &Skeleton,
+    rest_offsets: &Tensor,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    composite_fk(skeleton, Some(rest_offsets), local_rotations, root_positions)
+}
+
+fn composite_fk(
+    skeleton: &Skeleton,
+    rest_offsets: Option<&Tensor>,
+    local_rotations: &Tensor,
+    root_positions: &Tensor,
+) -> Result<(Tensor, Tensor)> {
     let joints = skeleton.joint_count();
-    let leading = check_tensor_inputs(skeleton, local_rotations, root_positions)?;
+    let leading = check_tensor_inputs(skeleton, rest_offsets, local_rotations, root_positions)?;
     let batch: usize = leading.iter().product();
     let dtype = local_rotations.dtype();
     let device = local_rotations.device();
@@ -199,6 +261,23 @@ pub fn tensor_forward_kinematics_composite(
     let local = local_rotations.reshape((batch, joints, 9))?.permute((2, 1, 0))?.contiguous()?;
     let root =
         root_positions.to_dtype(dtype)?.reshape((batch, 3))?.t()?.contiguous()?.unsqueeze(1)?;
+    // The rest offsets of every body, `[3, joints, batch]`: the skeleton's for all, or each
+    // sample's repeated over its frames.
+    let rest = match rest_offsets {
+        Some(rest) => rest.to_device(device)?.to_dtype(dtype)?,
+        None => {
+            let values: Vec<f32> =
+                skeleton.rest_offsets().iter().flat_map(|o| o.to_array()).collect();
+            Tensor::from_vec(values, (1, joints, 3), device)?.to_dtype(dtype)?
+        }
+    };
+    let samples = rest.dim(0)?;
+    let offsets_all = rest
+        .unsqueeze(1)?
+        .broadcast_as((samples, batch / samples, joints, 3))?
+        .reshape((batch, joints, 3))?
+        .permute((2, 1, 0))?
+        .contiguous()?;
     // Joints of one depth only depend on shallower joints: one batch of operations per depth
     // level (11 for SMPL-X) instead of one per joint.
     let levels = skeleton.depth_levels();
@@ -217,7 +296,8 @@ pub fn tensor_forward_kinematics_composite(
     let mut level_rotations: Vec<Tensor> = Vec::with_capacity(levels.len());
     let mut level_positions: Vec<Tensor> = Vec::with_capacity(levels.len());
     for (depth, level) in levels.iter().enumerate() {
-        let level_local = local.index_select(&index(level)?, 1)?; // [9, L, batch]
+        let level_index = index(level)?;
+        let level_local = local.index_select(&level_index, 1)?; // [9, L, batch]
         if depth == 0 {
             level_rotations.push(level_local);
             level_positions.push(root.clone());
@@ -228,12 +308,7 @@ pub fn tensor_forward_kinematics_composite(
         let parent_slots = index(&parent_slots)?;
         let parent_rotation = level_rotations[depth - 1].index_select(&parent_slots, 1)?;
         let parent_position = level_positions[depth - 1].index_select(&parent_slots, 1)?;
-        let offset_values: Vec<f32> = (0..3)
-            .flat_map(|axis| level.iter().map(move |&j| skeleton.rest_offsets()[j][axis]))
-            .flat_map(|v| std::iter::repeat_n(v, batch))
-            .collect();
-        let offsets =
-            Tensor::from_vec(offset_values, (3, level.len(), batch), device)?.to_dtype(dtype)?;
+        let offsets = offsets_all.index_select(&level_index, 1)?; // [3, L, batch]
         let a = |i: usize, k: usize| parent_rotation.narrow(0, 3 * i + k, 1);
         let b = |k: usize, j: usize| level_local.narrow(0, 3 * k + j, 1);
         let o = |k: usize| offsets.narrow(0, k, 1);
@@ -279,7 +354,11 @@ pub fn tensor_forward_kinematics_composite(
 #[derive(Debug, Clone)]
 pub struct FkOp {
     parents: Arc<[Option<usize>]>,
+    /// The rest offsets of each sample, `[samples * joints]`: one sample for a plain skeleton.
     offsets: Arc<[[f32; 3]]>,
+    /// Consecutive frames of the batch that share one sample's offsets (`usize::MAX` when
+    /// every frame uses the one set).
+    frames_per_sample: usize,
 }
 
 /// The float types the operation computes in, natively (no conversion copies).
@@ -358,31 +437,55 @@ fn storage_values<'a, T: Real>(
 const OP_FRAMES_PER_TASK: usize = 64;
 
 impl FkOp {
-    /// The operation for a skeleton.
+    /// The operation for a skeleton, on its own rest offsets.
     pub fn new(skeleton: &Skeleton) -> Self {
         Self {
             parents: skeleton.parents().into(),
             offsets: skeleton.rest_offsets().iter().map(|o| o.to_array()).collect(),
+            frames_per_sample: usize::MAX,
         }
+    }
+
+    /// The operation for a batch of `batch` frames made of `rest_offsets.dim(0)` samples of
+    /// consecutive frames, each posed on its own `[joints, 3]` rest offsets.
+    pub fn per_sample(skeleton: &Skeleton, rest_offsets: &Tensor, batch: usize) -> Result<Self> {
+        let joints = skeleton.joint_count();
+        let (samples, rest_joints, _) = rest_offsets.dims3()?;
+        if rest_joints != joints || samples == 0 || batch % samples != 0 {
+            return Err(ReprError::invalid(
+                "per-sample rest offsets",
+                format!("[samples, {joints}, 3] with samples dividing the {batch} frames"),
+                format!("{:?}", rest_offsets.dims()),
+            ));
+        }
+        let values: Vec<f32> = rest_offsets.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        Ok(Self {
+            parents: skeleton.parents().into(),
+            offsets: values.chunks_exact(3).map(|o| [o[0], o[1], o[2]]).collect(),
+            frames_per_sample: batch / samples,
+        })
     }
 
     fn joints(&self) -> usize {
         self.parents.len()
     }
 
-    fn offset<T: Real>(&self, joint: usize) -> [T; 3] {
-        self.offsets[joint].map(T::from_f32)
+    /// The rest offsets that frame `frame` of the batch is posed on.
+    fn offsets_of_frame(&self, frame: usize) -> &[[f32; 3]] {
+        let joints = self.joints();
+        let sample = frame / self.frames_per_sample;
+        &self.offsets[sample * joints..(sample + 1) * joints]
     }
 
     /// Forward pass of one frame: `local` is `joints * 9`, `out` is `joints * 12`.
-    fn forward_frame<T: Real>(&self, local: &[T], root: &[T], out: &mut [T]) {
+    fn forward_frame<T: Real>(&self, local: &[T], root: &[T], offsets: &[[f32; 3]], out: &mut [T]) {
         for (joint, parent) in self.parents.iter().enumerate() {
             let rotation = mat(&local[joint * 9..joint * 9 + 9]);
             let (global, position) = match parent {
                 None => (rotation, [root[0], root[1], root[2]]),
                 Some(p) => {
                     let parent_rotation = mat(&out[p * 12..p * 12 + 9]);
-                    let moved = mat_vec(&parent_rotation, &self.offset(joint));
+                    let moved = mat_vec(&parent_rotation, &offsets[joint].map(T::from_f32));
                     let parent_position = &out[p * 12 + 9..p * 12 + 12];
                     let position = std::array::from_fn(|i| parent_position[i] + moved[i]);
                     (mat_mul(&parent_rotation, &rotation), position)
@@ -397,10 +500,12 @@ impl FkOp {
     /// (`joints * 3`) are the output gradients (either may be absent); the gradients of the local
     /// rotations (`joints * 9`) are written to `grad_local_out`. The root's gradient is the sum
     /// of the position gradients over joints, computed by [`SumOverJoints`].
+    #[allow(clippy::too_many_arguments)] // one frame's inputs, gradients and buffers
     fn backward_frame<T: Real>(
         &self,
         local: &[T],
         root: &[T],
+        offsets: &[[f32; 3]],
         grad_rotations: Option<&[T]>,
         grad_positions: Option<&[T]>,
         scratch: &mut BackwardScratch<T>,
@@ -408,7 +513,7 @@ impl FkOp {
     ) {
         let joints = self.joints();
         let BackwardScratch { packed, grad_global, grad_position } = scratch;
-        self.forward_frame(local, root, packed);
+        self.forward_frame(local, root, offsets, packed);
         for j in 0..joints {
             grad_global[j] =
                 grad_rotations.map_or([T::default(); 9], |g| mat(&g[j * 9..j * 9 + 9]));
@@ -422,7 +527,7 @@ impl FkOp {
                     let parent_rotation = mat(&packed[p * 12..p * 12 + 9]);
                     let rotation = mat(&local[joint * 9..joint * 9 + 9]);
                     let to_parent = mat_mul(&grad_global[joint], &transpose(&rotation));
-                    let offset = self.offset::<T>(joint);
+                    let offset = offsets[joint].map(T::from_f32);
                     let moved = grad_position[joint];
                     for r in 0..3 {
                         for c in 0..3 {
@@ -454,16 +559,24 @@ impl FkOp {
                 root.len()
             )));
         }
+        let samples = self.offsets.len() / joints;
+        if self.frames_per_sample != usize::MAX && batch != samples * self.frames_per_sample {
+            return Err(candle_core::Error::Msg(format!(
+                "dex2hoi FK: {batch} frames for {samples} samples of {} frames",
+                self.frames_per_sample
+            )));
+        }
         let width = keep.width();
         let mut out = vec![T::default(); batch * joints * width];
         out.par_chunks_mut(joints * width)
             .zip(local.par_chunks(joints * 9))
             .zip(root.par_chunks(3))
+            .enumerate()
             .with_min_len(OP_FRAMES_PER_TASK)
             .for_each_init(
                 || vec![T::default(); joints * 12],
-                |packed, ((out, local), root)| {
-                    self.forward_frame(local, root, packed);
+                |packed, (frame, ((out, local), root))| {
+                    self.forward_frame(local, root, self.offsets_of_frame(frame), packed);
                     for joint in 0..joints {
                         let from = joint * 12 + if keep == Output::Positions { 9 } else { 0 };
                         out[joint * width..(joint + 1) * width]
@@ -484,15 +597,19 @@ impl FkOp {
             .par_chunks_mut(joints * 9)
             .zip(local.par_chunks(joints * 9))
             .zip(root.par_chunks(3).zip(grad.par_chunks(joints * of.width())))
+            .enumerate()
             .with_min_len(OP_FRAMES_PER_TASK)
             .for_each_init(
                 || BackwardScratch::new(joints),
-                |scratch, ((grad_local, local), (root, grad))| {
+                |scratch, (frame, ((grad_local, local), (root, grad)))| {
                     let (rotations, positions) = match of {
                         Output::Positions => (None, Some(grad)),
                         Output::Rotations => (Some(grad), None),
                     };
-                    self.backward_frame(local, root, rotations, positions, scratch, grad_local);
+                    let offsets = self.offsets_of_frame(frame);
+                    self.backward_frame(
+                        local, root, offsets, rotations, positions, scratch, grad_local,
+                    );
                 },
             );
         grad_local

@@ -22,7 +22,9 @@ pub mod smplx_model;
 
 pub use bps::BpsBasis;
 pub use error::{ReprError, Result};
-pub use fk::{FkOutput, forward_kinematics, tensor_forward_kinematics};
+pub use fk::{
+    FkOutput, forward_kinematics, tensor_forward_kinematics, tensor_forward_kinematics_per_sample,
+};
 pub use mesh::{Mesh, SurfaceSamples};
 pub use object_repr::{HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists};
 pub use sdf::{MeshQuery, SurfacePoint};

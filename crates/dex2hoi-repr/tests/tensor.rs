@@ -11,6 +11,7 @@ use rand::Rng;
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::fk::{
     forward_kinematics, tensor_forward_kinematics, tensor_forward_kinematics_composite,
+    tensor_forward_kinematics_composite_per_sample, tensor_forward_kinematics_per_sample,
 };
 use dex2hoi_repr::object_repr::{
     HandRelativeObject, ObjectPose, TensorWrists, WristPose, Wrists, tensor_decode_position,
@@ -136,6 +137,112 @@ fn candle_fk_equals_glam_fk() {
             let expected: Vec<f32> = cpu.rotations.iter().flat_map(|m| mat3_values(*m)).collect();
             assert_close(&flat(&rotations), &expected, 1e-5, name);
         }
+    }
+}
+
+type PerSampleFkFn =
+    fn(&Skeleton, &Tensor, &Tensor, &Tensor) -> dex2hoi_repr::Result<(Tensor, Tensor)>;
+
+/// Rest offsets of a differently proportioned body: every bone scaled by its own factor.
+fn reshaped_offsets(rng: &mut rand_chacha::ChaCha8Rng, skeleton: &Skeleton) -> Vec<Vec3> {
+    skeleton.rest_offsets().iter().map(|o| *o * rng.random_range(0.7f32..1.3)).collect()
+}
+
+#[test]
+fn per_sample_fk_poses_each_sample_on_its_own_body() {
+    for skeleton in [Skeleton::smplx(), Skeleton::mixamo()] {
+        let j = skeleton.joint_count();
+        let mut rng = rng(14);
+        let (samples, frames) = (3, 4);
+        let bodies: Vec<Vec<Vec3>> =
+            (0..samples).map(|_| reshaped_offsets(&mut rng, &skeleton)).collect();
+        let (local, roots) = random_pose(&mut rng, j, samples * frames);
+        let mut expected_positions = Vec::new();
+        let mut expected_rotations = Vec::new();
+        for (g, body) in bodies.iter().enumerate() {
+            let own = skeleton.with_rest_offsets(body.clone()).unwrap();
+            let span = g * frames..(g + 1) * frames;
+            let cpu = forward_kinematics(&own, &local[span.start * j..span.end * j], &roots[span])
+                .unwrap();
+            expected_positions.extend(cpu.positions.iter().flat_map(|v| v.to_array()));
+            expected_rotations.extend(cpu.rotations.iter().flat_map(|m| mat3_values(*m)));
+        }
+        let rest = vecs_to_tensor(&bodies.concat(), &[samples, j, 3]);
+        // Two inner leading dimensions: the offsets are shared by every frame of a sample.
+        let local_t = mats_to_tensor(&local, &[samples, 2, 2, j, 3, 3]);
+        let roots_t = vecs_to_tensor(&roots, &[samples, 2, 2, 3]);
+        for (name, fk) in [
+            ("op", tensor_forward_kinematics_per_sample as PerSampleFkFn),
+            ("composite", tensor_forward_kinematics_composite_per_sample as PerSampleFkFn),
+        ] {
+            let (positions, rotations) = fk(&skeleton, &rest, &local_t, &roots_t).unwrap();
+            assert_eq!(positions.dims(), &[samples, 2, 2, j, 3]);
+            assert_close(&flat(&positions), &expected_positions, 1e-5, name);
+            assert_close(&flat(&rotations), &expected_rotations, 1e-5, name);
+        }
+        // The skeleton's own offsets for every sample give the plain FK.
+        let own = vecs_to_tensor(&skeleton.rest_offsets().repeat(samples), &[samples, j, 3]);
+        let plain = tensor_forward_kinematics(&skeleton, &local_t, &roots_t).unwrap();
+        let same = tensor_forward_kinematics_per_sample(&skeleton, &own, &local_t, &roots_t);
+        assert_eq!(flat(&plain.0), flat(&same.unwrap().0));
+    }
+}
+
+#[test]
+fn per_sample_fk_refuses_offsets_of_another_shape() {
+    let skeleton = Skeleton::smplx();
+    let local = Tensor::zeros((2, 5, 52, 3, 3), DType::F32, &Device::Cpu).unwrap();
+    let root = Tensor::zeros((2, 5, 3), DType::F32, &Device::Cpu).unwrap();
+    for shape in [(3, 52, 3), (2, 51, 3), (1, 52, 3)] {
+        let rest = Tensor::zeros(shape, DType::F32, &Device::Cpu).unwrap();
+        for fk in [
+            tensor_forward_kinematics_per_sample as PerSampleFkFn,
+            tensor_forward_kinematics_composite_per_sample as PerSampleFkFn,
+        ] {
+            assert!(fk(&skeleton, &rest, &local, &root).is_err(), "{shape:?}");
+        }
+    }
+}
+
+#[test]
+fn gradient_of_per_sample_fk() {
+    // Two samples of two frames on different bodies, f64, with respect to the 6D input and
+    // the roots: the backward pass must use each frame's own offsets.
+    let skeleton = Skeleton::mixamo();
+    let j = skeleton.joint_count();
+    let mut rng = rng(15);
+    let bodies: Vec<Vec3> = (0..2).flat_map(|_| reshaped_offsets(&mut rng, &skeleton)).collect();
+    let rest = vecs_to_tensor(&bodies, &[2, j, 3]).to_dtype(DType::F64).unwrap();
+    let clean: Vec<f32> =
+        (0..4 * j).flat_map(|_| rotation::matrix_to_sixd(random_rotation(&mut rng, 1.0))).collect();
+    let sixd: Vec<f64> =
+        clean.iter().map(|&x| f64::from(x) + rng.random_range(-0.1..0.1)).collect();
+    let sixd = Tensor::from_vec(sixd, (2, 2, j, 6), &Device::Cpu).unwrap();
+    let roots: Vec<f64> = (0..12).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let root = Tensor::from_vec(roots, (2, 2, 3), &Device::Cpu).unwrap();
+    for (name, fk) in [
+        ("op", tensor_forward_kinematics_per_sample as PerSampleFkFn),
+        ("composite", tensor_forward_kinematics_composite_per_sample as PerSampleFkFn),
+    ] {
+        let (root_clone, rest_clone, skeleton_clone) =
+            (root.clone(), rest.clone(), skeleton.clone());
+        gradient_check(
+            &sixd,
+            move |x| {
+                let rotations = rt::sixd_to_matrix(x)?;
+                let (positions, global) =
+                    fk(&skeleton_clone, &rest_clone, &rotations, &root_clone)?;
+                Ok(Tensor::cat(&[positions.flatten_all()?, global.flatten_all()?], 0)?)
+            },
+            &format!("per-sample FK ({name}) wrt 6D"),
+        );
+        let rotations = rt::sixd_to_matrix(&sixd).unwrap();
+        let (rest_clone, skeleton_clone) = (rest.clone(), skeleton.clone());
+        gradient_check(
+            &root,
+            move |r| Ok(fk(&skeleton_clone, &rest_clone, &rotations, r)?.0),
+            &format!("per-sample FK ({name}) wrt root"),
+        );
     }
 }
 
