@@ -73,7 +73,8 @@ pub fn run(args: ShowArgs) -> Result<()> {
         ),
     };
     let manifest = &dataset.manifest;
-    let skeleton = manifest.builtin_skeleton()?;
+    // The sequence's own body (a subject's proportions), as `prepare` measured it.
+    let skeleton = sequence.skeleton(&manifest.builtin_skeleton()?)?;
     let motion = decode_features(
         &skeleton,
         &sequence.body,

@@ -139,6 +139,8 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
         }
     }
     out.root_start.x = -sequence.root_start.x;
+    out.rest_offsets =
+        symmetry.iter().map(|&m| sequence.rest_offsets[m] * Vec3::new(-1.0, 1.0, 1.0)).collect();
     out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
     out
 }
@@ -150,10 +152,11 @@ fn mirror_matrix(r: Mat3) -> Mat3 {
 }
 
 /// Mirrors a raw sequence left/right: the same reflection as [`mirror`], before features. The
-/// skeleton must be symmetric (the built-in ones are); object meshes are reflected too (with
-/// their triangles reversed so that they still face outward).
+/// body is mirrored too ([`Skeleton::mirrored`]), so an asymmetric subject stays exact; object
+/// meshes are reflected (with their triangles reversed so that they still face outward).
 pub fn mirror_sequence(sequence: &Sequence) -> Sequence {
     let mut out = sequence.clone();
+    out.skeleton = sequence.skeleton.mirrored();
     let joints = sequence.skeleton.joint_count();
     let symmetry = sequence.skeleton.symmetry();
     let reflect = |p: Vec3| Vec3::new(-p.x, p.y, p.z);

@@ -17,8 +17,9 @@ use crate::features::{ObjectAsset, ProcessedSequence};
 use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
 
-/// The version of the format this code writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+/// The version of the format this code writes and reads. Version 2 added each sequence's rest
+/// offsets (`rest_offsets`); version 1 files are refused (prepare them again).
+pub const FORMAT_VERSION: u32 = 2;
 
 /// The least standard deviation a feature channel is normalised with: channels that never
 /// change (the legs of a standing character) must not blow up.
@@ -271,7 +272,9 @@ impl Manifest {
         FeatureLayout::new(self.joints)
     }
 
-    /// The built-in skeleton of the dataset's kind: the one its decoded features are posed on.
+    /// The built-in skeleton of the dataset's kind: the topology every sequence shares, and the
+    /// body generated motion is posed on. Each sequence's own body is
+    /// [`ProcessedSequence::skeleton`].
     pub fn builtin_skeleton(&self) -> Result<dex2hoi_repr::Skeleton> {
         Ok(dex2hoi_repr::Skeleton::builtin(SkeletonKind::from_name(&self.skeleton)?))
     }
@@ -384,6 +387,11 @@ impl Dataset {
             );
             let starts: Vec<f32> = sequences.iter().flat_map(|s| s.root_start.to_array()).collect();
             tensors.insert("root_start".into(), f32_tensor(starts, &[n, 3])?);
+            let rest: Vec<f32> = sequences
+                .iter()
+                .flat_map(|s| s.rest_offsets.iter().flat_map(|o| o.to_array()))
+                .collect();
+            tensors.insert("rest_offsets".into(), f32_tensor(rest, &[n, m.joints, 3])?);
             save_tensors(&dir.join(format!("{}.safetensors", split.name())), &tensors)?;
             let infos: Vec<SequenceInfo> = sequences
                 .iter()
@@ -449,11 +457,17 @@ impl Dataset {
             DataError::format(&path, "manifest", "the dex2hoi dataset manifest (JSON)", e)
         })?;
         if manifest.format_version != FORMAT_VERSION {
+            let advice = if manifest.format_version < FORMAT_VERSION {
+                "written by an older dex2hoi (without each sequence's rest skeleton): run \
+                 `dex2hoi data prepare` or `dex2hoi data synth` again"
+            } else {
+                "written by a newer dex2hoi"
+            };
             return Err(DataError::format(
                 &path,
                 "format_version",
                 FORMAT_VERSION.to_string(),
-                manifest.format_version,
+                format!("{}, {advice}", manifest.format_version),
             ));
         }
         SkeletonKind::from_name(&manifest.skeleton)
@@ -551,6 +565,8 @@ impl Dataset {
             let positions =
                 values(get(&path, &tensors, "object_positions", &[frames, MAX_OBJECTS, 3])?)?;
             let starts = values(get(&path, &tensors, "root_start", &[n, 3])?)?;
+            let rest = values(get(&path, &tensors, "rest_offsets", &[n, m.joints, 3])?)?;
+            let topology = m.builtin_skeleton()?;
             let mut sequences = Vec::with_capacity(n);
             for (i, info) in infos.into_iter().enumerate() {
                 let (a, b) = (offsets[i] as usize, offsets[i + 1] as usize);
@@ -570,10 +586,20 @@ impl Dataset {
                     object_rotations: slice(&rotations, MAX_OBJECTS * 9),
                     object_positions: slice(&positions, MAX_OBJECTS * 3),
                     root_start: Vec3::from_slice(&starts[i * 3..i * 3 + 3]),
+                    rest_offsets: rest[i * m.joints * 3..(i + 1) * m.joints * 3]
+                        .chunks_exact(3)
+                        .map(Vec3::from_slice)
+                        .collect(),
                     texts: info.texts,
                     action: info.action,
                     source_id: info.source_id,
                 });
+            }
+            // Each body must be usable by FK (finite offsets), checked once here.
+            for s in &sequences {
+                s.skeleton(&topology).map_err(|e| {
+                    DataError::format(&path, "rest_offsets", "finite rest offsets", e)
+                })?;
             }
             splits.insert(*split, sequences);
         }

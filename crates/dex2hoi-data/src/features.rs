@@ -124,12 +124,24 @@ pub struct ProcessedSequence {
     pub object_positions: Vec<f32>,
     /// The root position at the first frame in the canonical frame, `(0, height, 0)`.
     pub root_start: Vec3,
+    /// `[J]` rest offsets of the sequence's own body (a subject's proportions): the features
+    /// are posed on them, and `joint_positions` is their FK.
+    pub rest_offsets: Vec<Vec3>,
     /// Descriptions.
     pub texts: Vec<String>,
     /// Action label.
     pub action: Option<String>,
     /// Source id.
     pub source_id: String,
+}
+
+impl ProcessedSequence {
+    /// The sequence's own body: the topology, names and groups of `topology` (the dataset's
+    /// built-in skeleton, [`crate::dataset::Manifest::builtin_skeleton`]) on the sequence's
+    /// rest offsets.
+    pub fn skeleton(&self, topology: &Skeleton) -> Result<Skeleton> {
+        Ok(topology.with_rest_offsets(self.rest_offsets.clone())?)
+    }
 }
 
 /// The yaw (about +Y) that turns the root's forward direction at frame 0 to +Z.
@@ -277,6 +289,7 @@ pub fn process_sequence(
         object_rotations,
         object_positions,
         root_start,
+        rest_offsets: skeleton.rest_offsets().to_vec(),
         texts: sequence.texts.clone(),
         action: sequence.action.clone(),
         source_id: sequence.source_id.clone(),

@@ -81,6 +81,7 @@ impl Window {
             object_rotations: per_frame(&sequence.object_rotations),
             object_positions: per_frame(&sequence.object_positions),
             root_start: sequence.root_start,
+            rest_offsets: sequence.rest_offsets.clone(),
             texts: sequence.texts.clone(),
             action: sequence.action.clone(),
             source_id: sequence.source_id.clone(),

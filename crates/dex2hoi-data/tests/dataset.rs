@@ -18,7 +18,10 @@ fn small(seed: u64) -> Dataset {
 
 #[test]
 fn save_and_load_round_trip_and_same_seed_same_bytes() {
-    let dataset = small(3);
+    let mut dataset = small(3);
+    // Each sequence keeps its own body: one subject is taller than the built-in skeleton.
+    let tall = &mut dataset.splits.get_mut(&Split::Train).unwrap()[1];
+    tall.rest_offsets.iter_mut().for_each(|o| *o *= 1.1);
     // Blocks of eight: block 9 (indices 72-79) is the test split, one of every task.
     assert_eq!(dataset.manifest.splits[&Split::Test].sequences, 8);
     assert_eq!(dataset.manifest.splits[&Split::Test].actions.len(), 8);
@@ -28,6 +31,10 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
     let loaded = Dataset::load(&a).unwrap();
     assert_eq!(loaded.manifest, dataset.manifest);
     assert_eq!(loaded.splits, dataset.splits);
+    let builtin = Skeleton::smplx();
+    let train = &loaded.splits[&Split::Train];
+    assert_eq!(train[0].skeleton(&builtin).unwrap(), builtin);
+    assert_ne!(train[1].skeleton(&builtin).unwrap(), builtin);
     assert_eq!(loaded.stats, dataset.stats);
     assert_eq!(loaded.objects.len(), 8);
     for (x, y) in loaded.objects.iter().zip(&dataset.objects) {
@@ -35,7 +42,9 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
     }
     // Same seed, same bytes; another seed, other bytes.
     let b = temp_dir("b");
-    small(3).save(&b).unwrap();
+    let mut again = small(3);
+    again.splits.get_mut(&Split::Train).unwrap()[1].rest_offsets.iter_mut().for_each(|o| *o *= 1.1);
+    again.save(&b).unwrap();
     let c = temp_dir("c");
     small(4).save(&c).unwrap();
     for file in [
@@ -72,13 +81,17 @@ fn broken_datasets_give_clear_errors() {
     let error = Dataset::load(&dir).unwrap_err().to_string();
     assert!(error.contains("train.safetensors"), "{error}");
     let manifest = std::fs::read_to_string(dir.join("manifest.json")).unwrap();
-    std::fs::write(
-        dir.join("manifest.json"),
-        manifest.replace("\"format_version\": 1", "\"format_version\": 99"),
-    )
-    .unwrap();
+    let current = format!("\"format_version\": {}", dex2hoi_data::dataset::FORMAT_VERSION);
+    assert!(manifest.contains(&current));
+    // A dataset of the first format (no rest skeletons) is refused with what to do.
+    std::fs::write(dir.join("manifest.json"), manifest.replace(&current, "\"format_version\": 1"))
+        .unwrap();
     let error = Dataset::load(&dir).unwrap_err().to_string();
-    assert!(error.contains("format_version"), "{error}");
+    assert!(error.contains("format_version") && error.contains("data prepare"), "{error}");
+    std::fs::write(dir.join("manifest.json"), manifest.replace(&current, "\"format_version\": 99"))
+        .unwrap();
+    let error = Dataset::load(&dir).unwrap_err().to_string();
+    assert!(error.contains("format_version") && error.contains("newer"), "{error}");
     std::fs::write(dir.join("manifest.json"), "{").unwrap();
     assert!(Dataset::load(&dir).is_err());
     std::fs::remove_dir_all(&dir).ok();
@@ -167,8 +180,16 @@ fn feature_mirroring_equals_mirroring_the_raw_motion() {
             let refs: Vec<&MeshQuery> = queries.iter().collect();
             process_sequence(s, &refs, &TargetConfig::default()).unwrap()
         };
-        let a = mirror(&process(&synth.sequence), &skeleton);
-        let b = process(&mirror_sequence(&synth.sequence));
+        // An asymmetric subject (each bone scaled by its own factor): mirroring must carry
+        // the body over, or the mirrored joints would not be FK of the mirrored rotations.
+        let mut raw = synth.sequence.clone();
+        let scaled = (raw.skeleton.rest_offsets().iter().enumerate())
+            .map(|(j, o)| *o * (1.0 + 0.08 * (j as f32 * 1.7).sin()))
+            .collect();
+        raw.skeleton = raw.skeleton.with_rest_offsets(scaled).unwrap();
+        let a = mirror(&process(&raw), &skeleton);
+        let b = process(&mirror_sequence(&raw));
+        assert_ne!(a.rest_offsets, process(&raw).rest_offsets);
         let close = |x: &[f32], y: &[f32], what: &str| {
             assert_eq!(x.len(), y.len());
             for (k, (p, q)) in x.iter().zip(y).enumerate() {
@@ -183,6 +204,10 @@ fn feature_mirroring_equals_mirroring_the_raw_motion() {
         close(&a.object_positions, &b.object_positions, "object positions");
         assert_eq!(a.foot_contact, b.foot_contact);
         assert_eq!(a.texts, b.texts);
+        let offsets = |s: &dex2hoi_data::features::ProcessedSequence| -> Vec<f32> {
+            s.rest_offsets.iter().flat_map(|o| o.to_array()).collect()
+        };
+        close(&offsets(&a), &offsets(&b), "rest offsets");
     }
 }
 

@@ -451,7 +451,7 @@ impl FkOp {
     pub fn per_sample(skeleton: &Skeleton, rest_offsets: &Tensor, batch: usize) -> Result<Self> {
         let joints = skeleton.joint_count();
         let (samples, rest_joints, _) = rest_offsets.dims3()?;
-        if rest_joints != joints || samples == 0 || batch % samples != 0 {
+        if rest_joints != joints || samples == 0 || !batch.is_multiple_of(samples) {
             return Err(ReprError::invalid(
                 "per-sample rest offsets",
                 format!("[samples, {joints}, 3] with samples dividing the {batch} frames"),

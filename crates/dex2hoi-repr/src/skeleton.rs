@@ -481,6 +481,19 @@ impl Skeleton {
             .collect()
     }
 
+    /// Rest offsets of the mirror image of this body (`x -> -x`): each joint takes the
+    /// reflection of its mirror joint's offset. FK of mirrored rotations on them gives the
+    /// mirrored joints exactly, symmetric body or not.
+    pub fn mirrored_offsets(&self) -> Vec<Vec3> {
+        let reflect = |v: Vec3| Vec3::new(-v.x, v.y, v.z);
+        self.symmetry.iter().map(|&mirror| reflect(self.rest_offsets[mirror])).collect()
+    }
+
+    /// The mirror image of this body (see [`Skeleton::mirrored_offsets`]).
+    pub fn mirrored(&self) -> Self {
+        Self { rest_offsets: self.mirrored_offsets(), ..self.clone() }
+    }
+
     /// The built-in skeleton of a kind.
     pub fn builtin(kind: SkeletonKind) -> Self {
         match kind {

@@ -19,6 +19,7 @@ use dex2hoi_data::features::{DecodedMotion, ObjectDecoding, decode_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::text::reject_empty;
 use dex2hoi_model::{InferenceModel, ObjectRepresentation};
+use dex2hoi_repr::Skeleton;
 
 use crate::denoiser::{WindowCondition, sample_window};
 use crate::error::{Result, SampleError};
@@ -156,6 +157,9 @@ pub struct Conditioning<'a> {
     pub prompts: Vec<(usize, &'a str)>,
     /// The root position the prefix's root displacement is measured from.
     pub root_start: Vec3,
+    /// The body the motion is posed on: the run's built-in skeleton, or a test sequence's own
+    /// subject when continuing that sequence.
+    pub skeleton: &'a Skeleton,
 }
 
 /// A generated motion with its features.
@@ -232,7 +236,7 @@ pub fn generate_motion(
         ObjectRepresentation::GlobalOnly => ObjectDecoding::GlobalOnly,
     };
     let motion = decode_features(
-        &run.skeleton,
+        conditioning.skeleton,
         &body_features,
         &object_features,
         conditioning.present,

@@ -110,6 +110,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             present,
             prompts,
             root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+            skeleton: &run.skeleton,
         },
         request.frames,
         request.seed,

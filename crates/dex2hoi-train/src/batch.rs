@@ -73,6 +73,9 @@ pub struct Batch {
     pub foot_contact_values: Vec<f32>,
     /// The root position at the first frame of each window's sequence, `[B, 1, 3]`.
     pub root_start: Tensor,
+    /// The rest offsets of each window's body (its sequence's subject, mirrored with the
+    /// window), `[B, J, 3]`: the losses pose the prediction on them.
+    pub rest_offsets: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
 }
@@ -130,7 +133,8 @@ impl TrainingSet {
         })
     }
 
-    /// The skeleton of the dataset.
+    /// The built-in skeleton of the dataset: the topology and joint groups every sequence
+    /// shares (each window's body is [`Batch::rest_offsets`]).
     pub fn skeleton(&self) -> &Skeleton {
         &self.skeleton
     }
@@ -181,6 +185,7 @@ impl TrainingSet {
         let mut hand_distances = vec![0.0f32; b * 2 * tf * h];
         let mut foot_contact = vec![0.0f32; b * tf * 4];
         let mut root_start = vec![0.0f32; b * 3];
+        let mut rest_offsets = Vec::with_capacity(b * joints * 3);
         let mut clouds = Vec::with_capacity(b);
         for i in 0..b {
             let window = self.windows[rng.random_range(0..self.windows.len())];
@@ -231,6 +236,7 @@ impl TrainingSet {
                 }
             }
             root_start[i * 3..i * 3 + 3].copy_from_slice(&w.root_start.to_array());
+            rest_offsets.extend(w.rest_offsets.iter().flat_map(|o| o.to_array()));
             presence_values.push(w.object_present);
             texts.push(w.texts.swap_remove(0));
             clouds.push(slots);
@@ -254,6 +260,7 @@ impl TrainingSet {
             foot_contact: tensor(foot_contact.clone(), &[b, tf, 4])?,
             foot_contact_values: foot_contact,
             root_start: tensor(root_start, &[b, 1, 3])?,
+            rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
         })
     }

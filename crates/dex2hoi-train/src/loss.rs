@@ -30,7 +30,7 @@ use dex2hoi_repr::object_repr::{
     tensor_decode_position, tensor_decode_rotation, tensor_mixture_weights, tensor_softmax,
 };
 use dex2hoi_repr::rotation::tensor::{rotate_inverse, sixd_to_matrix};
-use dex2hoi_repr::tensor_forward_kinematics;
+use dex2hoi_repr::tensor_forward_kinematics_per_sample;
 
 use crate::batch::{Batch, SurfaceCloud};
 use crate::config::LossConfig;
@@ -344,8 +344,13 @@ impl LossContext {
             .layout
             .root_of(&body_raw)?
             .broadcast_add(&window.batch_data.root_start.to_dtype(window.dtype)?)?;
-        let (positions, world_rotations) =
-            tensor_forward_kinematics(&self.skeleton, &rotations, &root)?;
+        // Each window on its own body: the ground-truth joints are FK of the same offsets.
+        let (positions, world_rotations) = tensor_forward_kinematics_per_sample(
+            &self.skeleton,
+            &window.batch_data.rest_offsets.to_dtype(window.dtype)?,
+            &rotations,
+            &root,
+        )?;
         Ok(BodyKinematics { positions, world_rotations })
     }
 

@@ -6,6 +6,7 @@ use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
+use dex2hoi_repr::Skeleton;
 use dex2hoi_sample::{Conditioning, GeneratedMotion, TrainedRun, generate_motion};
 
 use crate::error::Result;
@@ -78,7 +79,9 @@ impl<'a> Generator<'a> {
         prompt: &str,
         seed: u64,
     ) -> Result<GeneratedMotion> {
-        let conditioning = conditioning(self.run, self.dataset, sequence, prompt)?;
+        // Continuing a test sequence: its own subject's body, like its ground truth.
+        let body = sequence.skeleton(&self.run.skeleton)?;
+        let conditioning = conditioning(self.run, self.dataset, sequence, prompt, &body)?;
         Ok(generate_motion(self.run, &conditioning, self.frames, seed, self.sampler)?)
     }
 
@@ -155,6 +158,7 @@ fn conditioning<'a>(
     dataset: &Dataset,
     sequence: &ProcessedSequence,
     prompt: &'a str,
+    skeleton: &'a Skeleton,
 ) -> Result<Conditioning<'a>> {
     let c = &run.config.model;
     let prefix = sequence.stream_features(0..c.prefix_frames)?;
@@ -165,5 +169,6 @@ fn conditioning<'a>(
         present: sequence.object_present,
         prompts: vec![(0, prompt)],
         root_start: sequence.root_start,
+        skeleton,
     })
 }
