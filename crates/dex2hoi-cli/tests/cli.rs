@@ -28,6 +28,8 @@ fn synth_then_info() {
     assert!(text.contains("skeleton smplx52 (52 joints)"), "{text}");
     assert!(text.contains("pick_place 3"), "{text}");
     assert!(text.contains("e.g. synth-00000"), "{text}");
+    // The procedural data is posed on the built-in skeleton: one body.
+    assert!(text.contains("rest skeletons: 1 distinct, rest height 1.58-1.58 m"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

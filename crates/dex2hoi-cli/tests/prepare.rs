@@ -98,6 +98,9 @@ fn grab_is_prepared_and_bad_sequences_are_reported() {
     );
     let info = succeed(&["data", "info", path(&out)]);
     assert!(info.contains("source grab") && info.contains("train: 2 sequences"), "{info}");
+    // Each subject keeps its own body: s1's two training sequences share one, s10's differs.
+    assert!(info.contains("rest skeletons: 1 distinct, rest height 1.71-1.71 m"), "{info}");
+    assert!(info.contains("rest skeletons: 1 distinct, rest height 1.59-1.59 m"), "{info}");
     // The PCA hand path runs from the command line too.
     let pca = temp_dir("grab-pca");
     let args = [
