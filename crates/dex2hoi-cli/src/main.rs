@@ -137,27 +137,6 @@ fn synth(out: &Path, sequences: usize, seed: u64, fps: f32) -> Result<()> {
     Ok(())
 }
 
-/// How many distinct rest skeletons a split's sequences have, and the range of their rest
-/// heights (the vertical extent of the rest pose).
-fn describe_bodies(
-    topology: &dex2hoi_repr::Skeleton,
-    sequences: &[dex2hoi_data::features::ProcessedSequence],
-) -> Result<String> {
-    let mut distinct: Vec<&[glam::Vec3]> = Vec::new();
-    let (mut lowest, mut highest) = (f32::INFINITY, f32::NEG_INFINITY);
-    for s in sequences {
-        if !distinct.contains(&s.rest_offsets.as_slice()) {
-            distinct.push(&s.rest_offsets);
-        }
-        let rest = s.skeleton(topology)?.rest_positions();
-        let height = rest.iter().map(|p| p.y).fold(f32::NEG_INFINITY, f32::max)
-            - rest.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
-        lowest = lowest.min(height);
-        highest = highest.max(height);
-    }
-    Ok(format!("{} distinct, rest height {lowest:.2}-{highest:.2} m", distinct.len()))
-}
-
 fn info(dir: &Path) -> Result<()> {
     let dataset =
         Dataset::load(dir).with_context(|| format!("reading the dataset in {}", dir.display()))?;
@@ -191,7 +170,11 @@ fn info(dir: &Path) -> Result<()> {
         if let Some(sequences) = dataset.splits.get(&split) {
             let two = sequences.iter().filter(|s| s.object_present.iter().all(|p| *p)).count();
             println!("  two-object sequences: {two}, one-object: {}", sequences.len() - two);
-            println!("  rest skeletons: {}", describe_bodies(&m.builtin_skeleton()?, sequences)?);
+            let bodies = dataset.bodies(split)?;
+            println!(
+                "  rest skeletons: {} distinct, rest height {:.2}-{:.2} m",
+                bodies.distinct, bodies.shortest, bodies.tallest
+            );
             for s in sequences.iter().take(3) {
                 println!(
                     "  e.g. {}: \"{}\"",

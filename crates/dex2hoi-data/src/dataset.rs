@@ -266,6 +266,41 @@ impl Dataset {
     }
 }
 
+/// The bodies of a split's sequences (see [`Dataset::bodies`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodySummary {
+    /// Distinct rest skeletons.
+    pub distinct: usize,
+    /// The least and the greatest rest height (the vertical extent of the rest pose's joints,
+    /// metres).
+    pub shortest: f32,
+    /// See `shortest`.
+    pub tallest: f32,
+}
+
+impl Dataset {
+    /// How many distinct bodies a split's sequences have, and their range of rest heights
+    /// (zeros for an empty or absent split).
+    pub fn bodies(&self, split: Split) -> Result<BodySummary> {
+        let topology = self.manifest.builtin_skeleton()?;
+        let sequences = self.splits.get(&split).map_or(&[][..], Vec::as_slice);
+        let mut distinct: Vec<&[Vec3]> = Vec::new();
+        let (mut shortest, mut tallest) = (f32::INFINITY, 0.0f32);
+        for s in sequences {
+            if !distinct.contains(&s.rest_offsets.as_slice()) {
+                distinct.push(&s.rest_offsets);
+            }
+            let heights =
+                s.skeleton(&topology)?.rest_positions().iter().map(|p| p.y).collect::<Vec<_>>();
+            let top = heights.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let bottom = heights.iter().copied().fold(f32::INFINITY, f32::min);
+            shortest = shortest.min(top - bottom);
+            tallest = tallest.max(top - bottom);
+        }
+        Ok(BodySummary { distinct: distinct.len(), shortest: shortest.min(tallest), tallest })
+    }
+}
+
 impl Manifest {
     /// The layout of the dataset's features (from its joint count).
     pub fn layout(&self) -> FeatureLayout {
