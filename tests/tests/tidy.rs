@@ -26,6 +26,7 @@ const LAYERING: [(&str, &[&str]); 11] = [
             "dex2hoi-diffusion",
             "dex2hoi-optim",
             "dex2hoi-sample",
+            "dex2hoi-export",
         ],
     ),
     (

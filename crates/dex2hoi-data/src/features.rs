@@ -58,7 +58,7 @@ impl Default for TargetConfig {
     fn default() -> Self {
         Self {
             mixture: MixtureTargetConfig::default(),
-            hand_contact_distance: 0.05,
+            hand_contact_distance: dex2hoi_repr::CONTACT_RADIUS_M,
             foot_height: [0.12, 0.05],
             foot_speed: 0.01,
         }

@@ -27,5 +27,5 @@ pub use fk::{
 };
 pub use mesh::{Mesh, SurfaceSamples};
 pub use object_repr::{HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists};
-pub use sdf::{MeshQuery, SurfacePoint};
+pub use sdf::{CONTACT_RADIUS_M, MeshQuery, PENETRATION_TOLERANCE_M, SurfacePoint};
 pub use skeleton::{JointGroups, Skeleton, SkeletonKind};

@@ -15,6 +15,7 @@
 //! give inconsistent signs; vertices at identical positions are merged before the pseudo-normals
 //! are built, so seams in the file do not matter.
 
+
 use std::collections::HashMap;
 
 use glam::Vec3;
@@ -36,6 +37,14 @@ pub struct SurfacePoint {
     /// mesh's faces without degenerate ones).
     pub triangle: u32,
 }
+
+/// Distance to a surface under which a hand joint touches an object: 5 cm, as in CHOIS. The
+/// one threshold of the contact targets, the contact metrics and the preview's contact colour.
+pub const CONTACT_RADIUS_M: f32 = 0.05;
+
+/// Depth inside an object beyond which a joint counts as penetrating it: 5 mm. The one
+/// threshold of the penetration metric and the preview's penetration colour.
+pub const PENETRATION_TOLERANCE_M: f32 = 0.005;
 
 /// A mesh prepared for nearest-point and signed-distance queries.
 pub struct MeshQuery {

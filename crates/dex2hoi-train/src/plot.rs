@@ -4,6 +4,8 @@
 
 use std::path::Path;
 
+use dex2hoi_export::font::draw_text;
+
 use crate::error::{Result, TrainError};
 use crate::run::MetricsLine;
 use crate::trainer::write_file;
@@ -13,54 +15,6 @@ const PANEL_HEIGHT: usize = 150;
 const COLUMNS: usize = 2;
 const MARGIN: usize = 12;
 const TEXT_SCALE: usize = 2;
-
-/// 3 x 5 glyphs, rows top to bottom, three bits per row (the leftmost is the high bit).
-fn glyph(c: char) -> [u8; 5] {
-    match c.to_ascii_lowercase() {
-        'a' => [2, 5, 7, 5, 5],
-        'b' => [6, 5, 6, 5, 6],
-        'c' => [3, 4, 4, 4, 3],
-        'd' => [6, 5, 5, 5, 6],
-        'e' => [7, 4, 6, 4, 7],
-        'f' => [7, 4, 6, 4, 4],
-        'g' => [3, 4, 5, 5, 3],
-        'h' => [5, 5, 7, 5, 5],
-        'i' => [7, 2, 2, 2, 7],
-        'j' => [1, 1, 1, 5, 2],
-        'k' => [5, 5, 6, 5, 5],
-        'l' => [4, 4, 4, 4, 7],
-        'm' => [5, 7, 7, 5, 5],
-        'n' => [6, 5, 5, 5, 5],
-        'o' => [2, 5, 5, 5, 2],
-        'p' => [6, 5, 6, 4, 4],
-        'q' => [2, 5, 5, 6, 3],
-        'r' => [6, 5, 6, 5, 5],
-        's' => [3, 4, 2, 1, 6],
-        't' => [7, 2, 2, 2, 2],
-        'u' => [5, 5, 5, 5, 7],
-        'v' => [5, 5, 5, 5, 2],
-        'w' => [5, 5, 7, 7, 5],
-        'x' => [5, 5, 2, 5, 5],
-        'y' => [5, 5, 2, 2, 2],
-        'z' => [7, 1, 2, 4, 7],
-        '0' => [7, 5, 5, 5, 7],
-        '1' => [2, 6, 2, 2, 7],
-        '2' => [6, 1, 2, 4, 7],
-        '3' => [6, 1, 2, 1, 6],
-        '4' => [5, 5, 7, 1, 1],
-        '5' => [7, 4, 6, 1, 6],
-        '6' => [3, 4, 7, 5, 7],
-        '7' => [7, 1, 2, 2, 2],
-        '8' => [7, 5, 7, 5, 7],
-        '9' => [7, 5, 7, 1, 6],
-        '.' => [0, 0, 0, 0, 2],
-        '-' => [0, 0, 7, 0, 0],
-        '_' => [0, 0, 0, 0, 7],
-        '>' => [4, 2, 1, 2, 4],
-        ':' => [0, 2, 0, 2, 0],
-        _ => [0; 5],
-    }
-}
 
 struct Canvas {
     width: usize,
@@ -76,24 +30,7 @@ impl Canvas {
     }
 
     fn text(&mut self, x: usize, y: usize, text: &str, colour: [u8; 3]) {
-        for (n, c) in text.chars().enumerate() {
-            let rows = glyph(c);
-            for (row, bits) in rows.iter().enumerate() {
-                for column in 0..3 {
-                    if bits & (4 >> column) != 0 {
-                        for dy in 0..TEXT_SCALE {
-                            for dx in 0..TEXT_SCALE {
-                                self.set(
-                                    (x + (n * 4 + column) * TEXT_SCALE + dx) as i64,
-                                    (y + row * TEXT_SCALE + dy) as i64,
-                                    colour,
-                                );
-                            }
-                        }
-                    }
-                }
-            }
-        }
+        draw_text(x, y, text, TEXT_SCALE, |px, py| self.set(px as i64, py as i64, colour));
     }
 
     fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), colour: [u8; 3]) {

@@ -8,8 +8,7 @@ use crate::error::{EvalError, Result};
 
 use super::sample::MotionSample;
 
-/// Distance under which a hand joint touches an object: 5 cm, as in CHOIS.
-pub const CONTACT_RADIUS_M: f32 = 0.05;
+pub use dex2hoi_repr::CONTACT_RADIUS_M;
 
 /// Per frame, per object slot, per hand (left, right): the nearest signed distance in metres
 /// from the hand's joints (the skeleton groups `left_hand` / `right_hand`: wrist and fingers)

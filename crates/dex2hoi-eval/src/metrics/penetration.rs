@@ -6,8 +6,7 @@ use crate::error::{EvalError, Result};
 
 use super::sample::MotionSample;
 
-/// Depth beyond which a joint inside an object counts as penetrating: 5 mm.
-pub const PENETRATION_TOLERANCE_M: f32 = 0.005;
+pub use dex2hoi_repr::PENETRATION_TOLERANCE_M;
 
 /// Penetration of a motion into its objects.
 #[derive(Debug, Clone, Copy, PartialEq)]
