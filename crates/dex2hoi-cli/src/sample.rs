@@ -47,7 +47,10 @@ pub struct SampleArgs {
     /// Height of the table the objects stand on (metres).
     #[arg(long, default_value_t = DEFAULT_TABLE_HEIGHT)]
     table_height: f32,
-    /// Output directory for motion.npz, motion.glb, motion.bvh and preview.gif.
+    /// Leave the prompt off the preview's frames.
+    #[arg(long)]
+    no_caption: bool,
+    /// Output directory for motion.npz, motion.glb, motion.bvh, preview.gif and preview.png.
     #[arg(long)]
     out: PathBuf,
 }
@@ -102,11 +105,10 @@ pub fn run(args: SampleArgs) -> Result<()> {
         table_height: args.table_height,
     };
     let sampled = sample(&run, &request).context("generating")?;
-    let text = prompts.iter().map(|p| p.text.as_str()).collect::<Vec<_>>().join(" | ");
     let export = ExportMotion {
         skeleton: &run.skeleton,
         fps,
-        text,
+        prompts: prompts.iter().map(|p| (p.start_frame, p.text.clone())).collect(),
         motion: &sampled.motion,
         objects: sampled
             .objects
@@ -122,6 +124,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
                 centre: Vec2::new(0.0, DEFAULT_TABLE_NEAR_EDGE + half_depth),
                 half_extents: Vec2::new(0.55, half_depth),
             }),
+            caption: !args.no_caption,
             ..PreviewOptions::default()
         },
     };
@@ -134,7 +137,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         sampled.seconds,
         duration / sampled.seconds
     );
-    for path in [&files.npz, &files.glb, &files.bvh, &files.gif] {
+    for path in [&files.npz, &files.glb, &files.bvh, &files.gif, &files.png] {
         println!("  {}", path.display());
     }
     Ok(())

@@ -10,7 +10,7 @@ use clap::{Args, ValueEnum};
 
 use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
-use dex2hoi_export::{ExportMotion, ExportObject, ExportOptions, export_all};
+use dex2hoi_export::{ExportMotion, ExportObject, ExportOptions, PreviewOptions, export_all};
 
 /// A dataset split on the command line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -33,7 +33,10 @@ pub struct ShowArgs {
     /// Look only in this split.
     #[arg(long, value_enum)]
     split: Option<SplitArg>,
-    /// Output directory (created; the four files are written atomically).
+    /// Leave the prompt off the preview's frames.
+    #[arg(long)]
+    no_caption: bool,
+    /// Output directory (created; the five files are written atomically).
     #[arg(long)]
     out: PathBuf,
 }
@@ -95,11 +98,14 @@ pub fn run(args: ShowArgs) -> Result<()> {
     let export = ExportMotion {
         skeleton: &skeleton,
         fps: manifest.fps,
-        text: sequence.texts.first().cloned().unwrap_or_default(),
+        prompts: sequence.texts.first().map(|t| (0, t.clone())).into_iter().collect(),
         motion: &motion,
         objects,
     };
-    let files = export_all(&args.out, &export, &ExportOptions::default())
+    let options = ExportOptions {
+        preview: PreviewOptions { caption: !args.no_caption, ..PreviewOptions::default() },
+    };
+    let files = export_all(&args.out, &export, &options)
         .with_context(|| format!("exporting to {}", args.out.display()))?;
     println!(
         "{} ({} split, {} frames at {} fps, {}): \"{}\"",
@@ -111,9 +117,9 @@ pub fn run(args: ShowArgs) -> Result<()> {
             [] => "no object".to_string(),
             names => names.iter().map(|n| n.as_str()).collect::<Vec<_>>().join(" and "),
         },
-        export.text
+        export.text()
     );
-    for path in [&files.npz, &files.glb, &files.bvh, &files.gif] {
+    for path in [&files.npz, &files.glb, &files.bvh, &files.gif, &files.png] {
         println!("  {}", path.display());
     }
     Ok(())

@@ -49,7 +49,7 @@ fn sample_exports_four_files_and_refuses_bad_input() {
         one.to_str().unwrap(),
     ]));
     assert!(stdout.contains("generated 12 frames") && stdout.contains("real time"), "{stdout}");
-    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif"] {
+    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif", "preview.png"] {
         assert!(one.join(file).metadata().unwrap().len() > 100, "{file}");
     }
     // The same seed gives the same motion.

@@ -23,7 +23,7 @@ fn succeed(args: &[&str]) -> String {
 
 /// The four files, each non-trivial, and the npz's frame count.
 fn check_files(out: &Path, frames: usize) {
-    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif"] {
+    for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif", "preview.png"] {
         let size = std::fs::metadata(out.join(file)).map(|m| m.len()).unwrap_or(0);
         assert!(size > 1000, "{file}: {size} bytes");
     }
@@ -61,6 +61,7 @@ fn a_procedural_sequence_is_shown_by_index_and_by_id() {
         "0",
         "--split",
         "test",
+        "--no-caption",
         "--out",
         by_index.to_str().unwrap(),
     ]);
@@ -69,6 +70,9 @@ fn a_procedural_sequence_is_shown_by_index_and_by_id() {
         std::fs::read(out.join("motion.npz")).unwrap(),
         std::fs::read(by_index.join("motion.npz")).unwrap()
     );
+    // Without the caption only the preview differs (it loses its caption band).
+    let gif_size = |dir: &Path| std::fs::metadata(dir.join("preview.gif")).unwrap().len();
+    assert_ne!(gif_size(&out), gif_size(&by_index));
     // Unknown ids and indices name the dataset and what is accepted; nothing is written.
     let nowhere = temp_dir("synth-nowhere");
     for wanted in ["no-such-sequence", "80"] {

@@ -38,17 +38,29 @@ pub struct SkinnedMesh {
     pub normals: Vec<Vec3>,
     /// The joint each vertex follows.
     pub joints: Vec<u16>,
+    /// The joint at the far end of the bone each vertex's capsule draws (a head sphere's own
+    /// joint): with `joints`, the bone a vertex belongs to (the preview colours hand bones by
+    /// their contact).
+    pub bone_ends: Vec<u16>,
     /// Triangles, counter-clockwise seen from outside.
     pub faces: Vec<[u32; 3]>,
 }
 
 impl SkinnedMesh {
     fn empty() -> Self {
-        Self { vertices: Vec::new(), normals: Vec::new(), joints: Vec::new(), faces: Vec::new() }
+        Self {
+            vertices: Vec::new(),
+            normals: Vec::new(),
+            joints: Vec::new(),
+            bone_ends: Vec::new(),
+            faces: Vec::new(),
+        }
     }
 
-    /// Appends a capsule from `a` to `b` (a sphere when they coincide) bound to `joint`:
-    /// `segments` around the axis, `cap_rings` latitude rings per half sphere.
+    /// Appends a capsule from `a` to `b` (a sphere when they coincide) bound to `joint`, drawing
+    /// the bone that ends at `bone_end`: `segments` around the axis, `cap_rings` latitude rings
+    /// per half sphere.
+    #[allow(clippy::too_many_arguments)] // the capsule's geometry, resolution and binding
     fn add_capsule(
         &mut self,
         a: Vec3,
@@ -57,6 +69,7 @@ impl SkinnedMesh {
         segments: u32,
         cap_rings: u32,
         joint: u16,
+        bone_end: u16,
     ) {
         let length = (b - a).length();
         let axis = if length > 1e-6 { (b - a) / length } else { Vec3::Y };
@@ -68,6 +81,7 @@ impl SkinnedMesh {
             self.vertices.push(centre + normal * radius);
             self.normals.push(normal);
             self.joints.push(joint);
+            self.bone_ends.push(bone_end);
         };
         push(a, -axis);
         // Latitudes from the `a` pole to the equator at `a`, then from the equator at `b` on.
@@ -152,17 +166,17 @@ pub fn body_mesh(skeleton: &Skeleton) -> SkinnedMesh {
         let bound = p as u16;
         if in_hand(joint) && !wrists.contains(&joint) {
             let radius = if wrists.contains(&p) { PALM_RADIUS } else { FINGER_RADIUS };
-            mesh.add_capsule(a, b, radius, 6, 2, bound);
+            mesh.add_capsule(a, b, radius, 6, 2, bound, joint as u16);
         } else if midline(p) && midline(joint) {
             let radius = if only_midline_below[joint] { NECK_RADIUS } else { TORSO_RADIUS };
-            mesh.add_capsule(a, b, radius, 14, 4, bound);
+            mesh.add_capsule(a, b, radius, 14, 4, bound, joint as u16);
             if children[joint].is_empty() {
                 let centre = b + (b - a).normalize_or_zero() * HEAD_CENTRE_PAST_LEAF;
-                mesh.add_capsule(centre, centre, HEAD_RADIUS, 14, 5, joint as u16);
+                mesh.add_capsule(centre, centre, HEAD_RADIUS, 14, 5, joint as u16, joint as u16);
             }
         } else {
             let radius = (LIMB_RADIUS - LIMB_TAPER * limb_depth[joint] as f32).max(MIN_LIMB_RADIUS);
-            mesh.add_capsule(a, b, radius, 12, 3, bound);
+            mesh.add_capsule(a, b, radius, 12, 3, bound, joint as u16);
         }
     }
     mesh
@@ -187,7 +201,7 @@ mod tests {
     fn a_capsule_is_closed_outward_and_has_the_capsule_volume() {
         let mut mesh = SkinnedMesh::empty();
         let (a, b, radius) = (Vec3::new(0.1, 0.2, 0.3), Vec3::new(0.5, 0.2, 0.1), 0.05);
-        mesh.add_capsule(a, b, radius, 48, 16, 0);
+        mesh.add_capsule(a, b, radius, 48, 16, 0, 0);
         let length = (b - a).length();
         let exact = std::f32::consts::PI * radius * radius * (length + 4.0 / 3.0 * radius);
         let volume = signed_volume(&mesh.vertices, &mesh.faces);

@@ -48,6 +48,8 @@ pub const GLB_FILE: &str = "motion.glb";
 pub const BVH_FILE: &str = "motion.bvh";
 /// File name of the animated preview.
 pub const GIF_FILE: &str = "preview.gif";
+/// File name of the still sheet ([`Preview::sheet`]).
+pub const PNG_FILE: &str = "preview.png";
 
 /// How far a matrix may be from a rotation (`R^T R = I`, `det R = 1`) and still be exported.
 const ROTATION_TOLERANCE: f32 = 1e-3;
@@ -60,8 +62,11 @@ pub struct ExportMotion<'a> {
     pub skeleton: &'a Skeleton,
     /// Frames per second.
     pub fps: f32,
-    /// The description the motion was generated from (may be empty).
-    pub text: String,
+    /// The descriptions the motion was generated from, each with the first frame it is in
+    /// force from, in order (one at frame 0 for a single prompt; empty for none). The preview
+    /// writes the one in force on each frame; the files' metadata hold them all
+    /// ([`ExportMotion::text`]).
+    pub prompts: Vec<(usize, String)>,
     /// Local rotations, root positions and per-slot object poses.
     pub motion: &'a DecodedMotion,
     /// The objects to export, each naming the slot of `motion.objects` that holds its poses.
@@ -84,12 +89,25 @@ pub struct ExportObject<'a> {
 pub(crate) struct Checked<'a> {
     pub skeleton: &'a Skeleton,
     pub fps: f32,
-    pub text: &'a str,
+    pub text: String,
+    pub prompts: &'a [(usize, String)],
     pub frames: usize,
     pub local_rotations: &'a [Mat3],
     pub root_positions: &'a [Vec3],
     pub fk: FkOutput,
     pub objects: Vec<CheckedObject<'a>>,
+}
+
+impl Checked<'_> {
+    /// See [`ExportMotion::prompt_at`].
+    pub fn prompt_at(&self, frame: usize) -> &str {
+        prompt_in_force(self.prompts, frame)
+    }
+}
+
+/// The last of `prompts` (by start frame, in order) that starts at or before `frame`.
+fn prompt_in_force(prompts: &[(usize, String)], frame: usize) -> &str {
+    prompts.iter().rev().find(|(start, _)| *start <= frame).map_or("", |(_, text)| text)
 }
 
 /// An object whose poses cover every frame.
@@ -156,6 +174,16 @@ fn check_mesh(mesh: &Mesh, name: &str) -> Result<()> {
 }
 
 impl<'a> ExportMotion<'a> {
+    /// The descriptions as one text, `" | "` between timeline entries.
+    pub fn text(&self) -> String {
+        self.prompts.iter().map(|(_, text)| text.as_str()).collect::<Vec<_>>().join(" | ")
+    }
+
+    /// The description in force at `frame` (empty when there is none).
+    pub fn prompt_at(&self, frame: usize) -> &str {
+        prompt_in_force(&self.prompts, frame)
+    }
+
     /// Number of frames (the number of root positions).
     pub fn frames(&self) -> usize {
         self.motion.root_positions.len()
@@ -241,7 +269,8 @@ impl<'a> ExportMotion<'a> {
         Ok(Checked {
             skeleton: self.skeleton,
             fps: self.fps,
-            text: &self.text,
+            text: self.text(),
+            prompts: &self.prompts,
             frames,
             local_rotations: &motion.local_rotations,
             root_positions: &motion.root_positions,
@@ -274,10 +303,12 @@ pub struct ExportedFiles {
     pub bvh: PathBuf,
     /// `preview.gif`.
     pub gif: PathBuf,
+    /// `preview.png`.
+    pub png: PathBuf,
 }
 
-/// Writes [`NPZ_FILE`], [`GLB_FILE`], [`BVH_FILE`] and [`GIF_FILE`] into `dir` (created if
-/// missing). All four are encoded before the first is written, so bad input writes nothing;
+/// Writes [`NPZ_FILE`], [`GLB_FILE`], [`BVH_FILE`], [`GIF_FILE`] and [`PNG_FILE`] into `dir`
+/// (created if missing). All five are encoded before the first is written, so bad input writes nothing;
 /// each file is written atomically.
 pub fn export_all(
     dir: &Path,
@@ -287,7 +318,9 @@ pub fn export_all(
     let npz = encode_npz(motion)?;
     let glb = encode_glb(motion)?;
     let bvh = encode_bvh(motion)?;
-    let gif = encode_preview_gif(motion, &options.preview)?;
+    let preview = render_preview(motion, &options.preview)?;
+    let gif = preview.encode_gif()?;
+    let png = preview.encode_sheet_png(&motion.text(), motion.fps)?;
     std::fs::create_dir_all(dir).map_err(|source| ExportError::Io {
         path: dir.to_path_buf(),
         action: "creating the export directory",
@@ -298,10 +331,12 @@ pub fn export_all(
         glb: dir.join(GLB_FILE),
         bvh: dir.join(BVH_FILE),
         gif: dir.join(GIF_FILE),
+        png: dir.join(PNG_FILE),
     };
     write_file(&files.npz, &npz)?;
     write_file(&files.glb, &glb)?;
     write_file(&files.bvh, bvh.as_bytes())?;
     write_file(&files.gif, &gif)?;
+    write_file(&files.png, &png)?;
     Ok(files)
 }

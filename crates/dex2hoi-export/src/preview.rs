@@ -1,16 +1,22 @@
-//! `preview.gif`: the motion drawn by a small z-buffered software rasteriser, so that a person
-//! can look at a result without any other tool.
+//! `preview.gif` and `preview.png`: the motion drawn by a small z-buffered software rasteriser,
+//! so that a person can look at a result without any other tool.
 //!
 //! The scene is the capsule body of [`mod@crate::body_mesh`], the object meshes, an optional table
 //! and a checkered floor at `y = 0`, under one directional light with Lambert shading (flat per
-//! triangle, lit from whichever side faces the camera). The camera is fixed for the whole clip:
-//! a three-quarter view from the character's front left (35 degrees round from +Z towards +X,
-//! 20 degrees above the horizon) that frames the bounding box of every joint and object over
-//! all frames.
+//! triangle, lit from whichever side faces the camera). Each frame shows two fixed views side by
+//! side, both framing the bounding box of every joint and object over all frames: a
+//! three-quarter view from the character's front left (35 degrees round from +Z towards +X, 20
+//! degrees above the horizon) and a side view from its right (10 degrees above the horizon).
+//! Above them a caption band writes the prompt in force on the frame with the project's bitmap
+//! font ([`crate::font`]). Hand bones are coloured by contact: yellow when one of their joints
+//! is within [`CONTACT_RADIUS_M`] of an object's surface, red when one is deeper than
+//! [`PENETRATION_TOLERANCE_M`] inside it (the thresholds of the contact and penetration
+//! metrics). `preview.png` is a still sheet of the first view at 0, 25, 50, 75 and 100% of the
+//! clip under the whole prompt, each panel labelled with its time.
 //!
-//! Colours come from one fixed 256-entry palette: eight surfaces ([`Surface`]) times 32 shades,
-//! so every pixel is an exact palette index (no quantisation, no dithering) and the same motion
-//! always gives the same bytes. GIF frame delays are whole centiseconds: frame `i` lasts
+//! Colours come from one fixed palette: eleven surfaces ([`Surface`]) times 23 shades (padded to
+//! 256 entries), so every pixel is an exact palette index (no quantisation, no dithering) and the
+//! same motion always gives the same bytes. GIF frame delays are whole centiseconds: frame `i` lasts
 //! `round(100 (i + 1) / fps) - round(100 i / fps)` cs (at least 2, since browsers slow down
 //! shorter delays), so 20 fps gives 5 cs per frame and 30 fps alternates 3, 4 and 3 cs.
 
@@ -20,20 +26,33 @@ use std::path::Path;
 use glam::{Mat3, Mat4, Vec2, Vec3};
 use rayon::prelude::*;
 
-use dex2hoi_repr::Mesh;
 use dex2hoi_repr::mesh::box_mesh;
+use dex2hoi_repr::{CONTACT_RADIUS_M, Mesh, MeshQuery, PENETRATION_TOLERANCE_M};
 
 use crate::body_mesh::body_mesh;
 use crate::error::{ExportError, Result};
+use crate::font;
 use crate::{Checked, ExportMotion, write_file};
 
 /// Shades per surface in the palette.
-pub const SHADES: usize = 32;
+pub const SHADES: usize = 23;
+/// Entries of the palette (the surfaces' shades, padded with black).
+const PALETTE_SIZE: usize = 256;
 /// Vertical field of view of the camera.
 const FIELD_OF_VIEW_Y: f32 = 40.0 * std::f32::consts::PI / 180.0;
 /// Camera direction: degrees round from +Z towards +X, and above the horizon.
 const CAMERA_AZIMUTH: f32 = 35.0 * std::f32::consts::PI / 180.0;
 const CAMERA_ELEVATION: f32 = 20.0 * std::f32::consts::PI / 180.0;
+/// The side view: from the character's right (-X), a little above the horizon.
+const SIDE_AZIMUTH: f32 = -90.0 * std::f32::consts::PI / 180.0;
+const SIDE_ELEVATION: f32 = 10.0 * std::f32::consts::PI / 180.0;
+/// Caption: font scale, lines at most, margin around the text and gap between lines (pixels).
+const CAPTION_SCALE: usize = 2;
+const CAPTION_LINES: usize = 2;
+const CAPTION_MARGIN: usize = 6;
+const CAPTION_LINE_GAP: usize = 4;
+/// Panels of `preview.png`, at these fractions of the clip.
+pub const SHEET_PANELS: usize = 5;
 /// Added to the framed box's half diagonal for the body's thickness.
 const FRAMING_MARGIN: f32 = 0.15;
 /// Distance of the near clipping plane.
@@ -66,10 +85,16 @@ pub enum Surface {
     /// An object, by its index in [`ExportMotion::objects`] (the third and later share a
     /// colour).
     Object(usize),
+    /// A hand bone in contact with an object.
+    Contact,
+    /// A hand bone inside an object.
+    Penetration,
+    /// The caption's text.
+    Caption,
 }
 
 /// Palette slots (each [`SHADES`] entries) and their base colours.
-const PALETTE_SURFACES: [[u8; 3]; 8] = [
+const PALETTE_SURFACES: [[u8; 3]; 11] = [
     [222, 230, 240], // background
     [205, 203, 196], // floor, light tiles
     [172, 170, 163], // floor, dark tiles
@@ -78,6 +103,9 @@ const PALETTE_SURFACES: [[u8; 3]; 8] = [
     [236, 124, 40],  // first object
     [56, 178, 92],   // second object
     [196, 64, 160],  // further objects
+    [250, 204, 32],  // hand in contact
+    [228, 36, 36],   // hand inside an object
+    [28, 30, 40],    // caption text
 ];
 const BACKGROUND: usize = 0;
 const FLOOR_LIGHT: usize = 1;
@@ -85,6 +113,10 @@ const FLOOR_DARK: usize = 2;
 const TABLE: usize = 3;
 const BODY: usize = 4;
 const FIRST_OBJECT: usize = 5;
+const FURTHER_OBJECTS: usize = 7;
+const CONTACT: usize = 8;
+const PENETRATION: usize = 9;
+const CAPTION: usize = 10;
 
 fn surface_of_slot(slot: usize) -> Surface {
     match slot {
@@ -92,19 +124,22 @@ fn surface_of_slot(slot: usize) -> Surface {
         FLOOR_LIGHT | FLOOR_DARK => Surface::Floor,
         TABLE => Surface::Table,
         BODY => Surface::Body,
+        CONTACT => Surface::Contact,
+        PENETRATION => Surface::Penetration,
+        CAPTION => Surface::Caption,
         object => Surface::Object(object - FIRST_OBJECT),
     }
 }
 
 /// The palette slot of an object index.
 fn object_slot(object: usize) -> usize {
-    (FIRST_OBJECT + object).min(PALETTE_SURFACES.len() - 1)
+    (FIRST_OBJECT + object).min(FURTHER_OBJECTS)
 }
 
 /// The palette: entry `slot * SHADES + shade` is the slot's colour at light level
-/// `shade / (SHADES - 1)`.
+/// `shade / (SHADES - 1)`; black after the last slot.
 pub fn palette() -> Vec<[u8; 3]> {
-    PALETTE_SURFACES
+    let mut entries: Vec<[u8; 3]> = PALETTE_SURFACES
         .iter()
         .flat_map(|base| {
             (0..SHADES).map(move |shade| {
@@ -112,7 +147,9 @@ pub fn palette() -> Vec<[u8; 3]> {
                 base.map(|c| (c as f32 * light).round() as u8)
             })
         })
-        .collect()
+        .collect();
+    entries.resize(PALETTE_SIZE, [0; 3]);
+    entries
 }
 
 /// The palette index of a slot lit at `light` in `[0, 1]`.
@@ -135,18 +172,20 @@ pub struct TableBox {
 /// Options of the preview.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PreviewOptions {
-    /// Image width in pixels (16-4096).
+    /// Width of each of the two views in pixels (16-4096): the image is twice as wide.
     pub width: u32,
-    /// Image height in pixels (16-4096).
+    /// Height of the views in pixels (16-4096): the image adds the caption band above.
     pub height: u32,
     /// The table to draw, if any.
     pub table: Option<TableBox>,
+    /// Whether the prompt is written above the views.
+    pub caption: bool,
 }
 
 impl Default for PreviewOptions {
-    /// 320 x 320 pixels, no table.
+    /// Views of 320 x 320 pixels, no table, with the caption.
     fn default() -> Self {
-        Self { width: 320, height: 320, table: None }
+        Self { width: 320, height: 320, table: None, caption: true }
     }
 }
 
@@ -191,24 +230,31 @@ pub struct Camera {
     pub target: Vec3,
     /// Vertical field of view (radians).
     pub fov_y: f32,
-    /// Image width in pixels.
+    /// Width of the camera's view in pixels.
     pub width: u32,
-    /// Image height in pixels.
+    /// Height of the camera's view in pixels.
     pub height: u32,
+    /// Where the view's top-left corner sits in the preview image (pixels).
+    pub origin: Vec2,
 }
 
 impl Camera {
-    /// The three-quarter camera that frames the box `[min, max]`.
-    fn framing(min: Vec3, max: Vec3, width: u32, height: u32) -> Self {
+    /// The camera looking from `(azimuth, elevation)` that frames the box `[min, max]`.
+    fn framing(
+        (min, max): (Vec3, Vec3),
+        (width, height): (u32, u32),
+        (azimuth, elevation): (f32, f32),
+        origin: Vec2,
+    ) -> Self {
         let target = (min + max) * 0.5;
         let radius = (max - min).length() * 0.5 + FRAMING_MARGIN;
         let aspect = width as f32 / height as f32;
         // The narrower of the two fields of view must hold the bounding sphere.
         let half_fov = (FIELD_OF_VIEW_Y * 0.5).min(((FIELD_OF_VIEW_Y * 0.5).tan() * aspect).atan());
         let direction = Vec3::new(
-            CAMERA_AZIMUTH.sin() * CAMERA_ELEVATION.cos(),
-            CAMERA_ELEVATION.sin(),
-            CAMERA_AZIMUTH.cos() * CAMERA_ELEVATION.cos(),
+            azimuth.sin() * elevation.cos(),
+            elevation.sin(),
+            azimuth.cos() * elevation.cos(),
         );
         Self {
             eye: target + direction * radius / half_fov.sin(),
@@ -216,6 +262,7 @@ impl Camera {
             fov_y: FIELD_OF_VIEW_Y,
             width,
             height,
+            origin,
         }
     }
 
@@ -239,11 +286,11 @@ impl Camera {
         (pixel, inverse_depth)
     }
 
-    /// Pixel coordinates (x to the right, y down, pixel `(i, j)` covering `[i, i + 1) x
-    /// [j, j + 1)`) of a world point, `None` behind the near plane.
+    /// Pixel coordinates in the preview image (x to the right, y down, pixel `(i, j)` covering
+    /// `[i, i + 1) x [j, j + 1)`) of a world point, `None` behind the near plane.
     pub fn project(&self, world: Vec3) -> Option<Vec2> {
         let camera_space = self.view().transform_point3(world);
-        (camera_space.z < -NEAR).then(|| self.screen_position(camera_space).0)
+        (camera_space.z < -NEAR).then(|| self.screen_position(camera_space).0 + self.origin)
     }
 }
 
@@ -258,8 +305,10 @@ pub struct Preview {
     pub frames: Vec<Vec<u8>>,
     /// Per frame, its delay in centiseconds.
     pub delays: Vec<u16>,
-    /// The camera.
-    pub camera: Camera,
+    /// The two views: the three-quarter view (left), the side view (right).
+    pub views: [Camera; 2],
+    /// Height of the caption band above the views (0 without a caption).
+    pub caption_height: u32,
 }
 
 impl Preview {
@@ -386,6 +435,16 @@ impl<'a> Raster<'a> {
         }
     }
 
+    /// Copies the view into an image `width` pixels wide at the camera's origin.
+    fn copy_into(&self, image: &mut [u8], width: u32) {
+        let (x0, y0) = (self.camera.origin.x as u32, self.camera.origin.y as u32);
+        let row = self.camera.width as usize;
+        for y in 0..self.camera.height {
+            let to = ((y0 + y) * width + x0) as usize;
+            image[to..to + row].copy_from_slice(&self.pixels[y as usize * row..][..row]);
+        }
+    }
+
     fn draw(&mut self, triangle: &Triangle) {
         let [a, b, c] = triangle.corners;
         let mut normal = (b - a).cross(c - a).normalize_or_zero();
@@ -460,10 +519,10 @@ impl<'a> Raster<'a> {
 pub fn render_preview(motion: &ExportMotion<'_>, options: &PreviewOptions) -> Result<Preview> {
     options.check()?;
     let checked = motion.check()?;
-    Ok(render_checked(&checked, options))
+    render_checked(&checked, options)
 }
 
-fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Preview {
+fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Preview> {
     let (mut min, mut max) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
     for &p in &motion.fk.positions {
         (min, max) = (min.min(p), max.max(p));
@@ -475,39 +534,221 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Preview {
             (min, max) = (min.min(p - Vec3::splat(reach)), max.max(p + Vec3::splat(reach)));
         }
     }
-    let camera = Camera::framing(min, max, options.width, options.height);
+    let caption_height = if options.caption { caption_band_height() } else { 0 };
+    let size = (options.width, options.height);
+    let views = [
+        Camera::framing(
+            (min, max),
+            size,
+            (CAMERA_AZIMUTH, CAMERA_ELEVATION),
+            Vec2::new(0.0, caption_height as f32),
+        ),
+        Camera::framing(
+            (min, max),
+            size,
+            (SIDE_AZIMUTH, SIDE_ELEVATION),
+            Vec2::new(options.width as f32, caption_height as f32),
+        ),
+    ];
     let scenery = static_triangles((min + max) * 0.5, options.table.as_ref());
     let body = body_mesh(motion.skeleton);
     let rest = motion.skeleton.rest_positions();
     let joints = motion.skeleton.joint_count();
+    let states = hand_states(motion)?;
+    let groups = motion.skeleton.groups();
+    let in_hand = |j: u16| {
+        groups.left_hand.contains(&(j as usize)) || groups.right_hand.contains(&(j as usize))
+    };
+    // The hand bones (both ends hand joints) and their two joints, per body face.
+    let face_bones: Vec<Option<(usize, usize)>> = body
+        .faces
+        .iter()
+        .map(|f| {
+            let (bound, end) = (body.joints[f[0] as usize], body.bone_ends[f[0] as usize]);
+            (in_hand(bound) && in_hand(end)).then_some((bound as usize, end as usize))
+        })
+        .collect();
+    let (image_width, image_height) = (2 * options.width, caption_height + options.height);
     let frames = (0..motion.frames)
         .into_par_iter()
         .map(|t| {
-            let mut raster = Raster::new(&camera);
-            for triangle in &scenery {
-                raster.draw(triangle);
-            }
             let span = t * joints..(t + 1) * joints;
             let posed =
                 body.posed(&rest, &motion.fk.rotations[span.clone()], &motion.fk.positions[span]);
-            let mut moving = Vec::new();
-            mesh_triangles(&posed, &body.faces, BODY, &mut moving);
+            let frame_states = &states[t * joints..(t + 1) * joints];
+            let mut moving: Vec<Triangle> = body
+                .faces
+                .iter()
+                .zip(&face_bones)
+                .map(|(f, bone)| {
+                    let slot =
+                        bone.map_or(BODY, |(a, b)| frame_states[a].max(frame_states[b]).slot());
+                    Triangle { corners: f.map(|i| posed[i as usize]), slot }
+                })
+                .collect();
             for (k, object) in motion.objects.iter().enumerate() {
                 let vertices = moved_mesh(object.mesh, object.rotations[t], object.positions[t]);
                 mesh_triangles(&vertices, &object.mesh.faces, object_slot(k), &mut moving);
             }
-            for triangle in &moving {
-                raster.draw(triangle);
+            let mut image = vec![colour(BACKGROUND, 1.0); (image_width * image_height) as usize];
+            for camera in &views {
+                let mut raster = Raster::new(camera);
+                for triangle in scenery.iter().chain(&moving) {
+                    raster.draw(triangle);
+                }
+                raster.copy_into(&mut image, image_width);
             }
-            raster.pixels
+            if options.caption {
+                let lines =
+                    font::wrap(motion.prompt_at(t), caption_columns(image_width), CAPTION_LINES);
+                draw_lines(&mut image, image_width, 0, &lines);
+            }
+            image
         })
         .collect();
-    Preview {
-        width: options.width,
-        height: options.height,
+    Ok(Preview {
+        width: image_width,
+        height: image_height,
         frames,
         delays: frame_delays(motion.frames, motion.fps),
-        camera,
+        views,
+        caption_height,
+    })
+}
+
+/// Height of the caption band: [`CAPTION_LINES`] lines of the font with margins.
+fn caption_band_height() -> u32 {
+    let line = (font::GLYPH_HEIGHT * CAPTION_SCALE + CAPTION_LINE_GAP) as u32;
+    2 * CAPTION_MARGIN as u32 + CAPTION_LINES as u32 * line - CAPTION_LINE_GAP as u32
+}
+
+/// Characters that fit on a caption line of an image `width` pixels wide.
+fn caption_columns(width: u32) -> usize {
+    (width as usize).saturating_sub(2 * CAPTION_MARGIN) / (font::ADVANCE * CAPTION_SCALE)
+}
+
+/// Writes caption lines in the caption colour, the first at the band's top margin, starting
+/// `x` pixels from the image's left edge.
+fn draw_lines(image: &mut [u8], width: u32, x: usize, lines: &[String]) {
+    let height = image.len() / width as usize;
+    let ink = colour(CAPTION, 1.0);
+    for (k, line) in lines.iter().enumerate() {
+        let y = CAPTION_MARGIN + k * (font::GLYPH_HEIGHT * CAPTION_SCALE + CAPTION_LINE_GAP);
+        font::draw_text(x + CAPTION_MARGIN, y, line, CAPTION_SCALE, |px, py| {
+            if px < width as usize && py < height {
+                image[py * width as usize + px] = ink;
+            }
+        });
+    }
+}
+
+/// How a hand joint meets the objects on a frame, worst last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum JointState {
+    Free,
+    Contact,
+    Inside,
+}
+
+impl JointState {
+    /// The palette slot of a hand bone in this state.
+    fn slot(self) -> usize {
+        match self {
+            Self::Free => BODY,
+            Self::Contact => CONTACT,
+            Self::Inside => PENETRATION,
+        }
+    }
+}
+
+/// Per frame and joint (`[frames * joints]`), how each hand joint meets the nearest object:
+/// inside deeper than [`PENETRATION_TOLERANCE_M`], else within [`CONTACT_RADIUS_M`] of the
+/// surface, else free (every other joint is free).
+fn hand_states(motion: &Checked<'_>) -> Result<Vec<JointState>> {
+    let joints = motion.skeleton.joint_count();
+    let groups = motion.skeleton.groups();
+    let hands: Vec<usize> = groups.left_hand.iter().chain(&groups.right_hand).copied().collect();
+    let queries =
+        motion.objects.iter().map(|o| MeshQuery::new(o.mesh)).collect::<Result<Vec<_>, _>>()?;
+    let mut states = vec![JointState::Free; motion.frames * joints];
+    states.par_chunks_mut(joints).enumerate().for_each(|(t, frame)| {
+        for &j in &hands {
+            let p = motion.fk.position(t, j);
+            let nearest = motion
+                .objects
+                .iter()
+                .zip(&queries)
+                .map(|(o, q)| q.signed_distance(o.rotations[t].transpose() * (p - o.positions[t])))
+                .fold(f32::INFINITY, f32::min);
+            frame[j] = if nearest < -PENETRATION_TOLERANCE_M {
+                JointState::Inside
+            } else if nearest < CONTACT_RADIUS_M {
+                JointState::Contact
+            } else {
+                JointState::Free
+            };
+        }
+    });
+    Ok(states)
+}
+
+impl Preview {
+    /// `preview.png`'s image as palette indices: the first view at [`SHEET_PANELS`] evenly
+    /// spaced frames (the first and the last included) side by side under the caption band
+    /// with `text`, each panel labelled with its time at `fps`.
+    ///
+    /// # Shapes
+    /// - returns `(width, height, [height * width] indices)`
+    pub fn sheet(&self, text: &str, fps: f32) -> (u32, u32, Vec<u8>) {
+        let view = self.views[0];
+        let (panel_width, panel_height) = (view.width, view.height);
+        let (width, height) =
+            (SHEET_PANELS as u32 * panel_width, self.caption_height + panel_height);
+        let mut image = vec![colour(BACKGROUND, 1.0); (width * height) as usize];
+        let last = self.frames.len().saturating_sub(1);
+        for panel in 0..SHEET_PANELS {
+            let frame = (panel * last + (SHEET_PANELS - 1) / 2) / (SHEET_PANELS - 1);
+            let pixels = &self.frames[frame];
+            for y in 0..panel_height {
+                let from = ((y + self.caption_height) * self.width) as usize;
+                let to = ((y + self.caption_height) * width + panel as u32 * panel_width) as usize;
+                image[to..to + panel_width as usize]
+                    .copy_from_slice(&pixels[from..from + panel_width as usize]);
+            }
+            let label = format!("{:.1} s", frame as f32 / fps);
+            let y = (height as usize)
+                .saturating_sub(CAPTION_MARGIN + font::GLYPH_HEIGHT * CAPTION_SCALE);
+            let x = panel * panel_width as usize + CAPTION_MARGIN;
+            let ink = colour(CAPTION, 1.0);
+            font::draw_text(x, y, &label, CAPTION_SCALE, |px, py| {
+                if px < width as usize && py < height as usize {
+                    image[py * width as usize + px] = ink;
+                }
+            });
+        }
+        if self.caption_height > 0 {
+            let lines = font::wrap(text, caption_columns(width), CAPTION_LINES);
+            draw_lines(&mut image, width, 0, &lines);
+        }
+        (width, height, image)
+    }
+
+    /// `preview.png`'s bytes (see [`Preview::sheet`]): an RGB PNG.
+    pub fn encode_sheet_png(&self, text: &str, fps: f32) -> Result<Vec<u8>> {
+        let (width, height, indices) = self.sheet(text, fps);
+        let palette = palette();
+        let rgb: Vec<u8> = indices.iter().flat_map(|&i| palette[i as usize]).collect();
+        let png_error = |e: png::EncodingError| ExportError::invalid("PNG encoding", "success", e);
+        let mut bytes = Vec::new();
+        {
+            let mut encoder = png::Encoder::new(&mut bytes, width, height);
+            encoder.set_color(png::ColorType::Rgb);
+            encoder.set_depth(png::BitDepth::Eight);
+            let mut writer = encoder.write_header().map_err(png_error)?;
+            writer.write_image_data(&rgb).map_err(png_error)?;
+            writer.finish().map_err(png_error)?;
+        }
+        Ok(bytes)
     }
 }
 
@@ -566,6 +807,7 @@ mod tests {
             fov_y: FIELD_OF_VIEW_Y,
             width: 32,
             height: 32,
+            origin: Vec2::ZERO,
         };
         let mut raster = Raster::new(&camera);
         // A floor triangle from behind the camera to far in front of it.

@@ -15,7 +15,6 @@
 //! give inconsistent signs; vertices at identical positions are merged before the pseudo-normals
 //! are built, so seams in the file do not matter.
 
-
 use std::collections::HashMap;
 
 use glam::Vec3;

@@ -84,7 +84,7 @@ pub fn export<'a>(
     ExportMotion {
         skeleton,
         fps: 20.0,
-        text: text.into(),
+        prompts: vec![(0, text.into())],
         motion,
         objects: meshes
             .iter()
@@ -119,7 +119,7 @@ pub fn synth_export<'a>(synth: &'a SynthSequence, motion: &'a DecodedMotion) -> 
     ExportMotion {
         skeleton: &sequence.skeleton,
         fps: sequence.fps,
-        text: sequence.texts[0].clone(),
+        prompts: vec![(0, sequence.texts[0].clone())],
         motion,
         objects: sequence
             .objects
