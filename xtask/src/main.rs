@@ -266,7 +266,9 @@ fn demo(root: &Path) -> Result<()> {
     );
     println!("  training run: {}  (loss curve: {}/loss.png)", run.display(), run.display());
     for (text, out) in outputs {
-        println!("  \"{text}\"\n    {out}/preview.gif, preview.png, motion.glb, motion.bvh, motion.npz");
+        println!(
+            "  \"{text}\"\n    {out}/preview.gif, preview.png, motion.glb, motion.bvh, motion.npz"
+        );
     }
     Ok(())
 }
