@@ -1,4 +1,4 @@
-//! `export_all`: the four files appear together, complete, with nothing else beside them; bad
+//! `export_all`: the five files appear together, complete, with nothing else beside them; bad
 //! input is a clear error that writes nothing and leaves earlier files alone.
 
 mod common;
@@ -6,7 +6,8 @@ mod common;
 use glam::{Mat3, Vec3};
 
 use dex2hoi_export::{
-    BVH_FILE, ExportMotion, ExportObject, ExportOptions, GIF_FILE, GLB_FILE, NPZ_FILE, export_all,
+    BVH_FILE, ExportMotion, ExportObject, ExportOptions, GIF_FILE, GLB_FILE, NPZ_FILE, PNG_FILE,
+    export_all,
 };
 use dex2hoi_repr::Skeleton;
 
@@ -21,18 +22,19 @@ fn listing(dir: &std::path::Path) -> Vec<String> {
 }
 
 #[test]
-fn a_procedural_sequence_exports_four_complete_files() {
+fn a_procedural_sequence_exports_five_complete_files() {
     let (synth, motion) = common::synth_motion(1);
     let export = common::synth_export(&synth, &motion);
     let dir = common::scratch_dir("all").join("nested/out");
     let files = export_all(&dir, &export, &ExportOptions::default()).expect("exported");
     assert_eq!(files.npz, dir.join(NPZ_FILE));
-    assert_eq!(listing(&dir), [BVH_FILE, GLB_FILE, NPZ_FILE, GIF_FILE]);
+    assert_eq!(listing(&dir), [BVH_FILE, GLB_FILE, NPZ_FILE, GIF_FILE, PNG_FILE]);
     let npz = std::fs::read(&files.npz).expect("npz");
     assert_eq!(&npz[..4], b"PK\x03\x04");
     assert_eq!(&std::fs::read(&files.glb).expect("glb")[..4], b"glTF");
     assert!(std::fs::read_to_string(&files.bvh).expect("bvh").starts_with("HIERARCHY\n"));
     assert_eq!(&std::fs::read(&files.gif).expect("gif")[..6], b"GIF89a");
+    assert_eq!(&std::fs::read(&files.png).expect("png")[..4], b"\x89PNG");
     let _ = std::fs::remove_dir_all(dir.parent().and_then(|d| d.parent()).expect("scratch"));
 }
 
@@ -98,6 +100,6 @@ fn bad_input_is_a_clear_error_and_writes_nothing() {
     let after: Vec<Vec<u8>> =
         listing(&earlier).iter().map(|n| std::fs::read(earlier.join(n)).expect("read")).collect();
     assert_eq!(before, after);
-    assert_eq!(listing(&earlier).len(), 4);
+    assert_eq!(listing(&earlier).len(), 5);
     let _ = std::fs::remove_dir_all(&dir);
 }
