@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 
 use dex2hoi_data::dataset::{Dataset, Split};
-use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
+use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence};
 use dex2hoi_export::{ExportMotion, ExportObject, ExportOptions, PreviewOptions, export_all};
 
 /// A dataset split on the command line.
@@ -77,16 +77,9 @@ pub fn run(args: ShowArgs) -> Result<()> {
     };
     let manifest = &dataset.manifest;
     // The sequence's own body (a subject's proportions), as `prepare` measured it.
-    let skeleton = sequence.skeleton(&manifest.builtin_skeleton()?)?;
-    let motion = decode_features(
-        &skeleton,
-        &sequence.body,
-        &sequence.objects,
-        sequence.object_present,
-        sequence.root_start,
-        ObjectDecoding::GlobalOnly,
-    )
-    .with_context(|| format!("decoding {}", sequence.source_id))?;
+    let (skeleton, motion) = sequence
+        .decode(&manifest.builtin_skeleton()?, ObjectDecoding::GlobalOnly)
+        .with_context(|| format!("decoding {}", sequence.source_id))?;
     let mut objects = Vec::new();
     for (slot, name) in sequence.object_names.iter().enumerate() {
         let Some(name) = name else { continue };

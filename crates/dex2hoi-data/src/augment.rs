@@ -139,8 +139,7 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
         }
     }
     out.root_start.x = -sequence.root_start.x;
-    out.rest_offsets =
-        symmetry.iter().map(|&m| sequence.rest_offsets[m] * Vec3::new(-1.0, 1.0, 1.0)).collect();
+    out.rest_offsets = skeleton.mirror_offsets(&sequence.rest_offsets);
     out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
     out
 }

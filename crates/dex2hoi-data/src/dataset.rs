@@ -285,19 +285,24 @@ impl Dataset {
         let topology = self.manifest.builtin_skeleton()?;
         let sequences = self.splits.get(&split).map_or(&[][..], Vec::as_slice);
         let mut distinct: Vec<&[Vec3]> = Vec::new();
-        let (mut shortest, mut tallest) = (f32::INFINITY, 0.0f32);
         for s in sequences {
             if !distinct.contains(&s.rest_offsets.as_slice()) {
                 distinct.push(&s.rest_offsets);
             }
-            let heights =
-                s.skeleton(&topology)?.rest_positions().iter().map(|p| p.y).collect::<Vec<_>>();
-            let top = heights.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let bottom = heights.iter().copied().fold(f32::INFINITY, f32::min);
-            shortest = shortest.min(top - bottom);
-            tallest = tallest.max(top - bottom);
         }
-        Ok(BodySummary { distinct: distinct.len(), shortest: shortest.min(tallest), tallest })
+        // Each distinct body's rest height, once.
+        let heights = distinct
+            .iter()
+            .map(|offsets| {
+                let rest = topology.with_rest_offsets(offsets.to_vec())?.rest_positions();
+                let top = rest.iter().map(|p| p.y).fold(f32::NEG_INFINITY, f32::max);
+                let bottom = rest.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
+                Ok(top - bottom)
+            })
+            .collect::<Result<Vec<f32>>>()?;
+        let shortest = heights.iter().copied().reduce(f32::min).unwrap_or(0.0);
+        let tallest = heights.iter().copied().reduce(f32::max).unwrap_or(0.0);
+        Ok(BodySummary { distinct: distinct.len(), shortest, tallest })
     }
 }
 

@@ -142,6 +142,25 @@ impl ProcessedSequence {
     pub fn skeleton(&self, topology: &Skeleton) -> Result<Skeleton> {
         Ok(topology.with_rest_offsets(self.rest_offsets.clone())?)
     }
+
+    /// The sequence's own body ([`ProcessedSequence::skeleton`]) and its stored features
+    /// decoded on it ([`decode_features`]).
+    pub fn decode(
+        &self,
+        topology: &Skeleton,
+        decoding: ObjectDecoding,
+    ) -> Result<(Skeleton, DecodedMotion)> {
+        let body = self.skeleton(topology)?;
+        let motion = decode_features(
+            &body,
+            &self.body,
+            &self.objects,
+            self.object_present,
+            self.root_start,
+            decoding,
+        )?;
+        Ok((body, motion))
+    }
 }
 
 /// The yaw (about +Y) that turns the root's forward direction at frame 0 to +Z.

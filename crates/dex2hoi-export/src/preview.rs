@@ -630,16 +630,23 @@ fn caption_columns(width: u32) -> usize {
 /// Writes caption lines in the caption colour, the first at the band's top margin, starting
 /// `x` pixels from the image's left edge.
 fn draw_lines(image: &mut [u8], width: u32, x: usize, lines: &[String]) {
-    let height = image.len() / width as usize;
-    let ink = colour(CAPTION, 1.0);
     for (k, line) in lines.iter().enumerate() {
         let y = CAPTION_MARGIN + k * (font::GLYPH_HEIGHT * CAPTION_SCALE + CAPTION_LINE_GAP);
-        font::draw_text(x + CAPTION_MARGIN, y, line, CAPTION_SCALE, |px, py| {
-            if px < width as usize && py < height {
-                image[py * width as usize + px] = ink;
-            }
-        });
+        draw_label(image, width, (x + CAPTION_MARGIN, y), line);
     }
+}
+
+/// Writes `text` in the caption colour at the caption's scale with its top-left corner at
+/// `(x, y)` of an image `width` pixels wide, clipped to the image.
+fn draw_label(image: &mut [u8], width: u32, (x, y): (usize, usize), text: &str) {
+    let width = width as usize;
+    let height = image.len() / width;
+    let ink = colour(CAPTION, 1.0);
+    font::draw_text(x, y, text, CAPTION_SCALE, |px, py| {
+        if px < width && py < height {
+            image[py * width + px] = ink;
+        }
+    });
 }
 
 /// How a hand joint meets the objects on a frame, worst last.
@@ -719,12 +726,7 @@ impl Preview {
             let y = (height as usize)
                 .saturating_sub(CAPTION_MARGIN + font::GLYPH_HEIGHT * CAPTION_SCALE);
             let x = panel * panel_width as usize + CAPTION_MARGIN;
-            let ink = colour(CAPTION, 1.0);
-            font::draw_text(x, y, &label, CAPTION_SCALE, |px, py| {
-                if px < width as usize && py < height as usize {
-                    image[py * width as usize + px] = ink;
-                }
-            });
+            draw_label(&mut image, width, (x, y), &label);
         }
         if self.caption_height > 0 {
             let lines = font::wrap(text, caption_columns(width), CAPTION_LINES);

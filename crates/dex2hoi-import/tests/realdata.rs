@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::dataset::Split;
-use dex2hoi_data::features::{ObjectDecoding, decode_features};
+use dex2hoi_data::features::ObjectDecoding;
 use dex2hoi_import::prepare::{Context, Item, Outcome, check_posture};
 use dex2hoi_import::{PrepareOptions, SourceFormat, humoto, prepare};
 use dex2hoi_repr::Skeleton;
@@ -188,17 +188,9 @@ fn prepared_humoto_decodes_to_blenders_joints() {
             .unwrap();
         // Decoded through the dataset's own FK, on the body the dataset stores for the
         // sequence: the character's own rest skeleton, not the symmetrised built-in one.
-        let skeleton = sequence.skeleton(&dataset.manifest.builtin_skeleton().unwrap()).unwrap();
+        let topology = dataset.manifest.builtin_skeleton().unwrap();
+        let (skeleton, decoded) = sequence.decode(&topology, ObjectDecoding::GlobalOnly).unwrap();
         assert_ne!(skeleton.rest_offsets(), Skeleton::mixamo().rest_offsets());
-        let decoded = decode_features(
-            &skeleton,
-            &sequence.body,
-            &sequence.objects,
-            sequence.object_present,
-            sequence.root_start,
-            ObjectDecoding::GlobalOnly,
-        )
-        .unwrap();
         let ours: Vec<Vec<Vec3>> = (0..decoded.joints.frames)
             .map(|t| decoded.joints.frame_positions(t).to_vec())
             .collect();

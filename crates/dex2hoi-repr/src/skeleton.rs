@@ -485,8 +485,14 @@ impl Skeleton {
     /// reflection of its mirror joint's offset. FK of mirrored rotations on them gives the
     /// mirrored joints exactly, symmetric body or not.
     pub fn mirrored_offsets(&self) -> Vec<Vec3> {
+        self.mirror_offsets(&self.rest_offsets)
+    }
+
+    /// Other rest offsets of this topology (a sequence's own body) mirrored the same way as
+    /// [`Skeleton::mirrored_offsets`].
+    pub fn mirror_offsets(&self, rest_offsets: &[Vec3]) -> Vec<Vec3> {
         let reflect = |v: Vec3| Vec3::new(-v.x, v.y, v.z);
-        self.symmetry.iter().map(|&mirror| reflect(self.rest_offsets[mirror])).collect()
+        self.symmetry.iter().map(|&mirror| reflect(rest_offsets[mirror])).collect()
     }
 
     /// The mirror image of this body (see [`Skeleton::mirrored_offsets`]).

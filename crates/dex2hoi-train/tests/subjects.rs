@@ -10,7 +10,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::dataset::Split;
-use dex2hoi_data::features::{ObjectDecoding, decode_features};
+use dex2hoi_data::features::ObjectDecoding;
 use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
 
@@ -25,16 +25,7 @@ fn the_ground_truth_has_no_joint_error_on_its_own_body() {
         sequence.rest_offsets = (topology.rest_offsets().iter().enumerate())
             .map(|(j, o)| *o * scale * (1.0 + 0.05 * (j as f32).sin()))
             .collect();
-        let body = sequence.skeleton(&topology).unwrap();
-        let decoded = decode_features(
-            &body,
-            &sequence.body,
-            &sequence.objects,
-            sequence.object_present,
-            sequence.root_start,
-            ObjectDecoding::GlobalOnly,
-        )
-        .unwrap();
+        let (_, decoded) = sequence.decode(&topology, ObjectDecoding::GlobalOnly).unwrap();
         sequence.joint_positions =
             decoded.joints.positions.iter().flat_map(|p| p.to_array()).collect();
     }
