@@ -5,10 +5,11 @@
 //! - `dex2hoi data info DIR`: summarise a dataset directory.
 //! - `dex2hoi data prepare --format grab|humoto|himo --root DIR [--smplx-model FILE] --out DIR`:
 //!   read a downloaded real dataset as published into the dataset format.
-//! - `dex2hoi data show DIR --sequence ID|INDEX --out DIR`: export one sequence of a dataset
-//!   (npz, glb, bvh, preview gif) to look at it.
+//! - `dex2hoi data show DIR --sequence ID|INDEX --out DIR [--smplx-model FILE|DIR]`: export one
+//!   sequence of a dataset (npz, glb, bvh, preview gif and png) to look at it.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
-//! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR`: generate and export.
+//! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR [--smplx-model
+//!   FILE|DIR [--betas B,...]]`: generate and export.
 //! - `dex2hoi evaluator train --data DIR --out EVAL [--steps N] [--seed S]`: train the
 //!   text-motion evaluator and action classifier.
 //! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR`: the paper's metrics.
@@ -21,6 +22,7 @@ use clap::{Parser, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
 
+mod body;
 mod evaluate;
 mod evaluator;
 mod prepare;

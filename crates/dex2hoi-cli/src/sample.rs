@@ -7,6 +7,7 @@ use candle_core::Device;
 use clap::Args;
 use glam::Vec2;
 
+use crate::body::BodyArgs;
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
@@ -50,6 +51,8 @@ pub struct SampleArgs {
     /// Leave the prompt off the preview's frames.
     #[arg(long)]
     no_caption: bool,
+    #[command(flatten)]
+    body: BodyArgs,
     /// Output directory for motion.npz, motion.glb, motion.bvh, preview.gif and preview.png.
     #[arg(long)]
     out: PathBuf,
@@ -74,6 +77,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         .iter()
         .map(|spec| SceneObject::parse(spec).with_context(|| format!("--object `{spec}`")))
         .collect::<Result<Vec<_>>>()?;
+    let body = args.body.load()?;
     let device = Device::Cpu;
     let run = TrainedRun::load(&args.run, Weights::Ema, &device)
         .with_context(|| format!("loading the run {}", args.run.display()))?;
@@ -104,9 +108,12 @@ pub fn run(args: SampleArgs) -> Result<()> {
         },
         table_height: args.table_height,
     };
+    if let Some(mesh) = &body {
+        mesh.fits(&run.skeleton)?;
+    }
     let sampled = sample(&run, &request).context("generating")?;
     let export = ExportMotion {
-        skeleton: &run.skeleton,
+        skeleton: body.as_ref().map_or(&run.skeleton, |mesh| &mesh.skeleton),
         fps,
         prompts: prompts.iter().map(|p| (p.start_frame, p.text.clone())).collect(),
         motion: &sampled.motion,
@@ -115,6 +122,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
             .iter()
             .map(|(slot, o)| ExportObject { name: o.name.clone(), mesh: &o.mesh, slot: *slot })
             .collect(),
+        body: body.as_ref(),
     };
     let half_depth = 0.3;
     let options = ExportOptions {

@@ -12,6 +12,8 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence};
 use dex2hoi_export::{ExportMotion, ExportObject, ExportOptions, PreviewOptions, export_all};
 
+use crate::body::BodyArgs;
+
 /// A dataset split on the command line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum SplitArg {
@@ -36,6 +38,8 @@ pub struct ShowArgs {
     /// Leave the prompt off the preview's frames.
     #[arg(long)]
     no_caption: bool,
+    #[command(flatten)]
+    body: BodyArgs,
     /// Output directory (created; the five files are written atomically).
     #[arg(long)]
     out: PathBuf,
@@ -76,6 +80,7 @@ pub fn run(args: ShowArgs) -> Result<()> {
         ),
     };
     let manifest = &dataset.manifest;
+    let body = args.body.load()?;
     // The sequence's own body (a subject's proportions), as `prepare` measured it.
     let (skeleton, motion) = sequence
         .decode(&manifest.builtin_skeleton()?, ObjectDecoding::GlobalOnly)
@@ -88,12 +93,17 @@ pub fn run(args: ShowArgs) -> Result<()> {
         })?;
         objects.push(ExportObject { name: name.clone(), mesh: &asset.mesh, slot });
     }
+    if let Some(mesh) = &body {
+        mesh.fits(&skeleton)?;
+    }
     let export = ExportMotion {
-        skeleton: &skeleton,
+        // With a model, its skeleton replaces the sequence's (the pelvis path stays).
+        skeleton: body.as_ref().map_or(&skeleton, |mesh| &mesh.skeleton),
         fps: manifest.fps,
         prompts: sequence.texts.first().map(|t| (0, t.clone())).into_iter().collect(),
         motion: &motion,
         objects,
+        body: body.as_ref(),
     };
     let options = ExportOptions {
         preview: PreviewOptions { caption: !args.no_caption, ..PreviewOptions::default() },

@@ -1,6 +1,7 @@
 //! `dex2hoi data show` end to end: a procedural sequence by index and by id, the real HUMOTO
 //! release prepared and shown (skipped when `../shared/realdata` is absent, failing under
-//! `CI=1`), and bad input.
+//! `CI=1`), a sequence dressed in an SMPL-X model's body (`--smplx-model`, `--betas`), and bad
+//! input.
 
 use std::path::{Path, PathBuf};
 
@@ -8,6 +9,10 @@ use dex2hoi_data::dataset::Dataset;
 
 mod common;
 use common::dex2hoi;
+
+#[path = "../../dex2hoi-export/tests/common/smplx_fixture.rs"]
+#[allow(dead_code)] // the export tests use the spoiled variants
+mod smplx_fixture;
 
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("dex2hoi-cli-show-{name}-{}", std::process::id()));
@@ -145,6 +150,74 @@ fn the_real_humoto_release_is_prepared_and_shown() {
         shown.iter().zip(stored).map(|(a, b)| (a - f64::from(*b)).abs()).fold(0.0, f64::max);
     assert!(worst < 1e-4, "data show's joints are {worst} m from the prepared ones");
     for dir in [data, out] {
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
+
+/// The glTF JSON chunk of a GLB.
+fn glb_json(path: &Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap();
+    let length = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    serde_json::from_slice(&bytes[20..20 + length]).unwrap()
+}
+
+#[test]
+fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
+    let data = temp_dir("smplx-data");
+    let data_arg = data.to_str().unwrap();
+    succeed(&["data", "synth", "--out", data_arg, "--sequences", "20", "--seed", "1"]);
+    // The fixture model, in the `smplx` package's layout `models/smplx/SMPLX_NEUTRAL.npz`.
+    let models = temp_dir("smplx-models");
+    std::fs::create_dir_all(models.join("smplx")).unwrap();
+    let skeleton = dex2hoi_data::synth::generate(0, 0, 20.0).unwrap().sequence.skeleton;
+    smplx_fixture::write_smplx_model(
+        &models.join("smplx/SMPLX_NEUTRAL.npz"),
+        &skeleton.rest_positions(),
+        skeleton.parents(),
+        &dex2hoi_export::body_mesh(&skeleton),
+        smplx_fixture::Spoil::None,
+    );
+    let show = |out: &Path, extra: &[&str]| {
+        let mut args = vec!["data", "show", data_arg, "--sequence", "0", "--out"];
+        args.push(out.to_str().unwrap());
+        args.extend_from_slice(extra);
+        dex2hoi(&args)
+    };
+    let out = temp_dir("smplx-out");
+    let run = show(&out, &["--smplx-model", models.to_str().unwrap(), "--betas", "0.5,-0.3"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let json = glb_json(&out.join("motion.glb"));
+    assert_eq!(json["meshes"][0]["name"], "smplx");
+    assert_eq!(json["skins"][0]["joints"].as_array().unwrap().len(), 55);
+    let extras_betas: Vec<f64> = json["scenes"][0]["extras"]["betas"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| b.as_f64().unwrap())
+        .collect();
+    assert!((extras_betas[0] - 0.5).abs() < 1e-6 && (extras_betas[1] + 0.3).abs() < 1e-6);
+    // The npz carries the betas (padded to the layer's ten) and the model's pelvis.
+    let mut npz = dex2hoi_import::npy::Npz::open(&out.join("motion.npz")).unwrap();
+    let value = npz.read("betas", "betas").unwrap();
+    let (betas, shape) =
+        dex2hoi_import::Field::root("motion.npz", "betas", &value).numbers_any_shape().unwrap();
+    assert_eq!(shape[1], 10);
+    assert!((betas[0] - 0.5).abs() < 1e-6 && (betas[1] + 0.3).abs() < 1e-6);
+    // Without a model the GLB keeps the capsule body.
+    let plain = temp_dir("smplx-plain");
+    assert!(show(&plain, &[]).status.success());
+    assert_eq!(glb_json(&plain.join("motion.glb"))["meshes"][0]["name"], "body");
+    // A missing model and --betas alone are clear errors that write nothing.
+    let nowhere = temp_dir("smplx-nowhere");
+    let missing = models.join("nothing-here.npz");
+    let run = show(&nowhere, &["--smplx-model", missing.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("nothing-here.npz"), "{stderr}");
+    let run = show(&nowhere, &["--betas", "1"]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("--smplx-model"), "{stderr}");
+    assert!(!nowhere.exists());
+    for dir in [data, models, out, plain] {
         std::fs::remove_dir_all(dir).ok();
     }
 }

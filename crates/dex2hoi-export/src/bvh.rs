@@ -7,7 +7,10 @@
 //! channels `Zrotation Xrotation Yrotation` in degrees: the local rotation is
 //! `R = Rz(z) Rx(x) Ry(y)` acting on column vectors, the usual BVH reading of the channel order.
 //! Joints are written depth first, so the channel order of the `MOTION` lines is the hierarchy
-//! order, which need not be the skeleton's joint order.
+//! order, which need not be the skeleton's joint order. Joints carry the rig's own names
+//! (`mixamorig:Hips` for Mixamo). BVH has no rest orientations (its rest pose is identity
+//! rotations on the offsets), so a Mixamo motion keeps our frames here; `motion.glb` has
+//! Mixamo's.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -73,7 +76,7 @@ pub fn encode_bvh(motion: &ExportMotion<'_>) -> Result<String> {
     let skeleton = checked.skeleton;
     let children = skeleton.children();
     let offsets = skeleton.rest_offsets();
-    let names = skeleton.joint_names();
+    let names = skeleton.rig_joint_names();
     let mut order = Vec::with_capacity(skeleton.joint_count());
     depth_first(&children, 0, &mut order);
 

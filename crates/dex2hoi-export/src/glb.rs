@@ -1,19 +1,25 @@
 //! `motion.glb`: glTF 2.0 binary (one JSON chunk, one BIN chunk) that opens in Blender and
 //! three.js.
 //!
-//! - One node per joint (node `j` is joint `j`), translated by its rest offset and parented as
-//!   in the skeleton; the root joint is a root node of the scene.
-//! - A skin over those joints whose inverse bind matrices undo the rest positions (the rest
-//!   pose has identity rotations), and a body node carrying the capsule mesh of
-//!   [`mod@crate::body_mesh`]: `POSITION` (with exact `min`/`max`), `NORMAL`, `JOINTS_0` (unsigned
-//!   byte, or unsigned short beyond 256 joints) and `WEIGHTS_0` (one joint per vertex, weight
-//!   1), unsigned int indices.
+//! - One node per joint (node `j` is joint `j`), named as the rig names it (`mixamorig:Hips`,
+//!   [`dex2hoi_repr::Skeleton::rig_joint_names`]) and parented as in the skeleton; the root joint is a root
+//!   node of the scene. Each node's rest transform is in the rig's own bone frames
+//!   ([`dex2hoi_repr::Skeleton::rest_orientations`]: Mixamo's for `mixamo65`, the world's for SMPL-X):
+//!   translation `B_parent^T rel_j`, rotation `B_parent^T B_j` (docs/CONVENTIONS.md, "Rest
+//!   orientations"). With an SMPL-X mesh, its jaw and eyes follow as three more nodes under the
+//!   head, at rest.
+//! - A skin over those joints whose inverse bind matrices are the inverse rest transforms
+//!   `(T(rest_j) B_j)^-1`, and a body node carrying the body mesh: the SMPL-X model's
+//!   ([`mod@crate::smplx_body`], its four largest weights per vertex) or the capsules of
+//!   [`mod@crate::body_mesh`] (one joint per vertex, weight 1). `POSITION` (with exact
+//!   `min`/`max`), `NORMAL`, `JOINTS_0` (unsigned byte, or unsigned short beyond 256 joints),
+//!   `WEIGHTS_0`, unsigned int indices.
 //! - One node per object with its mesh, in the object frame.
 //! - One animation, linear: the root joint's translation (its world position), every joint's
-//!   rotation (unit quaternions `x, y, z, w`), each object's translation and rotation; key
-//!   times `frame / fps` seconds with `min`/`max`.
+//!   rotation `B_parent^T R_j B_j` (unit quaternions `x, y, z, w`), each object's translation
+//!   and rotation; key times `frame / fps` seconds with `min`/`max`.
 //!
-//! The scene's `extras` hold the text and the frame rate. Units are metres, Y up, as glTF.
+//! The scene's `extras` hold the text, the frame rate, the skeleton, the body and its betas. Units are metres, Y up, as glTF.
 
 use std::path::Path;
 
@@ -24,6 +30,7 @@ use dex2hoi_repr::rotation::matrix_to_quaternion;
 
 use crate::body_mesh::body_mesh;
 use crate::error::{ExportError, Result};
+use crate::smplx_body::FACE_JOINT_NAMES;
 use crate::{Checked, ExportMotion, write_file};
 
 /// glTF component types.
@@ -159,41 +166,136 @@ fn material(name: &str, colour: [f32; 4]) -> Value {
     })
 }
 
+/// The skinned body: its rest vertices with up to four joints and weights each.
+struct BodyMesh<'a> {
+    vertices: &'a [Vec3],
+    normals: &'a [Vec3],
+    faces: &'a [[u32; 3]],
+    joints: Vec<[u16; 4]>,
+    weights: Vec<[f32; 4]>,
+}
+
+/// The skin's joints in the rig's own names and frames: the skeleton's joints, then (with an
+/// SMPL-X mesh) the mesh's face joints as children of the head.
+struct Rig {
+    names: Vec<String>,
+    children: Vec<Vec<usize>>,
+    /// World rest orientation `B_j` of each skin joint.
+    orientations: Vec<Quat>,
+    rest_positions: Vec<Vec3>,
+    /// Node rest translation and rotation in the parent's frame: `B_parent^T rel_j`,
+    /// `B_parent^T B_j`.
+    translations: Vec<Vec3>,
+    /// Unit quaternions `x, y, z, w`, normalised in f64 so no component exceeds 1.
+    rest_rotations: Vec<[f64; 4]>,
+    parents: Vec<Option<usize>>,
+}
+
+impl Rig {
+    fn new(motion: &Checked<'_>) -> Self {
+        let skeleton = motion.skeleton;
+        let mut names = skeleton.rig_joint_names();
+        let mut children = skeleton.children();
+        let mut orientations = skeleton.rest_orientations();
+        let mut rest_positions = skeleton.rest_positions();
+        let mut parents = skeleton.parents().to_vec();
+        if let Some(body) = motion.body {
+            let head = skeleton.joint_index("head").unwrap_or(0);
+            for (name, position) in FACE_JOINT_NAMES.iter().zip(body.face_joints) {
+                children[head].push(names.len());
+                names.push((*name).to_string());
+                children.push(Vec::new());
+                orientations.push(Quat::IDENTITY);
+                rest_positions.push(position);
+                parents.push(Some(head));
+            }
+        }
+        let mut rig = Self {
+            names,
+            children,
+            orientations,
+            rest_positions,
+            translations: Vec::new(),
+            rest_rotations: Vec::new(),
+            parents,
+        };
+        (rig.translations, rig.rest_rotations) = (0..rig.names.len())
+            .map(|j| {
+                let parent = rig.parent_orientation(j).conjugate();
+                let base = rig.parents[j].map_or(Vec3::ZERO, |p| rig.rest_positions[p]);
+                let rotation = (parent.as_dquat() * rig.orientations[j].as_dquat()).normalize();
+                (parent * (rig.rest_positions[j] - base), rotation.to_array())
+            })
+            .unzip();
+        rig
+    }
+
+    /// `B_parent` (identity for the root).
+    fn parent_orientation(&self, joint: usize) -> Quat {
+        self.parents[joint].map_or(Quat::IDENTITY, |p| self.orientations[p])
+    }
+}
+
 /// The glTF JSON and binary chunk of a checked motion.
 fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
     let skeleton = motion.skeleton;
     let joints = skeleton.joint_count();
     let mut builder = Builder::default();
+    let capsules;
 
-    // Skeleton nodes and skin.
-    let children = skeleton.children();
-    let mut nodes: Vec<Value> = (0..joints)
+    // Skeleton nodes and skin: our joints, then (with an SMPL-X mesh) its face joints at rest.
+    let rig = Rig::new(motion);
+    let skin_joints = rig.names.len();
+    let mut nodes: Vec<Value> = (0..skin_joints)
         .map(|j| {
             let mut node = json!({
-                "name": skeleton.joint_names()[j],
-                "translation": skeleton.rest_offsets()[j].to_array(),
+                "name": rig.names[j],
+                "translation": rig.translations[j].to_array(),
+                "rotation": rig.rest_rotations[j],
             });
-            if !children[j].is_empty() {
-                node["children"] = json!(children[j]);
+            if !rig.children[j].is_empty() {
+                node["children"] = json!(rig.children[j]);
             }
             node
         })
         .collect();
-    let inverse_binds: Vec<f32> = skeleton
-        .rest_positions()
+    let inverse_binds: Vec<f32> = rig
+        .rest_positions
         .iter()
-        .flat_map(|&p| Mat4::from_translation(-p).to_cols_array())
+        .zip(&rig.orientations)
+        .flat_map(|(&p, &b)| {
+            // (T(p) B)^-1 = B^T T(-p), built directly so the last row is exactly (0, 0, 0, 1).
+            Mat4::from_rotation_translation(b.conjugate(), -(b.conjugate() * p)).to_cols_array()
+        })
         .collect();
     let inverse_binds = builder.floats(&inverse_binds, Element::Mat4, None, false);
     let skin = json!({
         "name": "skeleton",
-        "joints": (0..joints).collect::<Vec<_>>(),
+        "joints": (0..skin_joints).collect::<Vec<_>>(),
         "inverseBindMatrices": inverse_binds,
         "skeleton": 0,
     });
 
-    // The body mesh.
-    let body = body_mesh(skeleton);
+    // The body mesh: the SMPL-X model's, or capsules bound rigidly to the joints.
+    let body = match motion.body {
+        Some(mesh) => BodyMesh {
+            vertices: &mesh.vertices,
+            normals: &mesh.normals,
+            faces: &mesh.faces,
+            joints: mesh.joints.iter().map(|j| j.map(u16::from)).collect(),
+            weights: mesh.weights.clone(),
+        },
+        None => {
+            capsules = body_mesh(skeleton);
+            BodyMesh {
+                vertices: &capsules.vertices,
+                normals: &capsules.normals,
+                faces: &capsules.faces,
+                joints: capsules.joints.iter().map(|&j| [j, 0, 0, 0]).collect(),
+                weights: vec![[1.0, 0.0, 0.0, 0.0]; capsules.vertices.len()],
+            }
+        }
+    };
     let positions = builder.floats(
         &vec3s(body.vertices.iter().copied()),
         Element::Vec3,
@@ -207,28 +309,27 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
         false,
     );
     let vertex_count = body.vertices.len();
-    let joint_indices = if joints <= 256 {
-        let bytes: Vec<u8> = body.joints.iter().flat_map(|&j| [j as u8, 0, 0, 0]).collect();
+    let joint_indices = if skin_joints <= 256 {
+        let bytes: Vec<u8> = body.joints.iter().flatten().map(|&j| j as u8).collect();
         let view = builder.view(&bytes, Some(ARRAY_BUFFER));
         builder.accessor(view, UNSIGNED_BYTE, Element::Vec4, vertex_count)
-    } else if joints <= 65536 {
-        let bytes: Vec<u8> =
-            body.joints.iter().flat_map(|&j| [j, 0, 0, 0]).flat_map(u16::to_le_bytes).collect();
+    } else if skin_joints <= 65536 {
+        let bytes: Vec<u8> = body.joints.iter().flatten().flat_map(|j| j.to_le_bytes()).collect();
         let view = builder.view(&bytes, Some(ARRAY_BUFFER));
         builder.accessor(view, UNSIGNED_SHORT, Element::Vec4, vertex_count)
     } else {
-        return Err(ExportError::invalid("glTF skin", "at most 65536 joints", joints));
+        return Err(ExportError::invalid("glTF skin", "at most 65536 joints", skin_joints));
     };
-    let weights: Vec<f32> = (0..vertex_count).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect();
+    let weights: Vec<f32> = body.weights.iter().flatten().copied().collect();
     let weights = builder.floats(&weights, Element::Vec4, Some(ARRAY_BUFFER), false);
     let indices = |faces: &[[u32; 3]], builder: &mut Builder| {
         let bytes: Vec<u8> = faces.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
         let view = builder.view(&bytes, Some(ELEMENT_ARRAY_BUFFER));
         builder.accessor(view, UNSIGNED_INT, Element::Scalar, faces.len() * 3)
     };
-    let body_indices = indices(&body.faces, &mut builder);
+    let body_indices = indices(body.faces, &mut builder);
     let mut meshes = vec![json!({
-        "name": "body",
+        "name": if motion.body.is_some() { "smplx" } else { "body" },
         "primitives": [{
             "attributes": {
                 "POSITION": positions,
@@ -288,8 +389,15 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
         builder.floats(&vec3s(motion.root_positions.iter().copied()), Element::Vec3, None, false);
     animate(0, "translation", root_translation);
     for joint in 0..joints {
-        let rotations = (0..motion.frames).map(|t| motion.local_rotations[t * joints + joint]);
-        let output = builder.floats(&quaternions(rotations), Element::Vec4, None, false);
+        // In the rig's frames: L = B_parent^T R B_joint (docs/CONVENTIONS.md, "Rest orientations").
+        let (parent, own) = (rig.parent_orientation(joint), rig.orientations[joint]);
+        let rotations: Vec<f32> = (0..motion.frames)
+            .flat_map(|t| {
+                let local = matrix_to_quaternion(motion.local_rotations[t * joints + joint]);
+                (parent.conjugate() * local.normalize() * own).normalize().to_array()
+            })
+            .collect();
+        let output = builder.floats(&rotations, Element::Vec4, None, false);
         animate(joint, "rotation", output);
     }
     for (object, &node) in motion.objects.iter().zip(&object_nodes) {
@@ -313,7 +421,13 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
         "scenes": [{
             "name": "motion",
             "nodes": scene_nodes,
-            "extras": { "text": motion.text, "fps": motion.fps, "skeleton": skeleton.kind().name() },
+            "extras": {
+                "text": motion.text,
+                "fps": motion.fps,
+                "skeleton": skeleton.kind().name(),
+                "body": if motion.body.is_some() { "smplx" } else { "capsules" },
+                "betas": motion.body.map(|b| b.betas.clone()),
+            },
         }],
         "nodes": nodes,
         "meshes": meshes,

@@ -2,8 +2,9 @@
 //!
 //! - [`npz`]: `motion.npz`, SMPL-X-style parameters that numpy loads and the `smplx` Python
 //!   package's layer takes as they are (documented in `docs/FORMATS.md`);
-//! - [`glb`]: `motion.glb`, glTF 2.0 binary with the skeleton as a skin, a capsule body skinned
-//!   to it and the objects as animated nodes (Blender, three.js);
+//! - [`glb`]: `motion.glb`, glTF 2.0 binary with the skeleton as a skin, a body skinned to it
+//!   (the SMPL-X mesh of a user's model, [`smplx_body`], or a capsule body) and the objects as
+//!   animated nodes (Blender, three.js, Unreal's glTF importer, Unity with glTFast);
 //! - [`bvh`]: `motion.bvh`, the skeleton's animation in BioVision hierarchy form;
 //! - [`preview`]: `preview.gif`, an animation drawn by a small software rasteriser.
 //!
@@ -19,6 +20,7 @@ pub mod font;
 pub mod glb;
 pub mod npz;
 pub mod preview;
+pub mod smplx_body;
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -39,6 +41,7 @@ pub use preview::{
     Camera, Preview, PreviewOptions, Surface, TableBox, encode_preview_gif, render_preview,
     write_preview_gif,
 };
+pub use smplx_body::{SmplxMesh, resolve_model_path};
 
 /// File name of the SMPL-X-style parameters in an export directory.
 pub const NPZ_FILE: &str = "motion.npz";
@@ -71,6 +74,10 @@ pub struct ExportMotion<'a> {
     pub motion: &'a DecodedMotion,
     /// The objects to export, each naming the slot of `motion.objects` that holds its poses.
     pub objects: Vec<ExportObject<'a>>,
+    /// The SMPL-X body mesh to skin in `motion.glb` (and its `betas` in `motion.npz`); `None`
+    /// for the capsule body. With a mesh, `skeleton` must be the mesh's
+    /// ([`SmplxMesh::skeleton`]).
+    pub body: Option<&'a SmplxMesh>,
 }
 
 /// One object of an [`ExportMotion`].
@@ -96,6 +103,7 @@ pub(crate) struct Checked<'a> {
     pub root_positions: &'a [Vec3],
     pub fk: FkOutput,
     pub objects: Vec<CheckedObject<'a>>,
+    pub body: Option<&'a SmplxMesh>,
 }
 
 impl Checked<'_> {
@@ -229,6 +237,9 @@ impl<'a> ExportMotion<'a> {
             )
         })?;
         check_positions(&motion.root_positions, "root position")?;
+        if let Some(body) = self.body {
+            check_body_skeleton(body, self.skeleton)?;
+        }
         let mut names = HashSet::new();
         let mut slots = HashSet::new();
         let mut objects = Vec::with_capacity(self.objects.len());
@@ -276,8 +287,31 @@ impl<'a> ExportMotion<'a> {
             root_positions: &motion.root_positions,
             fk,
             objects,
+            body: self.body,
         })
     }
+}
+
+/// How far (metres) a motion's rest offsets may be from an SMPL-X mesh's skeleton's.
+const BODY_SKELETON_TOLERANCE: f32 = 1e-6;
+
+/// A motion skinned to an SMPL-X mesh must be posed on the mesh's own skeleton.
+fn check_body_skeleton(body: &SmplxMesh, skeleton: &Skeleton) -> Result<()> {
+    let same = skeleton.kind() == body.skeleton.kind()
+        && skeleton.joint_count() == body.skeleton.joint_count()
+        && skeleton
+            .rest_offsets()
+            .iter()
+            .zip(body.skeleton.rest_offsets())
+            .all(|(a, b)| (*a - *b).abs().max_element() <= BODY_SKELETON_TOLERANCE);
+    if !same {
+        return Err(ExportError::invalid(
+            format!("skeleton of a motion skinned to {}", body.path.display()),
+            "the model's own skeleton (SmplxMesh::skeleton)",
+            format!("a {} skeleton with other rest offsets", skeleton.kind().name()),
+        ));
+    }
+    Ok(())
 }
 
 /// Writes encoded bytes to `path` atomically (temporary file beside it, then rename).

@@ -6,7 +6,7 @@
 //! and the frame rate. The SMPL-X skeleton also gets the parameters of the `smplx` Python
 //! package's SMPL-X layer (`global_orient`, `body_pose`, the hand poses, `transl` and zero jaw,
 //! eye and expression parameters), `float32`, shaped so that `model(**params)` takes them
-//! as they are. Strings are numpy unicode arrays (`<U..`), so no array needs `allow_pickle`.
+//! as they are; a motion skinned to a user's SMPL-X model also gets its `betas`. Strings are numpy unicode arrays (`<U..`), so no array needs `allow_pickle`.
 //!
 //! The archive is written by `dex2hoi_data::npz` (fixed timestamp: the same motion always gives
 //! the same bytes).
@@ -29,6 +29,10 @@ pub const SMPLX_BODY_JOINTS: usize = 21;
 pub const SMPLX_HAND_JOINTS: usize = 15;
 /// Expression coefficients written (zeros) for the SMPL-X layer.
 pub const SMPLX_EXPRESSION_COEFFICIENTS: usize = 10;
+
+/// Body-shape coefficients of the `smplx` layer by default (`num_betas=10`): `betas` has at
+/// least this many columns.
+pub const SMPLX_DEFAULT_BETAS: usize = 10;
 
 /// The first joint of the left hand in the 52-joint order (SMPL-X 25, after jaw and eyes).
 const SMPLX52_LEFT_HAND: usize = 22;
@@ -130,6 +134,14 @@ fn arrays(motion: &Checked<'_>) -> Vec<Array> {
             ),
             Array::f32("pelvis_rest", &[3], pelvis_rest.to_array().to_vec()),
         ]);
+        if let Some(body) = motion.body {
+            // The shape the skeleton was made from, per frame as the layer takes it (at least
+            // the layer's default number of coefficients, zeros after the given ones).
+            let count = body.betas.len().max(SMPLX_DEFAULT_BETAS);
+            let mut row = body.betas.clone();
+            row.resize(count, 0.0);
+            out.push(Array::f32("betas", &[frames, count], row.repeat(frames)));
+        }
     }
     out
 }

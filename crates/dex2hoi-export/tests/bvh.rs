@@ -8,6 +8,7 @@ use glam::Vec3;
 use dex2hoi_export::{BvhMotion, encode_bvh, read_bvh, write_bvh};
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::fk::forward_kinematics_frame;
+use dex2hoi_repr::skeleton::HUMOTO_REST_POSITIONS;
 
 /// Forward kinematics of a parsed BVH (joints in hierarchy order).
 fn bvh_joint_positions(bvh: &BvhMotion, frame: usize) -> Vec<Vec3> {
@@ -47,6 +48,11 @@ fn round_trip(skeleton: &Skeleton, frames: usize) {
         .iter()
         .map(|name| skeleton.joint_index(name).expect("a skeleton joint"))
         .collect();
+    // Named as the rig names them (`mixamorig:Hips`, `pelvis`).
+    let rig_names = skeleton.rig_joint_names();
+    for (b, &j) in index.iter().enumerate() {
+        assert_eq!(bvh.joint_names[b], rig_names[j]);
+    }
     for (b, &j) in index.iter().enumerate() {
         assert_eq!(bvh.parents[b].map(|p| index[p]), skeleton.parents()[j]);
         if j != 0 {
@@ -80,6 +86,36 @@ fn smplx_bvh_round_trips_to_the_same_joint_positions() {
 #[test]
 fn mixamo_bvh_round_trips_to_the_same_joint_positions() {
     round_trip(&Skeleton::mixamo(), 5);
+}
+
+#[test]
+fn mixamo_bvh_names_every_bone_as_mixamo_does_with_its_rest_positions() {
+    // HUMOTO's character as published, so the offsets are Mixamo's to the last digit written.
+    let skeleton = Skeleton::humoto_character();
+    let motion = common::wavy_motion(&skeleton, 2, 0);
+    let text = encode_bvh(&common::export(&skeleton, &motion, &[], "")).expect("encoded");
+    assert!(text.starts_with("HIERARCHY\nROOT mixamorig:Hips\n"));
+    let bvh = dex2hoi_export::parse_bvh(&text).expect("parsed");
+    let rest: std::collections::HashMap<String, Vec3> = bvh
+        .joint_names
+        .iter()
+        .enumerate()
+        .map(|(b, name)| {
+            let mut position = bvh.offsets[b];
+            let mut parent = bvh.parents[b];
+            while let Some(p) = parent {
+                position += if bvh.parents[p].is_some() { bvh.offsets[p] } else { Vec3::ZERO };
+                parent = bvh.parents[p];
+            }
+            (name.clone(), position)
+        })
+        .collect();
+    let hips = HUMOTO_REST_POSITIONS[0].1;
+    for (name, position) in HUMOTO_REST_POSITIONS {
+        let got = rest[&format!("mixamorig:{name}")] + Vec3::from_array(hips);
+        assert!((got - Vec3::from_array(position)).length() < 2e-6, "{name}: {got}");
+    }
+    assert_eq!(rest.len(), 65);
 }
 
 #[test]

@@ -39,6 +39,7 @@ fn a_known_scene_shows_each_surface_where_it_must() {
         prompts: vec![(0, "standing".into())],
         motion: &motion,
         objects: vec![ExportObject { name: "box".into(), mesh: &mesh, slot: 0 }],
+        body: None,
     };
     let options = PreviewOptions { table: Some(TABLE), ..PreviewOptions::default() };
     let preview = render_preview(&export, &options).expect("rendered");
@@ -203,6 +204,7 @@ fn hands_are_coloured_by_contact_and_penetration() {
             prompts: vec![(0, "touching".into())],
             motion,
             objects: vec![ExportObject { name: "box".into(), mesh: &mesh, slot: 0 }],
+            body: None,
         };
         render_preview(&export, &options).expect("rendered")
     };

@@ -143,6 +143,37 @@ fn the_published_glb_matches_blender() {
 }
 
 #[test]
+fn the_published_rig_is_mixamo_with_our_rest_positions_and_orientations() {
+    // The exports name and orient Mixamo bones by `HUMOTO_REST_POSITIONS` and
+    // `HUMOTO_REST_ORIENTATIONS`: both must be the published rig's, in every GLB.
+    use dex2hoi_repr::skeleton::{HUMOTO_REST_ORIENTATIONS, HUMOTO_REST_POSITIONS};
+    let Some(dir) = humoto_dir() else { return };
+    for sequence in [SEQUENCE, "carrying_whisk_with_right_hand-037"] {
+        let path = dir.join(format!("glb/{sequence}/{sequence}.glb"));
+        let scene = dex2hoi_import::glb::GlbScene::read(&path).expect("the real GLB");
+        let skin = &scene.skins[0];
+        assert_eq!(skin.joints.len(), 65);
+        let rig = Skeleton::humoto_character().rig_joint_names();
+        for (k, &node) in skin.joints.iter().enumerate() {
+            assert_eq!(scene.nodes[node].name, rig[k], "{sequence}: joint {k}");
+            // The bind matrix carries the `Armature` node's scale 0.01.
+            let bind = skin.inverse_bind_matrices[k].inverse();
+            let rotation = Mat3::from_mat4(bind) * 100.0;
+            let (name, position) = HUMOTO_REST_POSITIONS[k];
+            let (other, [x, y, z, w]) = HUMOTO_REST_ORIENTATIONS[k];
+            assert_eq!(format!("mixamorig:{name}"), rig[k]);
+            assert_eq!(name, other);
+            let gap = (bind.w_axis.truncate() - Vec3::from_array(position)).length();
+            assert!(gap < 1e-4, "{sequence}: {name} is {gap} m from its rest position");
+            let ours = Mat3::from_quat(glam::Quat::from_xyzw(x, y, z, w));
+            let worst =
+                (rotation - ours).to_cols_array().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            assert!(worst < 1e-5, "{sequence}: {name}'s rest frame is {worst} off");
+        }
+    }
+}
+
+#[test]
 fn the_up_bone_pickle_matches_blender() {
     let Some(dir) = humoto_dir() else { return };
     let root = dir.join("pkl_up_bone");

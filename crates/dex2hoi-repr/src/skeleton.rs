@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use glam::Vec3;
+use glam::{Quat, Vec3};
 
 use crate::error::{ReprError, Result};
 
@@ -268,6 +268,80 @@ pub const HUMOTO_REST_POSITIONS: [(&str, [f32; 3]); 65] = [
     ("RightFoot", [-0.0873, 0.0734, -0.0451]),
     ("RightToeBase", [-0.0756, 0.0058, 0.0963]),
     ("RightToe_End", [-0.0711, 0.0040, 0.1559]),
+];
+
+/// Rest orientations of the 65 Mixamo bones of HUMOTO's character, in joint order, as unit
+/// quaternions `[x, y, z, w]` in world axes (Y up, facing +Z): each bone's bind-pose frame
+/// (Mixamo's convention: the bone's +Y axis points along the bone). Read from the same skin as
+/// [`HUMOTO_REST_POSITIONS`] (inverse bind matrices, the `Armature` scale divided out; their
+/// scale is 1 to 5e-7). The exports put a Mixamo motion in these frames so that it plays on a
+/// Mixamo character by bone name (docs/CONVENTIONS.md, "Rest orientations").
+pub const HUMOTO_REST_ORIENTATIONS: [(&str, [f32; 4]); 65] = [
+    ("Hips", [0.000000, 0.000050, -0.000010, 1.000000]),
+    ("Spine", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("Spine1", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("Spine2", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("Neck", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("Head", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("HeadTop_End", [-0.071499, 0.000000, 0.000000, 0.997441]),
+    ("LeftShoulder", [0.513282, 0.404082, -0.594364, 0.469032]),
+    ("LeftArm", [0.460760, 0.460714, -0.535843, 0.536950]),
+    ("LeftForeArm", [0.461544, 0.459932, -0.535528, 0.537261]),
+    ("LeftHand", [0.471418, 0.523207, -0.529782, 0.472600]),
+    ("LeftHandThumb1", [0.719202, 0.274967, -0.427173, 0.473989]),
+    ("LeftHandThumb2", [0.731767, 0.263304, -0.434460, 0.454350]),
+    ("LeftHandThumb3", [0.739241, 0.256023, -0.438789, 0.442085]),
+    ("LeftHandThumb4", [0.739241, 0.256023, -0.438789, 0.442085]),
+    ("LeftHandIndex1", [0.494355, 0.501505, -0.495103, 0.508899]),
+    ("LeftHandIndex2", [0.497584, 0.498344, -0.498285, 0.505742]),
+    ("LeftHandIndex3", [0.505277, 0.490648, -0.505865, 0.498057]),
+    ("LeftHandIndex4", [0.505277, 0.490649, -0.505864, 0.498057]),
+    ("LeftHandMiddle1", [0.514814, 0.481071, -0.500826, 0.502703]),
+    ("LeftHandMiddle2", [0.507884, 0.487881, -0.494195, 0.509703]),
+    ("LeftHandMiddle3", [0.506111, 0.489595, -0.492497, 0.511464]),
+    ("LeftHandMiddle4", [0.506112, 0.489595, -0.492497, 0.511464]),
+    ("LeftHandRing1", [0.495342, 0.499886, -0.522675, 0.481208]),
+    ("LeftHandRing2", [0.483085, 0.512871, -0.509940, 0.493512]),
+    ("LeftHandRing3", [0.476701, 0.519383, -0.503305, 0.499681]),
+    ("LeftHandRing4", [0.476701, 0.519383, -0.503305, 0.499681]),
+    ("LeftHandPinky1", [0.476525, 0.519470, -0.496091, 0.506921]),
+    ("LeftHandPinky2", [0.491166, 0.504718, -0.511093, 0.492748]),
+    ("LeftHandPinky3", [0.511260, 0.482999, -0.531665, 0.471866]),
+    ("LeftHandPinky4", [0.511260, 0.482999, -0.531665, 0.471867]),
+    ("RightShoulder", [0.512581, -0.404637, 0.594968, 0.468555]),
+    ("RightArm", [0.461158, -0.459686, 0.535500, 0.537831]),
+    ("RightForeArm", [0.460684, -0.460161, 0.536267, 0.537065]),
+    ("RightHand", [0.477217, -0.519800, 0.525903, 0.474867]),
+    ("RightHandThumb1", [0.719044, -0.275137, 0.418972, 0.481392]),
+    ("RightHandThumb2", [0.736991, -0.258853, 0.429224, 0.453439]),
+    ("RightHandThumb3", [0.723397, -0.271311, 0.421458, 0.474825]),
+    ("RightHandThumb4", [0.723397, -0.271311, 0.421459, 0.474825]),
+    ("RightHandIndex1", [0.504419, -0.493195, 0.491443, 0.510690]),
+    ("RightHandIndex2", [0.508254, -0.489477, 0.495146, 0.506874]),
+    ("RightHandIndex3", [0.484939, -0.511254, 0.472627, 0.529223]),
+    ("RightHandIndex4", [0.484939, -0.511254, 0.472627, 0.529223]),
+    ("RightHandMiddle1", [0.500330, -0.497573, 0.506253, 0.495781]),
+    ("RightHandMiddle2", [0.501295, -0.496586, 0.507221, 0.494806]),
+    ("RightHandMiddle3", [0.483014, -0.514660, 0.488872, 0.512666]),
+    ("RightHandMiddle4", [0.483014, -0.514659, 0.488873, 0.512666]),
+    ("RightHandRing1", [0.511796, -0.486002, 0.506845, 0.494950]),
+    ("RightHandRing2", [0.489986, -0.507397, 0.485426, 0.516550]),
+    ("RightHandRing3", [0.517984, -0.479584, 0.512922, 0.488470]),
+    ("RightHandRing4", [0.517984, -0.479584, 0.512922, 0.488470]),
+    ("RightHandPinky1", [0.497365, -0.500540, 0.507717, 0.494279]),
+    ("RightHandPinky2", [0.497752, -0.500140, 0.508111, 0.493888]),
+    ("RightHandPinky3", [0.499559, -0.498274, 0.509941, 0.492061]),
+    ("RightHandPinky4", [0.499559, -0.498278, 0.509938, 0.492060]),
+    ("LeftUpLeg", [0.000094, -0.007900, 0.999953, 0.005598]),
+    ("LeftLeg", [-0.000125, 0.035066, -0.999377, 0.003917]),
+    ("LeftFoot", [-0.036263, 0.481894, 0.875278, 0.018776]),
+    ("LeftToeBase", [-0.022465, 0.695728, 0.717345, 0.029568]),
+    ("LeftToe_End", [-0.022465, 0.695728, 0.717345, 0.029568]),
+    ("RightUpLeg", [-0.000044, 0.001039, -0.999984, 0.005578]),
+    ("RightLeg", [-0.000112, -0.043298, 0.999054, 0.003942]),
+    ("RightFoot", [-0.036721, -0.476317, -0.878289, 0.019544]),
+    ("RightToeBase", [-0.022269, -0.695533, -0.717500, 0.030502]),
+    ("RightToe_End", [-0.022267, -0.695533, -0.717500, 0.030503]),
 ];
 
 /// The name of the mirror joint: left and right swapped (`left_`/`right_`, `Left`/`Right`).
@@ -538,6 +612,35 @@ impl Skeleton {
     pub fn joint_index(&self, name: &str) -> Option<usize> {
         let name = name.strip_prefix(MIXAMO_PREFIX).unwrap_or(name);
         self.joint_names.iter().position(|n| n == name)
+    }
+
+    /// Joint names as the rig's own files spell them: `mixamorig:Hips` and so on for Mixamo
+    /// ([`MIXAMO_PREFIX`]), the SMPL-X names unchanged. The exports use these.
+    pub fn rig_joint_names(&self) -> Vec<String> {
+        let prefix = match self.kind {
+            SkeletonKind::Mixamo65 => MIXAMO_PREFIX,
+            SkeletonKind::Smplx52 => "",
+        };
+        self.joint_names.iter().map(|name| format!("{prefix}{name}")).collect()
+    }
+
+    /// Each joint's rest frame in world axes as its rig defines it: Mixamo's bone orientations
+    /// ([`HUMOTO_REST_ORIENTATIONS`]), identity for SMPL-X (whose rest frames are the world's).
+    /// The local rotations of a motion stay relative to the identity rest pose; an export that
+    /// keeps a rig's frames turns them into `B_parent^T R B_joint`.
+    pub fn rest_orientations(&self) -> Vec<Quat> {
+        match self.kind {
+            SkeletonKind::Smplx52 => vec![Quat::IDENTITY; self.joint_count()],
+            SkeletonKind::Mixamo65 => {
+                let mut orientations = vec![Quat::IDENTITY; self.joint_count()];
+                for (name, [x, y, z, w]) in HUMOTO_REST_ORIENTATIONS {
+                    if let Some(joint) = self.joint_index(name) {
+                        orientations[joint] = Quat::from_xyzw(x, y, z, w).normalize();
+                    }
+                }
+                orientations
+            }
+        }
     }
 
     /// Parent of each joint, `None` for the root.

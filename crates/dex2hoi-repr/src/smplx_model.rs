@@ -71,6 +71,20 @@ pub fn read_npz_array(
     Ok(NpzArray { values, shape })
 }
 
+/// [`read_npz_array`] for an entry the file may lack (`None` then).
+fn read_optional(
+    archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+    path: &Path,
+    key: &str,
+    expected: &str,
+) -> Result<Option<NpzArray>> {
+    match read_npz_array(archive, path, key, expected) {
+        Ok(array) => Ok(Some(array)),
+        Err(ReprError::MissingKey { .. }) => Ok(None),
+        Err(other) => Err(other),
+    }
+}
+
 /// Reorders column-major values into row-major order.
 fn fortran_to_c(values: &[f64], shape: &[usize]) -> Vec<f64> {
     let count = values.len();
@@ -96,7 +110,8 @@ fn fortran_to_c(values: &[f64], shape: &[usize]) -> Vec<f64> {
     out
 }
 
-/// The arrays of an SMPL-X model file that rest joints need.
+/// The arrays of an SMPL-X model file that rest joints (and, with `f` and `weights`, a skinned
+/// body mesh) need.
 #[derive(Debug, Clone)]
 pub struct SmplxModel {
     path: PathBuf,
@@ -106,6 +121,23 @@ pub struct SmplxModel {
     pub shapedirs: NpzArray,
     /// Joint regressor `(55, V)`.
     pub j_regressor: NpzArray,
+    /// Triangles `f` `(F, 3)` (vertex indices below `V`), when the file has them.
+    pub faces: Option<Vec<[u32; 3]>>,
+    /// Linear-blend-skinning weights `weights` `(V, 55)`, when the file has them.
+    pub weights: Option<NpzArray>,
+}
+
+/// The mesh of a model shaped by body-shape coefficients, in its rest pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShapedSmplx {
+    /// `v_template + shapedirs[..., :n] . betas`, `(V, 3)`.
+    pub vertices: Vec<Vec3>,
+    /// The 55 rest joints `J_regressor @ vertices`.
+    pub joints: Vec<Vec3>,
+    /// The model's triangles.
+    pub faces: Vec<[u32; 3]>,
+    /// Skinning weights over the 55 joints, `(V, 55)` row-major.
+    pub weights: Vec<f64>,
 }
 
 impl SmplxModel {
@@ -175,11 +207,86 @@ impl SmplxModel {
                 });
             }
         }
-        Ok(Self { path: path.to_path_buf(), v_template, shapedirs, j_regressor })
+        let faces = read_optional(&mut archive, path, "f", "triangles (F, 3)")?
+            .map(|f| {
+                let index = f
+                    .values
+                    .iter()
+                    .position(|&i| !(i >= 0.0 && i < vertex_count as f64 && i.fract() == 0.0));
+                if f.shape.len() != 2 || f.shape[1] != 3 || f.shape[0] == 0 {
+                    Err(shape_error("f", "(F, 3)".into(), &f.shape))
+                } else if let Some(index) = index {
+                    Err(ReprError::format(
+                        name.clone(),
+                        "`f` (triangles)",
+                        format!("vertex indices below {vertex_count}"),
+                        format!("{} at entry {index}", f.values[index]),
+                    ))
+                } else {
+                    Ok(f.values
+                        .chunks_exact(3)
+                        .map(|t| [t[0], t[1], t[2]].map(|i| i as u32))
+                        .collect())
+                }
+            })
+            .transpose()?;
+        let weights = read_optional(&mut archive, path, "weights", "skinning weights (V, 55)")?;
+        if let Some(weights) = &weights {
+            if weights.shape != [vertex_count, 55] {
+                return Err(shape_error(
+                    "weights",
+                    format!("({vertex_count}, 55)"),
+                    &weights.shape,
+                ));
+            }
+            if let Some(index) = weights.values.iter().position(|w| !w.is_finite() || *w < 0.0) {
+                return Err(ReprError::format(
+                    name.clone(),
+                    "`weights` (skinning weights)",
+                    "finite non-negative numbers",
+                    format!("{} at entry {index}", weights.values[index]),
+                ));
+            }
+        }
+        Ok(Self { path: path.to_path_buf(), v_template, shapedirs, j_regressor, faces, weights })
+    }
+
+    /// The model file.
+    pub fn path(&self) -> &Path {
+        &self.path
     }
 
     /// The 55 rest joints for the given shape coefficients (at most as many as `shapedirs` has).
     pub fn rest_joints(&self, betas: &[f32]) -> Result<Vec<Vec3>> {
+        Ok(self.regress(&self.shaped_vertices(betas)?))
+    }
+
+    /// The mesh shaped by `betas` with its rest joints, faces and skinning weights; the file must
+    /// have `f` and `weights` (an error names the missing one).
+    pub fn shaped(&self, betas: &[f32]) -> Result<ShapedSmplx> {
+        let missing = |key: &str, expected: &str| ReprError::MissingKey {
+            path: self.path.clone(),
+            key: key.into(),
+            expected: expected.into(),
+        };
+        let faces = self.faces.clone().ok_or_else(|| missing("f", "triangles (F, 3)"))?;
+        let weights = self
+            .weights
+            .as_ref()
+            .ok_or_else(|| missing("weights", "skinning weights (V, 55)"))?
+            .values
+            .clone();
+        let flat = self.shaped_vertices(betas)?;
+        let joints = self.regress(&flat);
+        let vertices = flat
+            .chunks_exact(3)
+            .map(|v| Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32))
+            .collect();
+        Ok(ShapedSmplx { vertices, joints, faces, weights })
+    }
+
+    /// `v_template + shapedirs[..., :n] . betas`, flat `(V * 3)`.
+    fn shaped_vertices(&self, betas: &[f32]) -> Result<Vec<f64>> {
         let shape_count = self.shapedirs.shape[2];
         if betas.len() > shape_count {
             return Err(ReprError::invalid(
@@ -208,7 +315,7 @@ impl SmplxModel {
                 vertices[v * 3 + axis] += blend;
             }
         }
-        Ok(self.regress(&vertices))
+        Ok(vertices)
     }
 
     /// The 55 joints the model's `J_regressor` gives for a mesh of its topology: a subject's

@@ -1,7 +1,10 @@
 //! Motions shared by the integration tests.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
 
 use glam::{Mat3, Vec3};
 
@@ -11,6 +14,22 @@ use dex2hoi_export::{ExportMotion, ExportObject};
 use dex2hoi_repr::mesh::box_mesh;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 use dex2hoi_repr::{Mesh, Skeleton, forward_kinematics};
+
+pub mod gltf;
+pub mod smplx_fixture;
+
+/// Writes the fixture SMPL-X model ([`smplx_fixture`]) on the built-in skeleton.
+pub fn write_smplx_model(path: &Path, spoil: smplx_fixture::Spoil) {
+    let skeleton = Skeleton::smplx();
+    let mesh = dex2hoi_export::body_mesh(&skeleton);
+    smplx_fixture::write_smplx_model(
+        path,
+        &skeleton.rest_positions(),
+        skeleton.parents(),
+        &mesh,
+        spoil,
+    );
+}
 
 /// An empty scratch directory for one test.
 pub fn scratch_dir(name: &str) -> PathBuf {
@@ -91,6 +110,7 @@ pub fn export<'a>(
             .enumerate()
             .map(|(slot, mesh)| ExportObject { name: names[slot].into(), mesh, slot })
             .collect(),
+        body: None,
     }
 }
 
@@ -127,5 +147,57 @@ pub fn synth_export<'a>(synth: &'a SynthSequence, motion: &'a DecodedMotion) -> 
             .enumerate()
             .map(|(slot, o)| ExportObject { name: o.name.clone(), mesh: &o.mesh, slot })
             .collect(),
+        body: None,
     }
+}
+
+/// The validator's directory, or why it cannot run.
+fn validator() -> Result<PathBuf, String> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/gltf-validator");
+    if !dir.join("node_modules/gltf-validator").is_dir() {
+        return Err(format!("{} has no node_modules (run scripts/setup.sh)", dir.display()));
+    }
+    match Command::new("node").arg("--version").output() {
+        Ok(output) if output.status.success() => Ok(dir),
+        _ => Err("node is not installed".into()),
+    }
+}
+
+/// Runs the Khronos validator on a file and returns its report.
+fn validate(path: &Path) -> Option<Value> {
+    let dir = match validator() {
+        Ok(dir) => dir,
+        Err(why) if !in_ci() => {
+            println!("skipped: the glTF validator cannot run: {why}");
+            return None;
+        }
+        Err(why) => panic!("CI needs the glTF validator: {why}"),
+    };
+    let output =
+        Command::new("node").arg(dir.join("validate.cjs")).arg(path).output().expect("node runs");
+    let report: Value = serde_json::from_slice(&output.stdout)
+        .unwrap_or_else(|e| panic!("no report ({e}): {}", String::from_utf8_lossy(&output.stderr)));
+    Some(report)
+}
+
+/// Runs the Khronos validator on a GLB and asserts no errors or warnings, one animation and a
+/// skin; `false` when the validator cannot run here (outside CI).
+pub fn validator_is_clean(path: &Path, name: &str) -> bool {
+    let Some(report) = validate(path) else { return false };
+    let issues = &report["issues"];
+    let messages: Vec<String> = issues["messages"]
+        .as_array()
+        .map(|m| {
+            m.iter().map(|i| format!("{} {} {}", i["severity"], i["code"], i["pointer"])).collect()
+        })
+        .unwrap_or_default();
+    println!(
+        "{name}: {} errors, {} warnings, {} infos, {} hints",
+        issues["numErrors"], issues["numWarnings"], issues["numInfos"], issues["numHints"]
+    );
+    assert_eq!(issues["numErrors"], 0, "{name}: {messages:#?}");
+    assert_eq!(issues["numWarnings"], 0, "{name}: {messages:#?}");
+    assert_eq!(report["info"]["animationCount"], 1, "{name}");
+    assert_eq!(report["info"]["hasSkins"], true, "{name}");
+    true
 }

@@ -1,0 +1,228 @@
+//! The SMPL-X body mesh in `motion.glb` from a user's model file (here the fixture model of
+//! `common::smplx_fixture`): the skinned vertices the GLB's own data give (inverse bind
+//! matrices, weights, node animation) equal numpy's linear blend skinning of the model with
+//! the npz's parameters, the npz's `joints` equal the model's kinematics, the validator is
+//! clean, and a broken model file is a clear error that writes nothing.
+
+mod common;
+
+use std::path::Path;
+use std::process::Command;
+
+use dex2hoi_export::{ExportMotion, ExportOptions, SmplxMesh, export_all};
+use dex2hoi_repr::Skeleton;
+
+use common::gltf::{node_worlds, parse_glb, skinned_vertices};
+use common::smplx_fixture::Spoil;
+use common::write_smplx_model;
+
+/// Tolerance of the comparison with numpy (metres).
+const TOLERANCE: f64 = 1e-4;
+
+/// Numpy's SMPL-X linear blend skinning (no pose blend shapes, the four largest weights
+/// renormalised) of the model with the npz's parameters, written as `(T, V, 3)` vertices and
+/// `(T, 55, 3)` joints; argv: model, motion npz, output directory. Exit 3 without numpy.
+const NUMPY_LBS: &str = r#"
+import sys
+try:
+    import numpy as np
+except ImportError:
+    sys.exit(3)
+model, motion, out = sys.argv[1:4]
+m, d = np.load(model), np.load(motion)
+f64 = np.float64
+betas = d["betas"][0].astype(f64)
+dirs = m["shapedirs"].astype(f64)
+n = min(len(betas), dirs.shape[2])
+v = m["v_template"].astype(f64) + dirs[:, :, :n] @ betas[:n]
+J = m["J_regressor"].astype(f64) @ v
+parents = m["kintree_table"][0].astype(np.int64)
+parents[parents > 54] = -1
+T = d["transl"].shape[0]
+pose = np.concatenate([d["global_orient"][:, None], d["body_pose"].reshape(T, 21, 3),
+                       d["jaw_pose"][:, None], d["leye_pose"][:, None], d["reye_pose"][:, None],
+                       d["left_hand_pose"].reshape(T, 15, 3),
+                       d["right_hand_pose"].reshape(T, 15, 3)], axis=1).astype(f64)
+angle = np.linalg.norm(pose, axis=-1, keepdims=True)
+axis = pose / np.maximum(angle, 1e-12)
+K = np.zeros(pose.shape[:-1] + (3, 3))
+K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
+K = K - np.swapaxes(K, -1, -2)
+s, c = np.sin(angle)[..., None], np.cos(angle)[..., None]
+R = np.eye(3) + s * K + (1 - c) * (K @ K)
+G = np.zeros((T, 55, 4, 4))
+G[..., 3, 3] = 1
+for j in range(55):
+    local = np.zeros((T, 4, 4))
+    local[:, :3, :3], local[:, 3, 3] = R[:, j], 1
+    local[:, :3, 3] = J[j] - (J[parents[j]] if parents[j] >= 0 else 0)
+    G[:, j] = local if parents[j] < 0 else G[:, parents[j]] @ local
+posed_joints = G[:, :, :3, 3] + d["transl"][:, None].astype(f64)
+A = G.copy()
+A[:, :, :3, 3] -= np.einsum("tjab,jb->tja", G[:, :, :3, :3], J)
+W = m["weights"].astype(f64)
+top = np.argsort(-W, axis=1, kind="stable")[:, :4]
+kept = np.zeros_like(W)
+rows = np.arange(W.shape[0])[:, None]
+kept[rows, top] = W[rows, top]
+kept /= kept.sum(axis=1, keepdims=True)
+blend = np.einsum("vj,tjab->tvab", kept, A)
+verts = np.einsum("tvab,vb->tva", blend[..., :3, :3], v) + blend[..., :3, 3]
+verts += d["transl"][:, None].astype(f64)
+np.save(out + "/numpy_vertices.npy", verts)
+np.save(out + "/numpy_joints.npy", posed_joints)
+print("numpy LBS:", verts.shape, "betas", d["betas"].shape)
+"#;
+
+fn read_npy(path: &Path) -> (Vec<u64>, Vec<f64>) {
+    let bytes = std::fs::read(path).expect("numpy output");
+    let npy = npyz::NpyFile::new(&bytes[..]).expect("npy");
+    let shape = npy.shape().to_vec();
+    (shape, npy.into_vec::<f64>().expect("f64"))
+}
+
+/// Runs [`NUMPY_LBS`]; `false` when python or numpy is missing outside CI.
+fn numpy_lbs(model: &Path, motion: &Path, out: &Path) -> bool {
+    let output = match Command::new("python3")
+        .arg("-c")
+        .arg(NUMPY_LBS)
+        .arg(model)
+        .arg(motion)
+        .arg(out)
+        .output()
+    {
+        Ok(output) => output,
+        Err(error) if !common::in_ci() => {
+            println!("skipped: python3 is not available ({error})");
+            return false;
+        }
+        Err(error) => panic!("CI needs python3 for the numpy check: {error}"),
+    };
+    if output.status.code() == Some(3) {
+        assert!(!common::in_ci(), "CI needs numpy (scripts/setup.sh)");
+        println!("skipped: numpy is not installed");
+        return false;
+    }
+    assert!(
+        output.status.success(),
+        "numpy LBS failed:\n{}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    println!("{}", String::from_utf8_lossy(&output.stdout));
+    true
+}
+
+#[test]
+fn the_skinned_smplx_mesh_of_the_glb_equals_numpy_lbs_and_the_npz_joints_its_kinematics() {
+    let dir = common::scratch_dir("smplx-body");
+    let model = dir.join("SMPLX_NEUTRAL.npz");
+    write_smplx_model(&model, Spoil::None);
+    // The directory form finds the same file.
+    let betas = [0.8, -0.5, 0.3];
+    let mesh = SmplxMesh::load(&dir, &betas).expect("the fixture model loads");
+    assert_eq!(mesh.path, model);
+    assert_eq!(mesh.skeleton.joint_count(), 52);
+    assert!(mesh.weights.iter().all(|w| (w.iter().sum::<f32>() - 1.0).abs() < 1e-6));
+    // The shape changes the skeleton: shape 0 grows the body.
+    let zero = SmplxMesh::load(&model, &[]).expect("zero betas");
+    let height = |m: &SmplxMesh| m.skeleton.rest_positions()[15].y;
+    assert!(height(&mesh) > height(&zero) + 0.01, "{} vs {}", height(&mesh), height(&zero));
+
+    let frames = 5;
+    let motion = common::wavy_motion(&mesh.skeleton, frames, 1);
+    let meshes = common::object_meshes();
+    let export = ExportMotion {
+        body: Some(&mesh),
+        ..common::export(&mesh.skeleton, &motion, &meshes[..1], "lift")
+    };
+    let out = dir.join("export");
+    let files = export_all(&out, &export, &ExportOptions::default()).expect("exported");
+
+    let (json, bin) = parse_glb(&std::fs::read(&files.glb).expect("glb"));
+    let nodes = json["nodes"].as_array().expect("nodes");
+    assert_eq!(json["skins"][0]["joints"].as_array().expect("joints").len(), 55);
+    assert_eq!(nodes[52]["name"], "jaw");
+    assert_eq!(json["meshes"][0]["name"], "smplx");
+    assert_eq!(json["scenes"][0]["extras"]["body"], "smplx");
+    let body_node = nodes.iter().position(|n| n.get("skin").is_some()).expect("a skinned node");
+    let worlds = node_worlds(&json, &bin, frames);
+    let glb_vertices = skinned_vertices(&json, &bin, body_node, &worlds);
+    assert_eq!(glb_vertices[0].len(), mesh.vertices.len());
+
+    if !numpy_lbs(&model, &files.npz, &dir) {
+        return;
+    }
+    let (shape, numpy_vertices) = read_npy(&dir.join("numpy_vertices.npy"));
+    assert_eq!(shape, [frames as u64, mesh.vertices.len() as u64, 3]);
+    let mut worst_vertex = 0.0f64;
+    for (t, vertices) in glb_vertices.iter().enumerate() {
+        for (v, vertex) in vertices.iter().enumerate() {
+            for axis in 0..3 {
+                let theirs = numpy_vertices[(t * vertices.len() + v) * 3 + axis];
+                worst_vertex = worst_vertex.max((f64::from(vertex[axis]) - theirs).abs());
+            }
+        }
+    }
+    println!("GLB skinned mesh vs numpy LBS: worst {worst_vertex:.2e} m over {frames} frames");
+    assert!(worst_vertex < TOLERANCE, "GLB vertices differ from numpy LBS by {worst_vertex} m");
+
+    // The npz's joints are the model's kinematics (its 52 of 55 joints).
+    let (_, numpy_joints) = read_npy(&dir.join("numpy_joints.npy"));
+    let to55 = dex2hoi_repr::skeleton::smplx52_to_55();
+    let mut worst_joint = 0.0f64;
+    for t in 0..frames {
+        for (j, &model_joint) in to55.iter().enumerate() {
+            let ours = motion.joints.position(t, j);
+            for axis in 0..3 {
+                let theirs = numpy_joints[(t * 55 + model_joint) * 3 + axis];
+                worst_joint = worst_joint.max((f64::from(ours[axis]) - theirs).abs());
+            }
+        }
+    }
+    println!("npz joints vs the model's kinematics: worst {worst_joint:.2e} m");
+    assert!(worst_joint < TOLERANCE, "npz joints differ from the model's by {worst_joint} m");
+
+    assert!(common::validator_is_clean(&files.glb, "smplx-body") || !common::in_ci());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_broken_model_file_is_a_clear_error_and_writes_nothing() {
+    let dir = common::scratch_dir("smplx-broken");
+    let cases = [
+        (Spoil::Missing("weights"), "weights"),
+        (Spoil::Missing("f"), "`f`"),
+        (Spoil::Missing("J_regressor"), "J_regressor"),
+        (Spoil::WeightsShape, "`weights` has shape"),
+        (Spoil::FaceIndex, "vertex indices below"),
+    ];
+    for (spoil, expected) in cases {
+        let path = dir.join(format!("{spoil:?}.npz").replace(['(', ')', '"'], ""));
+        write_smplx_model(&path, spoil);
+        let error = SmplxMesh::load(&path, &[]).expect_err("refused").to_string();
+        assert!(error.contains(expected), "{spoil:?}: {error}");
+        assert!(error.contains(&path.display().to_string()), "{spoil:?} names the file: {error}");
+    }
+    // Too many betas, and a directory without a model.
+    let good = dir.join("good.npz");
+    write_smplx_model(&good, Spoil::None);
+    let error = SmplxMesh::load(&good, &[0.0; 11]).expect_err("11 betas").to_string();
+    assert!(error.contains("at most 10"), "{error}");
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).expect("dir");
+    let error = SmplxMesh::load(&empty, &[]).expect_err("no model").to_string();
+    assert!(error.contains("SMPLX_NEUTRAL.npz"), "{error}");
+    // A Mixamo motion cannot wear the SMPL-X body, and a motion on another skeleton is refused
+    // before anything is written.
+    let mesh = SmplxMesh::load(&good, &[]).expect("loads");
+    assert!(mesh.fits(&Skeleton::mixamo()).is_err());
+    let builtin = Skeleton::smplx();
+    let motion = common::wavy_motion(&builtin, 2, 0);
+    let export = ExportMotion { body: Some(&mesh), ..common::export(&builtin, &motion, &[], "") };
+    let out = dir.join("out");
+    let error = export_all(&out, &export, &ExportOptions::default()).expect_err("wrong skeleton");
+    assert!(error.to_string().contains("the model's own skeleton"), "{error}");
+    assert!(!out.exists(), "nothing written");
+    let _ = std::fs::remove_dir_all(&dir);
+}
