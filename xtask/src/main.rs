@@ -1,6 +1,7 @@
 //! Project automation, run as `cargo xtask <command>` (a cargo alias in `.cargo/config.toml`).
 //!
-//! - `ci`: the checks CI runs, cheapest first: format, clippy (warnings denied), tests.
+//! - `ci`: the checks CI runs: `scripts/setup.sh` (what the tests need), then cheapest first:
+//!   format, clippy (warnings denied), tests, fuzz check.
 //! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
 //!   medians. `bench compare`: dex2hoi against the PyTorch reference (see [`compare`]).
 //! - `demo`: the main job on the built-in default: the procedural dataset, the `demo` training
@@ -24,7 +25,7 @@ use anyhow::{Context, Result, bail};
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  ci            format check, clippy with warnings denied, every test (optimised profile), fuzz check
+  ci            scripts/setup.sh, format check, clippy with warnings denied, every test, fuzz check
   bench [NAME]  run the benchmarks (all, or one of: repr, sample, train) and print their medians
   bench compare sampling and training side by side with the PyTorch reference (bench/torch_reference.py)
   ablate [--preset NAME] [--steps N]
@@ -87,11 +88,26 @@ fn cargo(root: &Path, args: &[&str]) -> Result<()> {
 }
 
 fn ci(root: &Path) -> Result<()> {
+    setup(root)?;
     cargo(root, &["fmt", "--all", "--", "--check"])?;
     cargo(root, &["clippy", "--workspace", "--all-targets", "--locked", "--", "-D", "warnings"])?;
     cargo(root, &["test", "--workspace", "--locked"])?;
     fuzz::check(root)?;
     eprintln!("\nci: all checks passed");
+    Ok(())
+}
+
+/// Runs `scripts/setup.sh`: installs what the tests need (quiet when all is there; outside CI
+/// it skips what it cannot install and says which tests will be skipped).
+fn setup(root: &Path) -> Result<()> {
+    let status = Command::new("bash")
+        .arg(root.join("scripts/setup.sh"))
+        .current_dir(root)
+        .status()
+        .context("cannot run bash scripts/setup.sh")?;
+    if !status.success() {
+        bail!("scripts/setup.sh failed ({status})");
+    }
     Ok(())
 }
 

@@ -7,6 +7,10 @@ use std::path::Path;
 mod common;
 use common::dex2hoi;
 
+#[path = "../../dex2hoi-export/tests/common/smplx_fixture.rs"]
+#[allow(dead_code)] // the export tests use the spoiled variants
+mod smplx_fixture;
+
 fn ok(output: &std::process::Output) -> String {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -114,6 +118,38 @@ fn sample_exports_four_files_and_refuses_bad_input() {
     assert!(glb.windows(4).any(|w| w == b"cube"), "the user's object is in the scene");
     assert!(glb.windows(4).any(|w| w == b"bowl"), "the catalogue object is in the scene");
 
+    // With the user's SMPL-X model the GLB carries its skinned mesh on its skeleton.
+    let model = dir.join("SMPLX_NEUTRAL.npz");
+    let skeleton = dex2hoi_data::synth::generate(0, 0, 20.0).unwrap().sequence.skeleton;
+    smplx_fixture::write_smplx_model(
+        &model,
+        &skeleton.rest_positions(),
+        skeleton.parents(),
+        &dex2hoi_export::body_mesh(&skeleton),
+        smplx_fixture::Spoil::None,
+    );
+    let dressed = dir.join("dressed");
+    ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--text",
+        "A person picks up the mug with the right hand.",
+        "--object",
+        "mug",
+        "--frames",
+        "6",
+        "--ddim-steps",
+        "2",
+        "--smplx-model",
+        model.to_str().unwrap(),
+        "--betas=-1,0.5",
+        "--out",
+        dressed.to_str().unwrap(),
+    ]));
+    let glb = std::fs::read(dressed.join("motion.glb")).unwrap();
+    assert!(glb.windows(7).any(|w| w == b"\"smplx\""), "the SMPL-X mesh is in the GLB");
+
     // Bad input: nothing is written.
     let bad = dir.join("bad");
     let bad_out = bad.to_str().unwrap();
@@ -146,6 +182,10 @@ fn sample_exports_four_files_and_refuses_bad_input() {
             bad_out,
         ]),
         "/nonexistent/run",
+    );
+    fails(
+        &with(&["--text", "hi", "--object", "mug", "--smplx-model", "/nonexistent/SMPLX.npz"]),
+        "/nonexistent/SMPLX.npz",
     );
     assert!(!bad.exists(), "nothing partial is written");
     std::fs::remove_dir_all(&dir).ok();
