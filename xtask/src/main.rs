@@ -178,10 +178,21 @@ fn demo(root: &Path) -> Result<()> {
     let data = dir.join("data");
     let data_stamp = format!("synth sequences={DEMO_SEQUENCES} seed={DEMO_SEED} fps=20\n");
     let data_stamp_file = dir.join("data.stamp");
-    if read(&data_stamp_file) == data_stamp && data.join("manifest.json").is_file() {
+    // A dataset written by an older dex2hoi (another format version) no longer loads: it is made
+    // again, and so is everything trained on it.
+    let loads = || {
+        Command::new(root.join("target/release/dex2hoi"))
+            .args(["data", "info"])
+            .arg(&data)
+            .output()
+            .is_ok_and(|output| output.status.success())
+    };
+    if read(&data_stamp_file) == data_stamp && data.join("manifest.json").is_file() && loads() {
         eprintln!("\n==> reusing the dataset in {}", data.display());
     } else {
-        let _ = std::fs::remove_file(&data_stamp_file);
+        for stale in ["data.stamp", "run.stamp", "run.pending", "evaluator.stamp"] {
+            let _ = std::fs::remove_file(dir.join(stale));
+        }
         dex2hoi(
             root,
             &[

@@ -103,6 +103,40 @@ fn a_procedural_sequence_is_shown_by_index_and_by_id() {
     }
 }
 
+/// The largest angle (radians) between the two files' parent-relative rotations of the same
+/// `mixamorig:` bone at time 0 (scale divided out; the root is left out, prepare turns it).
+fn worst_bone_rotation_gap(published: &Path, ours: &Path) -> f32 {
+    use dex2hoi_import::glb::GlbScene;
+    let relative = |path: &Path| {
+        let scene = GlbScene::read(path).unwrap();
+        let world = scene.world_matrices(0.0);
+        let rotation = |node: usize| {
+            let m = glam::Mat3::from_mat4(world[node]);
+            glam::Mat3::from_cols(m.x_axis.normalize(), m.y_axis.normalize(), m.z_axis.normalize())
+        };
+        let skin = &scene.skins[0];
+        skin.joints
+            .iter()
+            .filter_map(|&node| {
+                let parent = scene.nodes[node].parent.filter(|p| skin.joints.contains(p))?;
+                let name = scene.nodes[node].name.clone();
+                Some((name, rotation(parent).transpose() * rotation(node)))
+            })
+            .collect::<std::collections::HashMap<_, _>>()
+    };
+    let (published, ours) = (relative(published), relative(ours));
+    assert_eq!(published.len(), 64, "every bone but the hips");
+    published
+        .iter()
+        .map(|(name, rotation)| {
+            let theirs = ours.get(name).unwrap_or_else(|| panic!("no bone {name} in ours"));
+            let q = glam::Quat::from_mat3(&(rotation.transpose() * *theirs));
+            // atan2 keeps small angles that acos(w) would round to zero in f32.
+            2.0 * q.xyz().length().atan2(q.w.abs())
+        })
+        .fold(0.0, f32::max)
+}
+
 #[test]
 fn the_real_humoto_release_is_prepared_and_shown() {
     let glb = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/humoto/glb");
@@ -149,6 +183,12 @@ fn the_real_humoto_release_is_prepared_and_shown() {
     let worst =
         shown.iter().zip(stored).map(|(a, b)| (a - f64::from(*b)).abs()).fold(0.0, f64::max);
     assert!(worst < 1e-4, "data show's joints are {worst} m from the prepared ones");
+    // The shown GLB drops onto the HUMOTO character by bone name: in Mixamo's bone frames, each
+    // bone's rotation relative to its parent at the first frame is the published file's.
+    let published = glb.join("examining_cutting_board-141/examining_cutting_board-141.glb");
+    let worst = worst_bone_rotation_gap(&published, &out.join("motion.glb"));
+    println!("parent-relative bone rotations, shown vs published GLB, frame 0: worst {worst} rad");
+    assert!(worst < 1e-3, "a bone's rotation is {worst} rad from the published file's");
     for dir in [data, out] {
         std::fs::remove_dir_all(dir).ok();
     }
