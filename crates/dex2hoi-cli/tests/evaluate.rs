@@ -51,7 +51,10 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     ]));
     let report = std::fs::read_to_string(dir.join("report/report.md")).unwrap();
     assert_eq!(stdout.lines().next(), report.lines().next());
-    let rows: Vec<&str> = report.lines().filter(|l| l.starts_with('|')).collect();
+    // The main table, then "## Objects" and "## Instruction following" tables.
+    let sections: Vec<&str> = report.split("\n## ").collect();
+    assert_eq!(sections.len(), 3, "{report}");
+    let rows: Vec<&str> = sections[0].lines().filter(|l| l.starts_with('|')).collect();
     assert_eq!(rows.len(), 4, "header, separator, ground truth, run:\n{report}");
     assert!(rows[0].contains("FID") && rows[0].contains("Foot sliding (mm/frame)"), "{report}");
     assert!(rows[2].starts_with("| Ground truth |"), "{report}");
@@ -61,11 +64,24 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert_eq!(rows[2].matches('|').count(), columns);
     assert_eq!(rows[3].matches('|').count(), columns);
     assert!(report.contains("4 test sequences") && report.contains("2 replications"), "{report}");
+    let objects: Vec<&str> = sections[1].lines().filter(|l| l.starts_with('|')).collect();
+    assert!(sections[1].starts_with("Objects") && objects.len() == 4, "{report}");
+    assert!(objects[0].contains("Start jump") && objects[0].contains("Untouched"), "{report}");
+    let instruction: Vec<&str> = sections[2].lines().filter(|l| l.starts_with('|')).collect();
+    assert!(sections[2].starts_with("Instruction following"), "{report}");
+    assert!(instruction[0].contains("Objects moved") && instruction[0].contains("Holding hand"));
+    // All clips first, then each task family of the four test sequences.
+    assert!(instruction.len() >= 4 && instruction[2].starts_with("| all | 4 |"), "{report}");
+    for row in &instruction {
+        assert_eq!(row.matches('|').count(), instruction[0].matches('|').count(), "{row}");
+    }
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("report/report.json")).unwrap()).unwrap();
     let fid = json["rows"][0]["fid"]["mean"].as_f64().unwrap();
     assert_eq!(fid, 0.0, "the ground truth against itself");
     assert!(json["rows"][1]["fid"]["mean"].as_f64().unwrap() > 0.0);
+    assert_eq!(json["instruction"][0]["group"], "all");
+    assert_eq!(json["instruction"].as_array().unwrap().len(), instruction.len() - 2);
     let runtime = &json["rows"][1]["runtime_seconds"];
     assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
     let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();

@@ -38,10 +38,10 @@ use crate::metrics;
 
 use embedding::{DistributionFeatures, EmbeddedMotions, embed_prompts};
 use generation::{Generator, Progress, replication_prompts};
-use physical::{ObjectMeshes, Physical, Window, physical_row};
+use physical::{ObjectMeshes, Physical, Window, instruction_rows, physical_row};
 use scores::DistributionScores;
 
-pub use report::{Embeddings, Estimate, PhysicalRow, Report, ReportRow};
+pub use report::{Embeddings, Estimate, InstructionRow, PhysicalRow, Report, ReportRow};
 
 /// How an evaluation runs.
 #[derive(Debug, Clone, PartialEq)]
@@ -112,6 +112,7 @@ fn select_test_sequences(
 
 /// Everything measured on the ground truth, once: it does not change between replications.
 struct GroundTruth {
+    clips: Vec<MotionClip>,
     embedded: EmbeddedMotions,
     physical: Vec<Physical>,
 }
@@ -124,6 +125,7 @@ impl GroundTruth {
         features: DistributionFeatures,
         (skeleton, meshes): (&dex2hoi_repr::Skeleton, &ObjectMeshes<'_>),
         window: Window,
+        fps: f32,
     ) -> Result<Self> {
         let clips: Vec<MotionClip> = sequences
             .iter()
@@ -134,10 +136,10 @@ impl GroundTruth {
             .iter()
             .zip(&clips)
             .map(|(s, truth)| {
-                physical::measure_ground_truth(s, truth, skeleton, meshes.of(s)?, window)
+                physical::measure_ground_truth(s, truth, skeleton, meshes.of(s)?, window, fps)
             })
             .collect::<Result<_>>()?;
-        Ok(Self { embedded, physical })
+        Ok(Self { clips, embedded, physical })
     }
 }
 
@@ -172,23 +174,26 @@ pub fn evaluate(
     let mut progress =
         Progress::new(options.replications * (chosen.len() + mm_prompts * mm.repeats), progress);
     let generator = Generator::new(run, dataset, window.frames, options.sampler, options.seed);
+    let fps = dataset.manifest.fps;
     let truth =
-        GroundTruth::measure(&chosen, evaluator, features, (&run.skeleton, &meshes), window)?;
+        GroundTruth::measure(&chosen, evaluator, features, (&run.skeleton, &meshes), window, fps)?;
 
     let mut embeddings = Embeddings::of_ground_truth(&truth.embedded);
     let mut all = Replications::default();
     for replication in 0..options.replications {
         let prompts = replication_prompts(&chosen, replication);
         let generated = generator.test_clips(&chosen, &prompts, replication, &mut progress)?;
-        for (clip, sequence) in generated.iter().zip(&chosen) {
+        for ((clip, sequence), truth_clip) in generated.iter().zip(&chosen).zip(&truth.clips) {
             all.runtimes.push(clip.seconds);
             all.model_physical.push(physical::measure_generated(
                 sequence,
                 &clip.clip,
+                truth_clip,
                 &clip.mixture_weights,
                 &run.skeleton,
                 meshes.of(sequence)?,
                 window,
+                fps,
             )?);
         }
         all.truth_physical.extend_from_slice(&truth.physical);
@@ -230,6 +235,10 @@ pub fn evaluate(
                 Some(metrics::runtime(&all.runtimes)),
             ),
         ],
+        instruction: instruction_rows(
+            &all.model_physical,
+            &chosen.iter().map(|s| s.action.as_deref()).collect::<Vec<_>>(),
+        ),
         samples: chosen.len(),
         skipped,
         replications: options.replications,

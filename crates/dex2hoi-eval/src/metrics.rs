@@ -11,7 +11,9 @@
 //! positions, object poses, object meshes, optional mixture weights): [`penetration`],
 //! [`hand_contact`] and [`contact_scores`] (CHOIS), [`foot_sliding`] (MANN's weighted foot
 //! displacement), [`mixture_agreement`] (does the mixture of Eq. 4 pick the hand that holds the
-//! object?) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
+//! object?), [`instruction_following`] (does a clip move the objects its ground truth moves,
+//! with the same hands, to the same place?), [`object_start_jumps`] and
+//! [`untouched_object_speeds`] (do objects behave like objects?) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
 //! pooled ([`Penetration::pooled`], [`ContactCounts::merge`]).
 //!
 //! Conventions: metres, Y up, floor at `y = 0`; object meshes in their own (bounding-box-centred)
@@ -22,13 +24,14 @@
 //! Layout (private submodules, everything public re-exported here): `distribution` (FID,
 //! Diversity, MultiModality) and `matching` (R-precision, MMdist) on embeddings, with the
 //! symmetric eigen-solver FID needs in `linalg`; `sample` (the [`MotionSample`] the physical
-//! metrics read), `penetration`, `contact`, `foot_sliding` and `mixture` on motions;
+//! metrics read), `penetration`, `contact`, `foot_sliding`, `mixture` and `instruction` on motions;
 //! `statistics` for the intervals over replications and runtime.
 
 mod contact;
 mod distribution;
 mod embedding;
 mod foot_sliding;
+mod instruction;
 mod linalg;
 mod matching;
 mod mixture;
@@ -45,6 +48,11 @@ pub use distribution::{
     fid_from_statistics, multimodality,
 };
 pub use foot_sliding::{ANKLE_HEIGHT_M, TOE_HEIGHT_M, foot_sliding};
+pub use instruction::{
+    Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, Side,
+    UNTOUCHED_DISTANCE_M, instruction_following, median, object_start_jumps,
+    untouched_object_speeds,
+};
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use matching::{
     R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_with,

@@ -656,3 +656,132 @@ fn mixture_weights_are_the_softmax_of_the_feature_logits() {
     features[16] = f32::NAN;
     assert!(mixture_weights_from_features(&features).is_err());
 }
+
+// ---------------------------------------------------------------------------------------------
+// Instruction following and object behaviour.
+// ---------------------------------------------------------------------------------------------
+
+/// A scene for the instruction metrics: the body stands in its rest pose (left is +X), each
+/// hand is at `hand(t, hand)` (or far away), and the two objects are at `objects(t)`.
+struct Scene {
+    joints: Vec<f32>,
+    rotations: Vec<f32>,
+    positions: Vec<f32>,
+}
+
+impl Scene {
+    fn new(
+        skeleton: &Skeleton,
+        frames: usize,
+        hand: impl Fn(usize, usize) -> Option<Vec3>,
+        objects: impl Fn(usize) -> [Vec3; 2],
+    ) -> Self {
+        let rest = skeleton.rest_positions();
+        let groups = skeleton.groups();
+        let joints = joints_with(skeleton, frames, |t, j| {
+            let side = [&groups.left_hand, &groups.right_hand].iter().position(|g| g.contains(&j));
+            match side {
+                Some(side) => hand(t, side),
+                None => Some(rest[j]),
+            }
+        });
+        let mut rotations = Vec::new();
+        let mut positions = Vec::new();
+        for t in 0..frames {
+            for position in objects(t) {
+                rotations.extend(Mat3::IDENTITY.to_cols_array());
+                positions.extend(position.to_array());
+            }
+        }
+        Self { joints, rotations, positions }
+    }
+
+    fn sample<'a>(&'a self, skeleton: &'a Skeleton, box_query: &'a MeshQuery) -> MotionSample<'a> {
+        MotionSample {
+            skeleton,
+            joints: &self.joints,
+            object_rotations: &self.rotations,
+            object_positions: &self.positions,
+            present: [true, true],
+            objects: [Some(box_query), Some(box_query)],
+            mixture_weights: None,
+        }
+    }
+}
+
+#[test]
+fn instruction_following_by_hand() {
+    use dex2hoi_eval::metrics::{
+        instruction_following, median, object_start_jumps, untouched_object_speeds,
+    };
+    let skeleton = Skeleton::smplx();
+    let query = MeshQuery::new(&box_mesh(Vec3::splat(0.04))).unwrap();
+    let pelvis = skeleton.rest_positions()[0];
+    let frames = 6;
+    // Ground truth: the right hand lifts object 0 by 4 cm per frame from frame 1 and carries it
+    // 30 cm to the body's right; object 1 stays. Generated: the left hand lifts object 0 and
+    // puts it 30 cm to the left; object 1 slides 6 cm per frame with no hand near it.
+    let start = [pelvis + Vec3::new(0.0, 0.0, 0.4), pelvis + Vec3::new(0.4, 0.0, 0.4)];
+    let lifted = |t: usize, across: f32| {
+        let k = t.saturating_sub(1) as f32 / (frames - 2) as f32;
+        start[0] + Vec3::new(across * k, 0.04 * t.saturating_sub(1) as f32, 0.0)
+    };
+    let truth = Scene::new(
+        &skeleton,
+        frames,
+        |t, side| (t >= 1 && side == 1).then(|| lifted(t, -0.3)),
+        |t| [lifted(t, -0.3), start[1]],
+    );
+    let generated = Scene::new(
+        &skeleton,
+        frames,
+        |t, side| (t >= 1 && side == 0).then(|| lifted(t, 0.3)),
+        |t| [lifted(t, 0.3), start[1] + Vec3::new(0.0, 0.0, 0.06 * t as f32)],
+    );
+    let (truth, generated) = (truth.sample(&skeleton, &query), generated.sample(&skeleton, &query));
+    let counts = instruction_following(&generated, &truth).unwrap();
+    assert_eq!((counts.moved_in_truth, counts.moved_in_both), (1, 1));
+    assert_eq!((counts.still_in_truth, counts.moved_unasked), (1, 1));
+    // Five holding frames (1-5), all with the other hand.
+    assert_eq!((counts.held_frames, counts.same_holder_frames), (5, 0));
+    assert_eq!(counts.same_side, 0, "one ends left, the other right");
+    assert!((counts.end_distances_m[0] - 0.6).abs() < 1e-5, "{:?}", counts.end_distances_m);
+    assert_eq!(counts.moved_share(), Some(1.0));
+    assert_eq!(counts.holder_share(), Some(0.0));
+    // The ground truth against itself agrees everywhere.
+    let same = instruction_following(&truth, &truth).unwrap();
+    assert_eq!((same.same_holder_frames, same.same_side, same.moved_unasked), (5, 1, 0));
+    assert_eq!(same.median_end_distance_m(), Some(0.0));
+    // Merging adds counts.
+    let both = counts.clone().merge(&same);
+    assert_eq!((both.held_frames, both.same_holder_frames), (10, 5));
+    assert_eq!(both.holder_share(), Some(0.5));
+
+    // Start jumps from the last prefix positions: 3 cm for object 0, none for object 1.
+    let prefix = [start[0] - Vec3::new(0.0, 0.0, 0.03), start[1]];
+    let jumps = object_start_jumps(&generated, prefix).unwrap();
+    assert!((jumps[0].unwrap() - 0.03).abs() < 1e-6 && jumps[1] == Some(0.0), "{jumps:?}");
+    // Untouched speeds at 20 fps: the ground truth's object 1 stands still on its 5 steps
+    // (object 0 is touched from frame 1 on: its step 0 -> 1 does not count); the generated
+    // object 1 slides 6 cm per frame, 1.2 m/s.
+    let still = untouched_object_speeds(&truth, 20.0).unwrap();
+    assert_eq!(still, vec![0.0; 5]);
+    let sliding = untouched_object_speeds(&generated, 20.0).unwrap();
+    assert_eq!(sliding.len(), 5);
+    assert!(sliding.iter().all(|v| (v - 1.2).abs() < 1e-4), "{sliding:?}");
+    assert_eq!(median(&[3.0, 1.0, 2.0, 10.0]), Some(2.5));
+    assert_eq!(median(&[]), None);
+
+    // Bad input: different frame counts or objects, a bad frame rate, a NaN prefix.
+    let short = MotionSample {
+        joints: &generated.joints[..generated.joints.len() - skeleton.joint_count() * 3],
+        object_rotations: &generated.object_rotations[..(frames - 1) * 18],
+        object_positions: &generated.object_positions[..(frames - 1) * 6],
+        ..generated
+    };
+    assert!(instruction_following(&short, &truth).is_err());
+    let one = MotionSample { present: [true, false], ..generated };
+    assert!(instruction_following(&one, &truth).is_err());
+    assert!(untouched_object_speeds(&truth, 0.0).is_err());
+    assert!(object_start_jumps(&truth, [Vec3::NAN, Vec3::ZERO]).is_err());
+}

@@ -1,17 +1,19 @@
 //! The physical metrics of evaluated clips (paper Sec. 4.2): penetration, contact against the
-//! ground truth, foot sliding and mixture agreement (Eq. 4), measured per clip as counts and
-//! pooled per replication.
+//! ground truth, foot sliding and mixture agreement (Eq. 4), how objects behave (start jump,
+//! speed while untouched), and, for generated clips, instruction following against the ground
+//! truth; measured per clip as counts and pooled per replication.
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_repr::{MeshQuery, Skeleton};
+use glam::Vec3;
 
 use crate::error::Result;
 use crate::evaluator::MotionClip;
 use crate::metrics;
 
-use super::report::{Estimate, PhysicalRow};
+use super::report::{Estimate, InstructionRow, PhysicalRow};
 
 /// Where an evaluated clip sits in its test sequence: after the `start` prefix frames,
 /// `frames` long.
@@ -48,13 +50,29 @@ impl<'a> ObjectMeshes<'a> {
 }
 
 /// The physical measurements of one clip, kept as counts so that a replication pools them.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub(super) struct Physical {
     penetration: metrics::Penetration,
     contact: metrics::ContactCounts,
     foot_sliding_mm: f64,
     /// Frames where the mixture picks the holding hand, and frames judged.
     agreement: (usize, usize),
+    /// Each present object's jump from its last prefix position to the clip's first frame, m.
+    start_jumps_m: Vec<f64>,
+    /// Object speeds on untouched frames, m/s.
+    untouched_speeds: Vec<f64>,
+    /// A generated clip's instruction following against its ground truth (`None` for the
+    /// ground truth itself).
+    instruction: Option<metrics::InstructionCounts>,
+}
+
+/// Each object's position on the last prefix frame (before `window.start`).
+fn prefix_last_positions(sequence: &ProcessedSequence, window: Window) -> [Vec3; MAX_OBJECTS] {
+    let frame = window.start.saturating_sub(1);
+    std::array::from_fn(|slot| {
+        let base = (frame * MAX_OBJECTS + slot) * 3;
+        Vec3::from_slice(&sequence.object_positions[base..base + 3])
+    })
 }
 
 /// Measures one clip against its sequence's ground-truth contact over the same frames.
@@ -62,6 +80,7 @@ fn measure(
     sample: &metrics::MotionSample<'_>,
     sequence: &ProcessedSequence,
     window: Window,
+    fps: f32,
 ) -> Result<Physical> {
     let per_frame = MAX_OBJECTS * 2;
     let truth_contact = &sequence.hand_contact
@@ -73,7 +92,21 @@ fn measure(
         Some(weights) => metrics::mixture_agreement_counts(weights, truth_contact, sample.present)?,
         None => (0, 0),
     };
-    Ok(Physical { penetration, contact, foot_sliding_mm, agreement })
+    let start_jumps_m =
+        metrics::object_start_jumps(sample, prefix_last_positions(sequence, window))?
+            .into_iter()
+            .flatten()
+            .collect();
+    let untouched_speeds = metrics::untouched_object_speeds(sample, fps)?;
+    Ok(Physical {
+        penetration,
+        contact,
+        foot_sliding_mm,
+        agreement,
+        start_jumps_m,
+        untouched_speeds,
+        instruction: None,
+    })
 }
 
 /// A clip with its skeleton, meshes and mixture weights as the physical metrics read it.
@@ -104,28 +137,35 @@ pub(super) fn measure_ground_truth(
     skeleton: &Skeleton,
     meshes: [Option<&MeshQuery>; MAX_OBJECTS],
     window: Window,
+    fps: f32,
 ) -> Result<Physical> {
     let frames = window.start..window.start + window.frames;
     let objects = &sequence.objects[sequence.layout().object_frames(frames)];
     let weights = metrics::mixture_weights_from_features(objects)?;
     let sample = clip_sample(truth, skeleton, meshes, Some(&weights));
-    measure(&sample, sequence, window)
+    measure(&sample, sequence, window, fps)
 }
 
-/// Measures a generated clip against its test sequence's ground-truth contact.
+/// Measures a generated clip against its test sequence's ground truth over the same frames
+/// (`truth`): contact, and instruction following.
 ///
 /// # Shapes
-/// - `mixture_weights`: `[frames, 2, 3]`
+/// - `mixture_weights`: `[frames, 2, 3]`; `truth`: the window's frames
+#[allow(clippy::too_many_arguments)] // the clip, its ground truth and how to read them
 pub(super) fn measure_generated(
     sequence: &ProcessedSequence,
     generated: &MotionClip,
+    truth: &MotionClip,
     mixture_weights: &[f32],
     skeleton: &Skeleton,
     meshes: [Option<&MeshQuery>; MAX_OBJECTS],
     window: Window,
+    fps: f32,
 ) -> Result<Physical> {
     let sample = clip_sample(generated, skeleton, meshes, Some(mixture_weights));
-    measure(&sample, sequence, window)
+    let truth_sample = clip_sample(truth, skeleton, meshes, None);
+    let instruction = metrics::instruction_following(&sample, &truth_sample)?;
+    Ok(Physical { instruction: Some(instruction), ..measure(&sample, sequence, window, fps)? })
 }
 
 /// One replication's physical metrics, pooled over its clips.
@@ -134,6 +174,8 @@ struct Pooled {
     contact: metrics::ContactScores,
     foot_sliding_mm: f64,
     agreement: (usize, usize),
+    start_jump_m: Option<f64>,
+    untouched_speed: Option<f64>,
 }
 
 impl Pooled {
@@ -149,8 +191,20 @@ impl Pooled {
             foot_sliding_mm: clips.iter().map(|p| p.foot_sliding_mm).sum::<f64>()
                 / clips.len().max(1) as f64,
             agreement: clips.iter().fold((0, 0), |a, p| (a.0 + p.agreement.0, a.1 + p.agreement.1)),
+            start_jump_m: metrics::median(
+                &clips.iter().flat_map(|p| p.start_jumps_m.iter().copied()).collect::<Vec<_>>(),
+            ),
+            untouched_speed: metrics::median(
+                &clips.iter().flat_map(|p| p.untouched_speeds.iter().copied()).collect::<Vec<_>>(),
+            ),
         }
     }
+}
+
+/// The estimate over replications of a value some replications may lack (`None` unless every
+/// replication has it).
+fn estimate_all(values: impl IntoIterator<Item = Option<f64>>) -> Option<Estimate> {
+    values.into_iter().collect::<Option<Vec<f64>>>().map(|v| Estimate::of(&v))
 }
 
 /// Pools each replication's clips (`per_replication` consecutive ones), then estimates over
@@ -172,5 +226,56 @@ pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> Phys
         foot_sliding_mm: estimate(&|p| p.foot_sliding_mm),
         mixture_agreement_percent: judged
             .then(|| estimate(&|p| 100.0 * p.agreement.0 as f64 / p.agreement.1 as f64)),
+        object_start_jump_cm: estimate_all(
+            pooled.iter().map(|p| p.start_jump_m.map(|m| 100.0 * m)),
+        ),
+        untouched_speed_cm_s: estimate_all(
+            pooled.iter().map(|p| p.untouched_speed.map(|v| 100.0 * v)),
+        ),
     }
+}
+
+/// The instruction-following rows of generated clips: all clips, then each action (task
+/// family) of the sequences in turn, each pooled per replication (`per_replication`
+/// consecutive clips, in the order of `actions`) and estimated over replications.
+///
+/// # Shapes
+/// - `samples`: `[replications * per_replication]`; `actions`: `[per_replication]`
+pub(super) fn instruction_rows(
+    samples: &[Physical],
+    actions: &[Option<&str>],
+) -> Vec<InstructionRow> {
+    let per_replication = actions.len().max(1);
+    let mut groups: Vec<&str> = actions.iter().flatten().copied().collect();
+    groups.sort_unstable();
+    groups.dedup();
+    let all = std::iter::once(None).chain(groups.into_iter().map(Some));
+    all.map(|group| {
+        let pooled: Vec<metrics::InstructionCounts> = samples
+            .chunks(per_replication)
+            .map(|replication| {
+                replication
+                    .iter()
+                    .zip(actions)
+                    .filter(|(_, action)| group.is_none() || **action == group)
+                    .filter_map(|(p, _)| p.instruction.as_ref())
+                    .fold(metrics::InstructionCounts::default(), |a, c| a.merge(c))
+            })
+            .collect();
+        let percent = |share: fn(&metrics::InstructionCounts) -> Option<f64>| {
+            estimate_all(pooled.iter().map(|c| share(c).map(|v| 100.0 * v)))
+        };
+        InstructionRow {
+            group: group.unwrap_or("all").to_string(),
+            clips: actions.iter().filter(|a| group.is_none() || **a == group).count(),
+            objects_moved_percent: percent(metrics::InstructionCounts::moved_share),
+            unasked_moves_percent: percent(metrics::InstructionCounts::unasked_share),
+            holding_hand_percent: percent(metrics::InstructionCounts::holder_share),
+            same_side_percent: percent(metrics::InstructionCounts::same_side_share),
+            end_distance_cm: estimate_all(
+                pooled.iter().map(|c| c.median_end_distance_m().map(|m| 100.0 * m)),
+            ),
+        }
+    })
+    .collect()
 }
