@@ -2,12 +2,12 @@
 //! three.js.
 //!
 //! - One node per joint (node `j` is joint `j`), named as the rig names it (`mixamorig:Hips`,
-//!   [`dex2hoi_repr::Skeleton::rig_joint_names`]) and parented as in the skeleton; the root joint is a root
-//!   node of the scene. Each node's rest transform is in the rig's own bone frames
-//!   ([`dex2hoi_repr::Skeleton::rest_orientations`]: Mixamo's for `mixamo65`, the world's for SMPL-X):
-//!   translation `B_parent^T rel_j`, rotation `B_parent^T B_j` (docs/CONVENTIONS.md, "Rest
-//!   orientations"). With an SMPL-X mesh, its jaw and eyes follow as three more nodes under the
-//!   head, at rest.
+//!   [`dex2hoi_repr::Skeleton::rig_joint_names`]) and parented as in the skeleton; the root
+//!   joint is a root node of the scene. Each node's rest transform is in the rig's own bone
+//!   frames ([`dex2hoi_repr::Skeleton::rest_orientations`]: Mixamo's for `mixamo65`, the
+//!   world's for SMPL-X): translation `B_parent^T rel_j`, rotation `B_parent^T B_j`
+//!   (docs/CONVENTIONS.md, "Rest orientations"). With an SMPL-X mesh, its jaw and eyes follow as
+//!   three more nodes under the head, at rest.
 //! - A skin over those joints whose inverse bind matrices are the inverse rest transforms
 //!   `(T(rest_j) B_j)^-1`, and a body node carrying the body mesh: the SMPL-X model's
 //!   ([`mod@crate::smplx_body`], its four largest weights per vertex) or the capsules of
