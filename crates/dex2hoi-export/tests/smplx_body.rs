@@ -19,61 +19,6 @@ use common::write_smplx_model;
 /// Tolerance of the comparison with numpy (metres).
 const TOLERANCE: f64 = 1e-4;
 
-/// Numpy's SMPL-X linear blend skinning (no pose blend shapes, the four largest weights
-/// renormalised) of the model with the npz's parameters, written as `(T, V, 3)` vertices and
-/// `(T, 55, 3)` joints; argv: model, motion npz, output directory. Exit 3 without numpy.
-const NUMPY_LBS: &str = r#"
-import sys
-try:
-    import numpy as np
-except ImportError:
-    sys.exit(3)
-model, motion, out = sys.argv[1:4]
-m, d = np.load(model), np.load(motion)
-f64 = np.float64
-betas = d["betas"][0].astype(f64)
-dirs = m["shapedirs"].astype(f64)
-n = min(len(betas), dirs.shape[2])
-v = m["v_template"].astype(f64) + dirs[:, :, :n] @ betas[:n]
-J = m["J_regressor"].astype(f64) @ v
-parents = m["kintree_table"][0].astype(np.int64)
-parents[parents > 54] = -1
-T = d["transl"].shape[0]
-pose = np.concatenate([d["global_orient"][:, None], d["body_pose"].reshape(T, 21, 3),
-                       d["jaw_pose"][:, None], d["leye_pose"][:, None], d["reye_pose"][:, None],
-                       d["left_hand_pose"].reshape(T, 15, 3),
-                       d["right_hand_pose"].reshape(T, 15, 3)], axis=1).astype(f64)
-angle = np.linalg.norm(pose, axis=-1, keepdims=True)
-axis = pose / np.maximum(angle, 1e-12)
-K = np.zeros(pose.shape[:-1] + (3, 3))
-K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
-K = K - np.swapaxes(K, -1, -2)
-s, c = np.sin(angle)[..., None], np.cos(angle)[..., None]
-R = np.eye(3) + s * K + (1 - c) * (K @ K)
-G = np.zeros((T, 55, 4, 4))
-G[..., 3, 3] = 1
-for j in range(55):
-    local = np.zeros((T, 4, 4))
-    local[:, :3, :3], local[:, 3, 3] = R[:, j], 1
-    local[:, :3, 3] = J[j] - (J[parents[j]] if parents[j] >= 0 else 0)
-    G[:, j] = local if parents[j] < 0 else G[:, parents[j]] @ local
-posed_joints = G[:, :, :3, 3] + d["transl"][:, None].astype(f64)
-A = G.copy()
-A[:, :, :3, 3] -= np.einsum("tjab,jb->tja", G[:, :, :3, :3], J)
-W = m["weights"].astype(f64)
-top = np.argsort(-W, axis=1, kind="stable")[:, :4]
-kept = np.zeros_like(W)
-rows = np.arange(W.shape[0])[:, None]
-kept[rows, top] = W[rows, top]
-kept /= kept.sum(axis=1, keepdims=True)
-blend = np.einsum("vj,tjab->tvab", kept, A)
-verts = np.einsum("tvab,vb->tva", blend[..., :3, :3], v) + blend[..., :3, 3]
-verts += d["transl"][:, None].astype(f64)
-np.save(out + "/numpy_vertices.npy", verts)
-np.save(out + "/numpy_joints.npy", posed_joints)
-print("numpy LBS:", verts.shape, "betas", d["betas"].shape)
-"#;
-
 fn read_npy(path: &Path) -> (Vec<u64>, Vec<f64>) {
     let bytes = std::fs::read(path).expect("numpy output");
     let npy = npyz::NpyFile::new(&bytes[..]).expect("npy");
@@ -81,15 +26,13 @@ fn read_npy(path: &Path) -> (Vec<u64>, Vec<f64>) {
     (shape, npy.into_vec::<f64>().expect("f64"))
 }
 
-/// Runs [`NUMPY_LBS`]; `false` when python or numpy is missing outside CI.
+/// Runs numpy's SMPL-X linear blend skinning (`tools/smplx_lbs.py`: no pose blend shapes, the
+/// four largest weights renormalised) of the model with the npz's parameters, which writes
+/// `(T, V, 3)` vertices and `(T, 55, 3)` joints into `out`; `false` when python or numpy is
+/// missing outside CI.
 fn numpy_lbs(model: &Path, motion: &Path, out: &Path) -> bool {
-    let output = match Command::new("python3")
-        .arg("-c")
-        .arg(NUMPY_LBS)
-        .arg(model)
-        .arg(motion)
-        .arg(out)
-        .output()
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/smplx_lbs.py");
+    let output = match Command::new("python3").arg(script).arg(model).arg(motion).arg(out).output()
     {
         Ok(output) => output,
         Err(error) if !common::in_ci() => {

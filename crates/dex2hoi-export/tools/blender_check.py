@@ -24,6 +24,9 @@ import sys
 import bpy
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from smplx_lbs import smplx_lbs  # noqa: E402  (beside this script)
+
 
 def to_ours(v):
     return np.array([v[0], v[2], -v[1]], dtype=np.float64)
@@ -60,47 +63,6 @@ def bone_heads(arm, names):
     return np.array(out)
 
 
-def smplx_lbs(model_path, d):
-    """(T, V, 3) vertices: the npz's parameters skinned with the model (four largest weights)."""
-    m = np.load(model_path)
-    betas = d["betas"][0].astype(np.float64)
-    dirs = m["shapedirs"].astype(np.float64)
-    n = min(len(betas), dirs.shape[2])
-    v = m["v_template"].astype(np.float64) + dirs[:, :, :n] @ betas[:n]
-    J = m["J_regressor"].astype(np.float64) @ v
-    parents = m["kintree_table"][0].astype(np.int64)
-    parents[parents > 54] = -1
-    T = d["transl"].shape[0]
-    pose = np.concatenate(
-        [d["global_orient"][:, None], d["body_pose"].reshape(T, 21, 3), d["jaw_pose"][:, None],
-         d["leye_pose"][:, None], d["reye_pose"][:, None], d["left_hand_pose"].reshape(T, 15, 3),
-         d["right_hand_pose"].reshape(T, 15, 3)], axis=1).astype(np.float64)
-    angle = np.linalg.norm(pose, axis=-1, keepdims=True)
-    axis = pose / np.maximum(angle, 1e-12)
-    K = np.zeros(pose.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    s, c = np.sin(angle)[..., None], np.cos(angle)[..., None]
-    R = np.eye(3) + s * K + (1 - c) * (K @ K)
-    G = np.zeros((T, 55, 4, 4))
-    for j in range(55):
-        local = np.zeros((T, 4, 4))
-        local[:, :3, :3], local[:, 3, 3] = R[:, j], 1
-        local[:, :3, 3] = J[j] - (J[parents[j]] if parents[j] >= 0 else 0)
-        G[:, j] = local if parents[j] < 0 else G[:, parents[j]] @ local
-    A = G.copy()
-    A[:, :, :3, 3] -= np.einsum("tjab,jb->tja", G[:, :, :3, :3], J)
-    W = m["weights"].astype(np.float64)
-    top = np.argsort(-W, axis=1, kind="stable")[:, :4]
-    kept = np.zeros_like(W)
-    rows = np.arange(W.shape[0])[:, None]
-    kept[rows, top] = W[rows, top]
-    kept /= kept.sum(axis=1, keepdims=True)
-    blend = np.einsum("vj,tjab->tvab", kept, A)
-    verts = np.einsum("tvab,vb->tva", blend[..., :3, :3], v) + blend[..., :3, 3]
-    return verts + d["transl"][:, None].astype(np.float64), v
-
-
 def check_glb(path, d, frames, model):
     names = [str(n) for n in d["joint_names"]]
     if str(d["skeleton"]) == "mixamo65":
@@ -114,7 +76,7 @@ def check_glb(path, d, frames, model):
     result["object_rotation_error"] = 0.0
     skinned = [o for o in bpy.data.objects if o.type == "MESH" and o.find_armature() is arm]
     if model:
-        reference, rest = smplx_lbs(model, d)
+        reference, rest, _ = smplx_lbs(model, d)
         mesh_object = skinned[0]
         # The importer keeps the primitive's vertex order (merge_vertices is off): check it on
         # the rest mesh, where coincident vertices of different bones would fool a search.

@@ -48,7 +48,8 @@ pub struct LossConfig {
     /// (default 1).
     pub foot_contact: f64,
     /// Penetration: mean depth in cm of predicted joints inside the predicted-pose objects
-    /// (default 1).
+    /// (default 10: the term is a mean over all joints, most of them far from any object, so at
+    /// weight 1 it hardly acts; docs/results/penetration.md measures 1, 10 and 50).
     pub penetration: f64,
     /// `lambda_w` of `L_mix` (Eq. 8, default 1).
     pub mixture: f64,
@@ -80,7 +81,7 @@ impl Default for LossConfig {
             feature_velocity: 1.0,
             joint_velocity: 1.0,
             foot_contact: 1.0,
-            penetration: 1.0,
+            penetration: 10.0,
             mixture: 1.0,
             translation: 0.01,
             offset: 0.01,
