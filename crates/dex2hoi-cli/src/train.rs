@@ -30,6 +30,10 @@ pub struct TrainArgs {
     /// Continue the run in `--out` from its checkpoint, bit for bit.
     #[arg(long)]
     resume: bool,
+    /// Keep a snapshot every N steps in `--out/snapshots/step-NNNNNN/` (each a run directory
+    /// that `sample` and `evaluate` take as `--run`), for metrics against training steps.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(usize))]
+    snapshot_every: Option<usize>,
 }
 
 /// Runs `dex2hoi train`.
@@ -76,7 +80,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         config.training.steps,
         args.out.display()
     );
-    let options = TrainOptions { resume: args.resume, stop: &stop };
+    let options =
+        TrainOptions { resume: args.resume, stop: &stop, snapshot_every: args.snapshot_every };
     let summary = train(&args.out, config, &dataset, &args.data, options, &mut |report, total| {
         bar.set_length(total as u64);
         bar.set_position(report.step as u64);

@@ -54,10 +54,55 @@ fn train_then_resume() {
     let again = dex2hoi(&["train", "--config", &config(), "--data", data, "--out", run_path]);
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("--resume"));
-    let resumed =
-        dex2hoi(&["train", "--data", data, "--out", run_path, "--resume", "--steps", "16"]);
+    let resumed = dex2hoi(&[
+        "train",
+        "--data",
+        data,
+        "--out",
+        run_path,
+        "--resume",
+        "--steps",
+        "16",
+        "--snapshot-every",
+        "2",
+    ]);
     assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
     assert!(String::from_utf8_lossy(&resumed.stdout).contains("trained 16 steps"));
+    // Snapshots of the resumed steps, each a run that `sample` takes.
+    for step in [14, 16] {
+        let snapshot = run.join(format!("snapshots/step-{step:06}"));
+        assert!(snapshot.join("checkpoint.safetensors").is_file(), "{}", snapshot.display());
+    }
+    assert!(!run.join("snapshots/step-000012").exists(), "none before the option was given");
+    let sampled = dex2hoi(&[
+        "sample",
+        "--run",
+        run.join("snapshots/step-000014").to_str().unwrap(),
+        "--text",
+        "A person picks up the mug.",
+        "--object",
+        "mug",
+        "--frames",
+        "4",
+        "--ddim-steps",
+        "1",
+        "--out",
+        dir.join("from-snapshot").to_str().unwrap(),
+    ]);
+    assert!(sampled.status.success(), "{}", String::from_utf8_lossy(&sampled.stderr));
+    let zero = dex2hoi(&[
+        "train",
+        "--data",
+        data,
+        "--out",
+        run_path,
+        "--resume",
+        "--steps",
+        "18",
+        "--snapshot-every",
+        "0",
+    ]);
+    assert!(String::from_utf8_lossy(&zero.stderr).contains("snapshot_every"));
 
     // Bad input: no config, no dataset, a broken config.
     let missing = dex2hoi(&["train", "--data", data, "--out", dir.join("other").to_str().unwrap()]);

@@ -16,4 +16,6 @@ pub use config::{LoopConfig, LossConfig, TrainConfig};
 pub use error::{Result, TrainError};
 pub use loss::{LossContext, Objective, Term};
 pub use run::{MetricsLine, read_metrics};
-pub use trainer::{StepReport, StepTiming, TrainOptions, TrainSummary, Trainer, train};
+pub use trainer::{
+    SNAPSHOTS_DIR, StepReport, StepTiming, TrainOptions, TrainSummary, Trainer, snapshot_dir, train,
+};

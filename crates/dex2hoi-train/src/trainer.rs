@@ -424,6 +424,42 @@ pub struct TrainOptions<'a> {
     pub resume: bool,
     /// Set (for example by Ctrl-C) to stop after the current step with a checkpoint.
     pub stop: &'a AtomicBool,
+    /// Keep a numbered snapshot every this many steps ([`SNAPSHOTS_DIR`]); a run-time choice,
+    /// not part of the configuration, so a resumed run may change it.
+    pub snapshot_every: Option<usize>,
+}
+
+/// Folder of a run directory that holds its snapshots: `step-000300/` and so on, each a run
+/// directory of its own (configuration, dataset manifest, statistics, checkpoint) that
+/// `dex2hoi sample` and `dex2hoi evaluate` take as `--run`.
+pub const SNAPSHOTS_DIR: &str = "snapshots";
+
+/// The snapshot directory of a step.
+pub fn snapshot_dir(run_dir: &Path, step: usize) -> PathBuf {
+    run_dir.join(SNAPSHOTS_DIR).join(format!("step-{step:06}"))
+}
+
+/// Copies the run's checkpoint and what loading it needs into the step's snapshot directory,
+/// whole or not at all (written beside it, then renamed).
+fn write_snapshot(files: &RunFiles, run_dir: &Path, step: usize) -> Result<()> {
+    let target = snapshot_dir(run_dir, step);
+    let partial = target.with_extension("partial");
+    let _ = std::fs::remove_dir_all(&partial);
+    std::fs::create_dir_all(&partial)
+        .map_err(TrainError::io(&partial, "creating a snapshot directory"))?;
+    let copies = RunFiles::new(&partial);
+    for (from, to) in [
+        (&files.config, &copies.config),
+        (&files.dataset, &copies.dataset),
+        (&files.stats, &copies.stats),
+        (&files.checkpoint, &copies.checkpoint),
+    ] {
+        std::fs::copy(from, to).map_err(TrainError::io(from, "copying into a snapshot"))?;
+    }
+    let _ = std::fs::remove_dir_all(&target);
+    std::fs::rename(&partial, &target)
+        .map_err(TrainError::io(&target, "moving a snapshot into place"))?;
+    Ok(())
 }
 
 /// How a run ended.
@@ -442,8 +478,9 @@ pub struct TrainSummary {
 /// Trains into a run directory: writes the resolved `config.toml`, the dataset manifest and
 /// statistics, then steps, logging to `metrics.jsonl`, checkpointing every
 /// `checkpoint_every` steps, on a stop request and at the end (each time with the loss-curve
-/// PNG). A fresh run refuses a directory that already holds a checkpoint; `resume` continues
-/// one and refuses a different configuration (apart from `training.steps`).
+/// PNG), and with `snapshot_every`, keeping a numbered snapshot of those steps. A fresh run
+/// refuses a directory that already holds a checkpoint; `resume` continues one and refuses a
+/// different configuration (apart from `training.steps`).
 pub fn train(
     run_dir: &Path,
     config: TrainConfig,
@@ -452,6 +489,14 @@ pub fn train(
     options: TrainOptions<'_>,
     on_step: &mut dyn FnMut(&StepReport, usize),
 ) -> Result<TrainSummary> {
+    if options.snapshot_every == Some(0) {
+        return Err(TrainError::config(
+            "training options",
+            "snapshot_every",
+            "a positive number of steps",
+            0,
+        ));
+    }
     let files = RunFiles::new(run_dir);
     std::fs::create_dir_all(run_dir)
         .map_err(TrainError::io(run_dir, "creating the run directory"))?;
@@ -501,19 +546,22 @@ pub fn train(
             append_metrics(&files, &report)?;
         }
         on_step(&report, total);
-        if report.step % checkpoint_every == 0 && report.step < total {
+        let snapshot = options.snapshot_every.is_some_and(|n| report.step % n == 0);
+        if (report.step % checkpoint_every == 0 || snapshot) && report.step < total {
             save(&trainer)?;
             last_checkpoint = report.step;
+        }
+        if snapshot && report.step < total {
+            write_snapshot(&files, run_dir, report.step)?;
         }
         last = Some(report);
     }
     save(&trainer)?;
-    Ok(TrainSummary {
-        steps: trainer.steps_done(),
-        interrupted,
-        last,
-        run_dir: run_dir.to_path_buf(),
-    })
+    let steps = trainer.steps_done();
+    if options.snapshot_every.is_some_and(|n| steps % n == 0) && steps == total {
+        write_snapshot(&files, run_dir, steps)?;
+    }
+    Ok(TrainSummary { steps, interrupted, last, run_dir: run_dir.to_path_buf() })
 }
 
 /// Appends a line to a file (creating it).

@@ -102,8 +102,9 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
     let dir = tempfile_dir("resume");
     let straight = dir.join("straight");
     let stopped = dir.join("stopped");
+    let config_model = config.model.clone();
     let never = AtomicBool::new(false);
-    let fresh = TrainOptions { resume: false, stop: &never };
+    let fresh = TrainOptions { resume: false, stop: &never, snapshot_every: None };
     train(&straight, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
 
     let stop = AtomicBool::new(false);
@@ -112,7 +113,7 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &stop },
+        TrainOptions { resume: false, stop: &stop, snapshot_every: Some(8) },
         &mut |report, _| {
             if report.step == 13 {
                 stop.store(true, Ordering::SeqCst);
@@ -127,11 +128,34 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never },
+        TrainOptions { resume: true, stop: &never, snapshot_every: Some(8) },
         &mut |_, _| {},
     )
     .unwrap();
     assert_eq!(resumed.steps, 24);
+    // Snapshots at 8, 16 and 24 across the interruption (and none at the stop, step 13), each a
+    // run directory that loads; the last one is the final checkpoint. Taking them does not
+    // change the weights (the straight run took none).
+    let snapshots = stopped.join(dex2hoi_train::SNAPSHOTS_DIR);
+    let mut names: Vec<String> = std::fs::read_dir(&snapshots)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["step-000008", "step-000016", "step-000024"]);
+    let first = dex2hoi_train::snapshot_dir(&stopped, 8);
+    let run = dex2hoi_sample::TrainedRun::load(&first, dex2hoi_sample::Weights::Ema, &Device::Cpu)
+        .unwrap();
+    assert_eq!(run.config.model, config_model);
+    assert_eq!(
+        std::fs::read(dex2hoi_train::snapshot_dir(&stopped, 24).join("checkpoint.safetensors"))
+            .unwrap(),
+        std::fs::read(stopped.join("checkpoint.safetensors")).unwrap()
+    );
+    assert_ne!(
+        tensors(&first.join("checkpoint.safetensors")),
+        tensors(&stopped.join("checkpoint.safetensors"))
+    );
     let a = tensors(&straight.join("checkpoint.safetensors"));
     let b = tensors(&stopped.join("checkpoint.safetensors"));
     assert_eq!(a.len(), b.len());
@@ -168,7 +192,7 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &never },
+        TrainOptions { resume: false, stop: &never, snapshot_every: None },
         &mut |_, _| {},
     )
     .unwrap();
@@ -185,7 +209,7 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never },
+        TrainOptions { resume: true, stop: &never, snapshot_every: None },
         &mut |_, _| {},
     )
     .unwrap_err();
@@ -234,7 +258,7 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.training.steps = 2;
     let never = AtomicBool::new(false);
-    let fresh = TrainOptions { resume: false, stop: &never };
+    let fresh = TrainOptions { resume: false, stop: &never, snapshot_every: None };
     train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
     let error = train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {})
         .unwrap_err()
@@ -247,7 +271,7 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never },
+        TrainOptions { resume: true, stop: &never, snapshot_every: None },
         &mut |_, _| {},
     )
     .unwrap_err()
