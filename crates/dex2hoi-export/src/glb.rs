@@ -19,7 +19,8 @@
 //!   rotation `B_parent^T R_j B_j` (unit quaternions `x, y, z, w`), each object's translation
 //!   and rotation; key times `frame / fps` seconds with `min`/`max`.
 //!
-//! The scene's `extras` hold the text, the frame rate, the skeleton, the body and its betas. Units are metres, Y up, as glTF.
+//! The scene's `extras` hold the text, the frame rate, the skeleton, the body and its betas.
+//! Units are metres, Y up, as glTF.
 
 use std::path::Path;
 
