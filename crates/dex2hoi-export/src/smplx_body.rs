@@ -16,7 +16,6 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 
 use dex2hoi_repr::Skeleton;
-use dex2hoi_repr::skeleton::{SMPLX52_PARENTS, smplx52_to_55};
 use dex2hoi_repr::smplx_model::SmplxModel;
 
 use crate::error::{ExportError, Result};
@@ -96,16 +95,7 @@ impl SmplxMesh {
         let path = resolve_model_path(path)?;
         let model = SmplxModel::load(&path)?;
         let shaped = model.shaped(betas)?;
-        let to55 = smplx52_to_55();
-        let offsets = SMPLX52_PARENTS
-            .iter()
-            .enumerate()
-            .map(|(j, &parent)| {
-                let own = shaped.joints[to55[j]];
-                usize::try_from(parent).map_or(own, |p| own - shaped.joints[to55[p]])
-            })
-            .collect();
-        let skeleton = Skeleton::smplx().with_rest_offsets(offsets)?;
+        let skeleton = Skeleton::from_smplx_joints(&shaped.joints)?;
         let face_joints = FACE_JOINTS.map(|j| shaped.joints[j]);
         let (joints, weights) = strongest_influences(&shaped.weights, &path)?;
         let normals = vertex_normals(&shaped.vertices, &shaped.faces);
@@ -194,6 +184,7 @@ fn vertex_normals(vertices: &[Vec3], faces: &[[u32; 3]]) -> Vec<Vec3> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dex2hoi_repr::skeleton::smplx52_to_55;
 
     #[test]
     fn skin_joints_put_the_face_joints_after_ours() {

@@ -13,7 +13,6 @@ use glam::{Mat3, Vec3};
 
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
-use dex2hoi_repr::skeleton::smplx52_to_55;
 use dex2hoi_repr::smplx_model::SmplxModel;
 
 use crate::error::{ImportError, Result};
@@ -87,7 +86,7 @@ impl SmplxBody {
         if let Some(skeleton) = self.lock_skeletons().get(&key) {
             return Ok(skeleton.clone());
         }
-        let skeleton = self.skeleton_of_joints(&self.model.rest_joints(betas)?)?;
+        let skeleton = Skeleton::from_smplx_joints(&self.model.rest_joints(betas)?)?;
         self.lock_skeletons().insert(key, skeleton.clone());
         Ok(skeleton)
     }
@@ -101,26 +100,11 @@ impl SmplxBody {
             return Ok(skeleton.clone());
         }
         let mesh = dex2hoi_repr::Mesh::load(template)?;
-        let skeleton = self.skeleton_of_joints(
+        let skeleton = Skeleton::from_smplx_joints(
             &self.model.joints_of(&mesh.vertices, &template.display().to_string())?,
         )?;
         lock().insert(template.to_path_buf(), skeleton.clone());
         Ok(skeleton)
-    }
-
-    fn skeleton_of_joints(&self, joints55: &[Vec3]) -> Result<Skeleton> {
-        let to55 = smplx52_to_55();
-        let template = Skeleton::smplx();
-        let offsets = template
-            .parents()
-            .iter()
-            .enumerate()
-            .map(|(j, parent)| {
-                let own = joints55[to55[j]];
-                parent.map_or(own, |p| own - joints55[to55[p]])
-            })
-            .collect();
-        Ok(template.with_rest_offsets(offsets)?)
     }
 
     fn lock_skeletons(&self) -> std::sync::MutexGuard<'_, HashMap<Vec<u32>, Skeleton>> {

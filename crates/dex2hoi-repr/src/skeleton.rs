@@ -706,7 +706,19 @@ impl Skeleton {
     /// as `f32` or `f64`, in C or Fortran order; extra keys (including pickled ones) are ignored.
     pub fn from_smplx_model(path: &Path, betas: &[f32]) -> Result<Self> {
         let model = crate::smplx_model::SmplxModel::load(path)?;
-        let joints55 = model.rest_joints(betas)?;
+        Self::from_smplx_joints(&model.rest_joints(betas)?)
+    }
+
+    /// The 52-joint skeleton of an SMPL-X body's 55 rest joints (`J_regressor`'s order): jaw
+    /// and eyes dropped, offsets child minus parent, the root's its own position; the names and
+    /// groups of [`Skeleton::smplx`].
+    ///
+    /// # Shapes
+    /// - `joints55`: `[55]`
+    pub fn from_smplx_joints(joints55: &[Vec3]) -> Result<Self> {
+        if joints55.len() != 55 {
+            return Err(ReprError::invalid("SMPL-X rest joints", "55 joints", joints55.len()));
+        }
         let to55 = smplx52_to_55();
         let parents = parents_from_i32(&SMPLX52_PARENTS);
         let offsets = (0..52)
