@@ -8,8 +8,11 @@
 //! - `dex2hoi data show DIR --sequence ID|INDEX --out DIR [--smplx-model FILE|DIR]`: export one
 //!   sequence of a dataset (npz, glb, bvh, preview gif and png) to look at it.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
-//! - `dex2hoi sample --run RUN --text TEXT --object NAME|FILE... --out DIR [--smplx-model
-//!   FILE|DIR [--betas B,...]]`: generate and export.
+//! - `dex2hoi sample [--run RUN|MODEL] --text TEXT --object NAME|FILE... --out DIR
+//!   [--smplx-model FILE|DIR [--betas B,...]]`: generate and export (with the shipped model
+//!   unless a run or `DEX2HOI_MODEL` says otherwise).
+//! - `dex2hoi model pack --run RUN --out FILE`, `dex2hoi model info [--run RUN|MODEL]`: pack a
+//!   run into one model file, describe a model.
 //! - `dex2hoi evaluator train --data DIR --out EVAL [--steps N] [--seed S]`: train the
 //!   text-motion evaluator and action classifier.
 //! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR`: the paper's metrics.
@@ -25,6 +28,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 mod body;
 mod evaluate;
 mod evaluator;
+mod model;
 mod prepare;
 mod sample;
 mod show;
@@ -50,8 +54,14 @@ enum Command {
     },
     /// Train a model on a dataset into a run directory (Ctrl-C stops with a checkpoint).
     Train(train::TrainArgs),
-    /// Generate a motion with a trained run and export it (npz, glb, bvh, preview gif).
+    /// Generate a motion and export it (npz, glb, bvh, preview gif); the shipped model
+    /// unless `--run` or `DEX2HOI_MODEL` names another.
     Sample(sample::SampleArgs),
+    /// Models: pack a run into one file, describe a model.
+    Model {
+        #[command(subcommand)]
+        command: model::ModelCommand,
+    },
     /// Evaluate a run on a dataset's test split: the metrics of the paper's tables.
     Evaluate(evaluate::EvaluateArgs),
     /// Learned evaluators: train the text-motion model and action classifier on a dataset.
@@ -100,6 +110,7 @@ fn main() -> Result<()> {
         Command::Data { command: DataCommand::Show(args) } => show::run(args),
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
+        Command::Model { command } => model::run(command),
         Command::Evaluate(args) => evaluate::run(args),
         Command::Evaluator { command } => evaluator::run(command),
     }

@@ -8,21 +8,24 @@ use clap::Args;
 use glam::Vec2;
 
 use crate::body::BodyArgs;
+use crate::model::ModelSource;
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
 use dex2hoi_sample::{
-    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleRequest, SceneObject, TrainedRun,
-    Weights, parse_timeline, sample,
+    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleRequest, SceneObject,
+    parse_timeline, sample,
 };
 
 /// Arguments of `dex2hoi sample`.
 #[derive(Debug, Args)]
 pub struct SampleArgs {
-    /// The run directory written by `dex2hoi train` (its EMA weights are used).
+    /// The model: a run directory written by `dex2hoi train` (its EMA weights) or a file
+    /// written by `dex2hoi model pack`. Default: the file named by `DEX2HOI_MODEL`, else the
+    /// model shipped with dex2hoi.
     #[arg(long)]
-    run: PathBuf,
+    run: Option<PathBuf>,
     /// The prompt (or use --timeline).
     #[arg(long)]
     text: Option<String>,
@@ -78,9 +81,9 @@ pub fn run(args: SampleArgs) -> Result<()> {
         .map(|spec| SceneObject::parse(spec).with_context(|| format!("--object `{spec}`")))
         .collect::<Result<Vec<_>>>()?;
     let body = args.body.load()?;
-    let device = Device::Cpu;
-    let run = TrainedRun::load(&args.run, Weights::Ema, &device)
-        .with_context(|| format!("loading the run {}", args.run.display()))?;
+    let source = ModelSource::resolve(args.run.as_deref());
+    let run = source.load(&Device::Cpu)?;
+    println!("sampling with {} ({} training steps)", source.describe(), run.step);
     let fps = run.manifest.fps;
     let prompts = match (&args.text, &args.timeline) {
         (Some(text), None) => vec![Prompt { start_frame: 0, text: text.clone() }],
@@ -93,6 +96,21 @@ pub fn run(args: SampleArgs) -> Result<()> {
     };
     if prompts.iter().any(|p| p.text.trim().is_empty()) {
         bail!("the prompt is empty");
+    }
+    if let Some(vocabulary) = run.text.vocabulary() {
+        let mut unknown: Vec<String> = Vec::new();
+        for word in prompts.iter().flat_map(|p| vocabulary.unknown_words(&p.text)) {
+            if !unknown.contains(&word) {
+                unknown.push(word);
+            }
+        }
+        if !unknown.is_empty() {
+            eprintln!(
+                "warning: the model's text encoder never saw {}: they read as an unknown word \
+                 (`dex2hoi model info` lists the words it knows)",
+                unknown.iter().map(|w| format!("`{w}`")).collect::<Vec<_>>().join(", ")
+            );
+        }
     }
     let guidance =
         if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };

@@ -66,9 +66,18 @@ pub fn read_tensors(
         action: "reading the checkpoint",
         source,
     })?;
-    let file = safetensors::SafeTensors::deserialize(&bytes)
+    read_tensors_from_bytes(&bytes, path, device)
+}
+
+/// [`read_tensors`] of a safetensors file already in memory; `path` names it in errors.
+pub fn read_tensors_from_bytes(
+    bytes: &[u8],
+    path: &Path,
+    device: &Device,
+) -> Result<(BTreeMap<String, Tensor>, BTreeMap<String, String>)> {
+    let file = safetensors::SafeTensors::deserialize(bytes)
         .map_err(|e| checkpoint_error(path, "content", "a safetensors file", e))?;
-    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
         .map_err(|e| checkpoint_error(path, "header", "a safetensors header", e))?;
     let metadata: BTreeMap<String, String> =
         header.metadata().clone().unwrap_or_default().into_iter().collect();

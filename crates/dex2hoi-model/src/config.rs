@@ -48,6 +48,19 @@ pub enum BodyFusion {
     Average,
 }
 
+/// What the output head predicts (beyond the paper; docs/CONVENTIONS.md, "Prefix-residual
+/// prediction").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Prediction {
+    /// The clean predicted frames themselves (the paper).
+    Absolute,
+    /// Each predicted frame's difference from the last prefix frame, which the model adds back
+    /// (in normalised feature space): a body or object that stays where the prefix left it is
+    /// the head's zero output, so a window continues from its prefix without a jump.
+    PrefixResidual,
+}
+
 /// The networks' sizes and variants.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -81,6 +94,8 @@ pub struct ModelConfig {
     pub stream_layout: StreamLayout,
     /// Body fusion.
     pub body_fusion: BodyFusion,
+    /// What the output head predicts.
+    pub prediction: Prediction,
 }
 
 impl ModelConfig {
@@ -161,6 +176,13 @@ impl ModelConfig {
                 "heads",
                 format!("a divisor of latent {}", self.latent),
                 self.heads,
+            ));
+        }
+        if self.prediction == Prediction::PrefixResidual && self.prefix_frames == 0 {
+            return Err(ModelError::config(
+                "prefix_frames",
+                "at least 1 with prediction = \"prefix_residual\"",
+                0,
             ));
         }
         if !(0.0..1.0).contains(&self.dropout) {

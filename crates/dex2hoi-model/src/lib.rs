@@ -15,7 +15,9 @@ pub mod text_bert;
 pub mod text_clip;
 pub mod transformer;
 
-pub use config::{BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, StreamLayout};
+pub use config::{
+    BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, Prediction, StreamLayout,
+};
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
 pub use model::{InferenceModel, Model, ModelInput, PreparedCondition};

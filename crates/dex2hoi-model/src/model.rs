@@ -15,7 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_data::FeatureLayout;
 use dex2hoi_repr::object_repr::{LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE};
 
-use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, StreamLayout};
+use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, Prediction, StreamLayout};
 use crate::error::{ModelError, Result};
 use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
 use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, TransformerEncoder};
@@ -567,9 +567,34 @@ impl Model {
     /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
     pub fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         self.check_input(input)?;
-        match &self.layout {
-            Layout::Dual(dual) => dual.forward(input, rng),
-            Layout::Single(single) => single.forward(input, rng),
+        let out = match &self.layout {
+            Layout::Dual(dual) => dual.forward(input, rng)?,
+            Layout::Single(single) => single.forward(input, rng)?,
+        };
+        self.add_prefix_residual(out, input.prefix)
+    }
+
+    /// The head's output as clean frames: with [`Prediction::PrefixResidual`] the last prefix
+    /// frame is added to every predicted frame (normalised features, every channel). The body
+    /// is read from stream A's prefix for both streams, as everywhere a frame's body is read,
+    /// so that both streams keep one body.
+    ///
+    /// # Shapes
+    /// - `head`: `[batch, 2, T_f, D]`; `prefix`: `[batch, 2, T_p, D]`; returns `head`'s shape
+    fn add_prefix_residual(&self, head: Tensor, prefix: &Tensor) -> Result<Tensor> {
+        match self.config.prediction {
+            Prediction::Absolute => Ok(head),
+            Prediction::PrefixResidual => {
+                let last = prefix.narrow(2, self.config.prefix_frames - 1, 1)?;
+                let (batch, streams, _, width) = last.dims4()?;
+                let body_width = self.config.body_features();
+                let body = last
+                    .narrow(1, 0, 1)?
+                    .narrow(3, 0, body_width)?
+                    .broadcast_as((batch, streams, 1, body_width))?;
+                let objects = last.narrow(3, body_width, width - body_width)?;
+                Ok(head.broadcast_add(&Tensor::cat(&[&body, &objects], 3)?)?)
+            }
         }
     }
 

@@ -28,6 +28,12 @@ pub trait TextEncoder {
     /// # Shapes
     /// - returns `[texts, embedding_size]`
     fn encode(&self, texts: &[&str]) -> Result<Tensor>;
+
+    /// The word-level vocabulary of an encoder that knows only the words it saw (the built-in
+    /// one); `None` for subword tokenizers, which read any word.
+    fn vocabulary(&self) -> Option<&Vocabulary> {
+        None
+    }
 }
 
 /// Refuses an empty (or blank) prompt, naming its position.
@@ -102,6 +108,17 @@ impl Vocabulary {
     /// Whether there are no words besides the special tokens.
     pub fn is_empty(&self) -> bool {
         self.words.len() == 2
+    }
+
+    /// The words of `text` that are not in the vocabulary (in order, each once).
+    pub fn unknown_words(&self, text: &str) -> Vec<String> {
+        let mut unknown: Vec<String> = Vec::new();
+        for word in words(text) {
+            if !self.index.contains_key(&word) && !unknown.contains(&word) {
+                unknown.push(word);
+            }
+        }
+        unknown
     }
 
     /// Token ids of a text; unknown words become [`UNKNOWN`].
@@ -231,6 +248,10 @@ impl TextEncoder for BuiltinTextEncoder {
     fn encode(&self, texts: &[&str]) -> Result<Tensor> {
         let ids: Vec<Vec<u32>> = texts.iter().map(|t| self.vocabulary.tokenize(t)).collect();
         self.encode_ids(&ids)
+    }
+
+    fn vocabulary(&self) -> Option<&Vocabulary> {
+        Some(&self.vocabulary)
     }
 }
 

@@ -7,7 +7,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_model::{
-    BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, SeededVarMap, StreamLayout,
+    BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction, SeededVarMap,
+    StreamLayout,
 };
 
 struct Inputs {
@@ -104,17 +105,62 @@ fn variants() -> Vec<ModelConfig> {
     ]
 }
 
+/// The last prefix frame under every predicted frame, the body from stream A in both streams.
+fn last_prefix_frame(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
+    let last = prefix.narrow(2, cfg.prefix_frames - 1, 1).unwrap();
+    let body = last.narrow(1, 0, 1).unwrap().narrow(3, 0, cfg.body_features()).unwrap();
+    let body = Tensor::cat(&[&body, &body], 1).unwrap();
+    let objects =
+        last.narrow(3, cfg.body_features(), cfg.stream_features() - cfg.body_features()).unwrap();
+    let last = Tensor::cat(&[&body, &objects], 3).unwrap();
+    let (b, s, _, d) = last.dims4().unwrap();
+    last.broadcast_as((b, s, cfg.predicted_frames, d)).unwrap().contiguous().unwrap()
+}
+
 #[test]
-fn every_variant_runs_and_starts_at_zero() {
-    for cfg in variants() {
-        let (model, _) = build(&cfg, 0, DType::F32);
-        let inputs = Inputs::random(&cfg, 3, DType::F32, 1);
-        let out = model.forward(&inputs.view(), None).unwrap();
-        assert_eq!(out.dims(), &[3, 2, cfg.predicted_frames, cfg.stream_features()]);
-        // Zero-initialised heads: the untrained model predicts zeros.
-        let max = out.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        assert_eq!(max, 0.0, "{cfg:?}");
+fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
+    for base in variants() {
+        for prediction in [Prediction::Absolute, Prediction::PrefixResidual] {
+            let cfg = ModelConfig { prediction, ..base.clone() };
+            let (model, _) = build(&cfg, 0, DType::F32);
+            let inputs = Inputs::random(&cfg, 3, DType::F32, 1);
+            let out = model.forward(&inputs.view(), None).unwrap();
+            assert_eq!(out.dims(), &[3, 2, cfg.predicted_frames, cfg.stream_features()]);
+            // Zero-initialised heads: the untrained model predicts zeros, or with the residual
+            // head the last prefix frame (stream A's body in both streams).
+            let start = match prediction {
+                Prediction::Absolute => out.zeros_like().unwrap(),
+                Prediction::PrefixResidual => last_prefix_frame(&cfg, &inputs.prefix),
+            };
+            let max = (out - start).unwrap().abs().unwrap().max_all().unwrap();
+            assert_eq!(max.to_scalar::<f32>().unwrap(), 0.0, "{cfg:?}");
+        }
     }
+}
+
+#[test]
+fn the_residual_head_adds_the_last_prefix_frame_to_the_same_network() {
+    for base in variants() {
+        let absolute = ModelConfig { prediction: Prediction::Absolute, ..base.clone() };
+        let residual = ModelConfig { prediction: Prediction::PrefixResidual, ..base };
+        let (a, vars_a) = build(&absolute, 0, DType::F64);
+        let (r, vars_r) = build(&residual, 0, DType::F64);
+        randomise(&vars_a, 9);
+        randomise(&vars_r, 9);
+        let inputs = Inputs::random(&residual, 2, DType::F64, 4);
+        let out_a = a.forward(&inputs.view(), None).unwrap();
+        let out_r = r.forward(&inputs.view(), None).unwrap();
+        let expected = (out_a + last_prefix_frame(&residual, &inputs.prefix)).unwrap();
+        let diff = (out_r - expected).unwrap().abs().unwrap().max_all().unwrap();
+        assert!(diff.to_scalar::<f64>().unwrap() < 1e-12, "{residual:?}");
+    }
+    let no_prefix = ModelConfig {
+        prediction: Prediction::PrefixResidual,
+        prefix_frames: 0,
+        ..ModelConfig::tiny()
+    };
+    let error = no_prefix.validate().unwrap_err().to_string();
+    assert!(error.contains("prefix_frames"), "{error}");
 }
 
 #[test]

@@ -49,7 +49,12 @@ impl RunConfig {
     /// Reads the sampling entries of a run's `config.toml`.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(SampleError::io(path, "reading"))?;
-        let file: RunConfigFile = toml::from_str(&text)
+        Self::parse(&text, path)
+    }
+
+    /// Parses the text of a run's `config.toml`; `path` names it in errors.
+    pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        let file: RunConfigFile = toml::from_str(text)
             .map_err(|e| SampleError::run(path, "TOML", "a run configuration", e.message()))?;
         let config = Self {
             model: file.model,

@@ -69,34 +69,47 @@ impl RunFiles {
     ) -> Result<()> {
         let manifest = serde_json::to_vec_pretty(manifest).expect("a manifest serialises");
         write_atomically(&self.dataset, &manifest)?;
-        let stats = StatsFile { mean: stats.mean.clone(), std: stats.std.clone() };
-        Ok(write_atomically(
-            &self.stats,
-            &serde_json::to_vec(&stats).expect("statistics serialise"),
-        )?)
+        Ok(write_atomically(&self.stats, &stats_json(stats))?)
     }
 
     /// Reads `dataset.json`.
     pub fn read_manifest(&self) -> Result<Manifest> {
         let bytes =
             std::fs::read(&self.dataset).map_err(SampleError::io(&self.dataset, "reading"))?;
-        serde_json::from_slice(&bytes)
-            .map_err(|e| SampleError::run(&self.dataset, "content", "a dataset manifest", e))
+        parse_manifest(&bytes, &self.dataset)
     }
 
     /// Reads `stats.json` and checks that it has `width` means and standard deviations.
     pub fn read_stats(&self, width: usize) -> Result<FeatureStats> {
         let bytes = std::fs::read(&self.stats).map_err(SampleError::io(&self.stats, "reading"))?;
-        let stats: StatsFile = serde_json::from_slice(&bytes)
-            .map_err(|e| SampleError::run(&self.stats, "content", "mean and std lists", e))?;
-        if stats.mean.len() != width || stats.std.len() != width {
-            return Err(SampleError::run(
-                &self.stats,
-                "statistics",
-                format!("{width} means and stds"),
-                format!("{} and {}", stats.mean.len(), stats.std.len()),
-            ));
-        }
-        Ok(FeatureStats { mean: stats.mean, std: stats.std })
+        parse_stats(&bytes, width, &self.stats)
     }
+}
+
+/// Parses the JSON of `dataset.json`; `path` names it in errors.
+pub fn parse_manifest(json: &[u8], path: &Path) -> Result<Manifest> {
+    serde_json::from_slice(json)
+        .map_err(|e| SampleError::run(path, "content", "a dataset manifest", e))
+}
+
+/// The JSON of `stats.json`.
+pub fn stats_json(stats: &FeatureStats) -> Vec<u8> {
+    serde_json::to_vec(&StatsFile { mean: stats.mean.clone(), std: stats.std.clone() })
+        .expect("statistics serialise")
+}
+
+/// Parses the JSON of `stats.json` and checks that it has `width` means and standard
+/// deviations; `path` names it in errors.
+pub fn parse_stats(json: &[u8], width: usize, path: &Path) -> Result<FeatureStats> {
+    let stats: StatsFile = serde_json::from_slice(json)
+        .map_err(|e| SampleError::run(path, "content", "mean and std lists", e))?;
+    if stats.mean.len() != width || stats.std.len() != width {
+        return Err(SampleError::run(
+            path,
+            "statistics",
+            format!("{width} means and stds"),
+            format!("{} and {}", stats.mean.len(), stats.std.len()),
+        ));
+    }
+    Ok(FeatureStats { mean: stats.mean, std: stats.std })
 }

@@ -3,6 +3,8 @@
 //! - [`files`]: the run directory's schema (`config.toml`, `dataset.json`, `stats.json`,
 //!   `checkpoint.safetensors`), which `dex2hoi-train` writes and this crate reads;
 //! - [`run`]: loading a run on any device with its EMA or raw weights and its text encoder;
+//! - [`model_file`]: a run packed into one file for shipping (EMA weights, f16 or f32), which
+//!   [`TrainedRun::load`] reads like a run directory;
 //! - [`denoiser`]: the model as a `dex2hoi_diffusion::Denoiser` for one window;
 //! - [`generate`]: autoregressive generation over prefix-conditioned windows (paper Sec. 3.2)
 //!   with a prompt timeline, and decoding to rotations, joints and object poses;
@@ -33,6 +35,7 @@ pub mod denoiser;
 mod error;
 pub mod files;
 pub mod generate;
+pub mod model_file;
 pub mod request;
 pub mod run;
 pub mod scene;
@@ -46,6 +49,7 @@ pub use files::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
 pub use generate::{
     Conditioning, GeneratedMotion, Generation, Normaliser, TimedText, generate, generate_motion,
 };
+pub use model_file::{PackSummary, PackedPrecision, pack_run};
 pub use request::{SampleRequest, SampledMotion, sample};
 pub use run::{TrainedRun, Weights};
 pub use scene::{

@@ -1,12 +1,13 @@
 //! Loading a trained run on any device: its configuration, the dataset manifest, the
 //! normalisation statistics, the network with the chosen weights and the text encoder.
 
-use std::path::Path;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
 
 use dex2hoi_data::dataset::{FeatureStats, Manifest};
-use dex2hoi_model::checkpoint::{assign_parameters, read_tensors};
+use dex2hoi_model::checkpoint::{assign_parameters, read_tensors, read_tensors_from_bytes};
 use dex2hoi_model::text::{TextEncoder, Vocabulary};
 use dex2hoi_model::{InferenceModel, Model, SeededVarMap};
 use dex2hoi_repr::Skeleton;
@@ -15,6 +16,7 @@ use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
 use crate::files::{RunFiles, STEP_KEY, VOCABULARY_KEY};
 use crate::generate::Normaliser;
+use crate::model_file;
 use crate::text::TextModule;
 
 /// Which weights to load.
@@ -66,20 +68,76 @@ impl std::fmt::Debug for TrainedRun {
     }
 }
 
+/// What a run directory or a packed model file holds, read but not yet assembled.
+struct RunParts {
+    /// The file the weights came from (named in errors).
+    origin: PathBuf,
+    config: RunConfig,
+    manifest: Manifest,
+    stats: FeatureStats,
+    tensors: BTreeMap<String, Tensor>,
+    metadata: BTreeMap<String, String>,
+}
+
 impl TrainedRun {
-    /// Loads a run directory onto `device`.
-    pub fn load(dir: &Path, weights: Weights, device: &Device) -> Result<Self> {
-        let files = RunFiles::new(dir);
-        if !dir.is_dir() {
-            return Err(SampleError::run(dir, "run", "a run directory", "no such directory"));
+    /// Loads a run directory, or a packed model file ([`crate::model_file`]), onto `device`.
+    /// A packed model holds EMA weights only.
+    pub fn load(path: &Path, weights: Weights, device: &Device) -> Result<Self> {
+        if path.is_file() {
+            let bytes = std::fs::read(path).map_err(SampleError::io(path, "reading"))?;
+            return Self::from_model_bytes(&bytes, path, weights, device);
+        }
+        let files = RunFiles::new(path);
+        if !path.is_dir() {
+            return Err(SampleError::run(
+                path,
+                "run",
+                "a run directory or a packed model file",
+                "no such file or directory",
+            ));
         }
         let config = RunConfig::load(&files.config)?;
         let manifest = files.read_manifest()?;
         let stats = files.read_stats(config.model.stream_features())?;
         let (tensors, metadata) = read_tensors(&files.checkpoint, device)?;
+        let parts =
+            RunParts { origin: files.checkpoint, config, manifest, stats, tensors, metadata };
+        Self::assemble(parts, weights, device)
+    }
+
+    /// Loads a packed model file held in memory (`origin` names it in errors).
+    pub fn from_model_bytes(
+        bytes: &[u8],
+        origin: &Path,
+        weights: Weights,
+        device: &Device,
+    ) -> Result<Self> {
+        if weights != Weights::Ema {
+            return Err(SampleError::run(
+                origin,
+                "weights",
+                "a run directory for the raw weights",
+                "a packed model, which holds the EMA weights only",
+            ));
+        }
+        let (tensors, metadata) = read_tensors_from_bytes(bytes, origin, device)?;
+        let packed = model_file::read_metadata(&metadata, origin)?;
+        let parts = RunParts {
+            origin: origin.to_path_buf(),
+            config: packed.config,
+            manifest: packed.manifest,
+            stats: packed.stats,
+            tensors,
+            metadata,
+        };
+        Self::assemble(parts, weights, device)
+    }
+
+    fn assemble(parts: RunParts, weights: Weights, device: &Device) -> Result<Self> {
+        let RunParts { origin, config, manifest, stats, tensors, metadata } = parts;
         let prefix = weights.checkpoint_prefix();
         let (model, model_vars) = Model::from_checkpoint(
-            &files.checkpoint,
+            &origin,
             &tensors,
             &metadata,
             &format!("{prefix}model."),
@@ -91,7 +149,7 @@ impl TrainedRun {
             .get(VOCABULARY_KEY)
             .map(|w| serde_json::from_str(w))
             .transpose()
-            .map_err(|e| SampleError::run(&files.checkpoint, VOCABULARY_KEY, "a word list", e))?
+            .map_err(|e| SampleError::run(&origin, VOCABULARY_KEY, "a word list", e))?
             .unwrap_or_default();
         // The built-in encoder's initial parameters are replaced by the checkpoint's below, so
         // their seed does not matter.
@@ -103,12 +161,7 @@ impl TrainedRun {
             device,
         )?;
         if let TextModule::Builtin { vars, .. } = &text {
-            assign_parameters(
-                vars,
-                &tensors,
-                &format!("{prefix}text_encoder."),
-                &files.checkpoint,
-            )?;
+            assign_parameters(vars, &tensors, &format!("{prefix}text_encoder."), &origin)?;
         }
         let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
         let skeleton = manifest.builtin_skeleton()?;

@@ -439,7 +439,7 @@ impl InferenceModel {
         self.model.check_input(&input)?;
         let dtype = self.model.dtype();
         let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
-        match (fast, &self.model.layout) {
+        let head = match (fast, &self.model.layout) {
             (FastLayout::Dual { denoiser, fusion }, Layout::Dual(dual)) => {
                 let frames = streams_into_batch(&Tensor::cat(&[prefix, noisy], 2)?)?;
                 let timesteps = Tensor::cat(&[timesteps, timesteps], 0)?;
@@ -455,6 +455,7 @@ impl InferenceModel {
                 single.split(&denoiser.forward(&frames, &(time + &condition.fixed)?)?)
             }
             _ => unreachable!("the inference layout is built from the model's"),
-        }
+        }?;
+        self.model.add_prefix_residual(head, prefix)
     }
 }

@@ -1,0 +1,158 @@
+//! Which trained model a command samples with, and `dex2hoi model` (pack a run into one file,
+//! describe a model).
+//!
+//! The model is found in this order (docs/MODEL.md): `--run PATH` (a run directory or a packed
+//! model file), then the file named by the `DEX2HOI_MODEL` environment variable, then the model
+//! shipped with dex2hoi, compiled into the binary so that it works wherever the binary goes
+//! (`cargo install` included).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use candle_core::Device;
+use clap::{Args, Subcommand};
+
+use dex2hoi_sample::{PackedPrecision, TrainedRun, Weights, pack_run};
+
+/// The environment variable that names a model to use when `--run` is not given.
+pub const MODEL_VARIABLE: &str = "DEX2HOI_MODEL";
+
+/// The shipped model (`crates/dex2hoi-cli/model/dex2hoi-demo.safetensors`, described in
+/// docs/MODEL.md), a packed model file.
+const BUILTIN_MODEL: &[u8] = include_bytes!("../model/dex2hoi-demo.safetensors");
+/// How the shipped model is named in messages.
+pub const BUILTIN_MODEL_NAME: &str = "the shipped model dex2hoi-demo";
+
+/// Where a model comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ModelSource {
+    /// A run directory or a packed model file given with `--run`.
+    Run(PathBuf),
+    /// A file named by `DEX2HOI_MODEL`.
+    Environment(PathBuf),
+    /// The model compiled into the binary.
+    Builtin,
+}
+
+impl ModelSource {
+    /// `--run` if given, else `DEX2HOI_MODEL` if set (and not empty), else the shipped model.
+    pub fn resolve(run: Option<&Path>) -> Self {
+        if let Some(run) = run {
+            return Self::Run(run.to_path_buf());
+        }
+        match std::env::var_os(MODEL_VARIABLE) {
+            Some(path) if !path.is_empty() => Self::Environment(PathBuf::from(path)),
+            _ => Self::Builtin,
+        }
+    }
+
+    /// Loads the model's EMA weights onto `device`.
+    pub fn load(&self, device: &Device) -> Result<TrainedRun> {
+        match self {
+            Self::Run(path) => TrainedRun::load(path, Weights::Ema, device)
+                .with_context(|| format!("loading the run {}", path.display())),
+            Self::Environment(path) => TrainedRun::load(path, Weights::Ema, device)
+                .with_context(|| format!("loading {MODEL_VARIABLE}={}", path.display())),
+            Self::Builtin => TrainedRun::from_model_bytes(
+                BUILTIN_MODEL,
+                Path::new("<the shipped model>"),
+                Weights::Ema,
+                device,
+            )
+            .context("loading the shipped model"),
+        }
+    }
+
+    /// How the source is named in messages.
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Run(path) => path.display().to_string(),
+            Self::Environment(path) => format!("{} (from {MODEL_VARIABLE})", path.display()),
+            Self::Builtin => BUILTIN_MODEL_NAME.to_string(),
+        }
+    }
+}
+
+/// `dex2hoi model ...`.
+#[derive(Debug, Subcommand)]
+pub enum ModelCommand {
+    /// Pack a run's EMA weights and what sampling needs (configuration, dataset manifest,
+    /// statistics, vocabulary) into one file that `--run` and `DEX2HOI_MODEL` accept.
+    Pack(PackArgs),
+    /// Describe a model: where it comes from, its size, training steps, data and vocabulary.
+    Info(InfoArgs),
+}
+
+/// Arguments of `dex2hoi model pack`.
+#[derive(Debug, Args)]
+pub struct PackArgs {
+    /// The run directory written by `dex2hoi train`.
+    #[arg(long)]
+    run: PathBuf,
+    /// The file to write (replaced atomically).
+    #[arg(long)]
+    out: PathBuf,
+    /// Keep the weights in f32 (default: f16, half the size).
+    #[arg(long)]
+    f32: bool,
+}
+
+/// Arguments of `dex2hoi model info`.
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// A run directory or packed model file (default: `DEX2HOI_MODEL`, else the shipped
+    /// model).
+    #[arg(long)]
+    run: Option<PathBuf>,
+}
+
+/// Runs `dex2hoi model ...`.
+pub fn run(command: ModelCommand) -> Result<()> {
+    match command {
+        ModelCommand::Pack(args) => {
+            if args.out.is_dir() {
+                bail!("--out {} is a directory; give the file to write", args.out.display());
+            }
+            let precision = if args.f32 { PackedPrecision::F32 } else { PackedPrecision::F16 };
+            let summary = pack_run(&args.run, &args.out, precision)
+                .with_context(|| format!("packing the run {}", args.run.display()))?;
+            println!(
+                "packed {} ({} steps, {} parameters in {precision:?}) into {} ({:.1} MB)",
+                args.run.display(),
+                summary.step,
+                summary.parameters,
+                args.out.display(),
+                summary.bytes as f64 / 1e6
+            );
+            Ok(())
+        }
+        ModelCommand::Info(args) => {
+            let source = ModelSource::resolve(args.run.as_deref());
+            let run = source.load(&Device::Cpu)?;
+            let model = &run.config.model;
+            println!("model: {}", source.describe());
+            println!("  trained for {} steps", run.step);
+            println!(
+                "  latent {}, {} layers, {} heads, feed-forward {}, {} fusion layers, {} parameters",
+                model.latent,
+                model.layers,
+                model.heads,
+                model.feed_forward,
+                model.fusion_layers,
+                run.model_vars.var_map().all_vars().iter().map(|v| v.elem_count()).sum::<usize>()
+            );
+            println!(
+                "  data: {} ({} skeleton, {} fps); objects: {}",
+                run.manifest.source,
+                run.manifest.skeleton,
+                run.manifest.fps,
+                run.manifest.objects.join(", ")
+            );
+            if let Some(vocabulary) = run.text.vocabulary() {
+                let words = vocabulary.words();
+                println!("  the text encoder knows {} words: {}", words.len(), words.join(" "));
+            }
+            Ok(())
+        }
+    }
+}
