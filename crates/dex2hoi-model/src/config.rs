@@ -48,8 +48,9 @@ pub enum BodyFusion {
     Average,
 }
 
-/// What the output head predicts (beyond the paper; docs/CONVENTIONS.md, "Prefix-residual
-/// prediction").
+/// What the output head predicts (beyond the paper).
+///
+/// See docs/CONVENTIONS.md, "Prefix-residual prediction".
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Prediction {
