@@ -132,25 +132,14 @@ fn bench(root: &Path, name: Option<&str>) -> Result<()> {
     Ok(())
 }
 
-/// Runs the release `dex2hoi` binary and fails if it fails.
+/// Runs the release `dex2hoi` binary and fails if it fails. `DEX2HOI_MODEL` is unset: every
+/// call names its run, except the demo's samples with the shipped model, which must not be
+/// replaced by whatever the caller's environment names.
 fn dex2hoi(root: &Path, args: &[&str]) -> Result<()> {
-    run_dex2hoi(root, args, false)
-}
-
-/// [`dex2hoi`] with `DEX2HOI_MODEL` unset, so that `sample` without `--run` takes the shipped
-/// model whatever the caller's environment says.
-fn dex2hoi_without_model_variable(root: &Path, args: &[&str]) -> Result<()> {
-    run_dex2hoi(root, args, true)
-}
-
-fn run_dex2hoi(root: &Path, args: &[&str], without_model_variable: bool) -> Result<()> {
     let binary = root.join("target/release/dex2hoi");
     eprintln!("\n==> dex2hoi {}", args.join(" "));
-    let mut command = Command::new(&binary);
-    if without_model_variable {
-        command.env_remove("DEX2HOI_MODEL");
-    }
-    let status = command
+    let status = Command::new(&binary)
+        .env_remove("DEX2HOI_MODEL")
         .args(args)
         .current_dir(root)
         .status()
@@ -255,9 +244,10 @@ fn demo(root: &Path) -> Result<()> {
     // and with the short run just trained, which shows that training works but has not learned
     // much yet.
     let mut outputs = Vec::new();
-    for (model, run, folder) in
-        [(SHIPPED_MODEL, None, dir.clone()), ("the short run", Some(&run_path), dir.join("run"))]
-    {
+    for (model, run, folder) in [
+        (SHIPPED_MODEL, None, dir.clone()),
+        ("the short run", Some(&run_path), dir.join("short-run")),
+    ] {
         for (name, text, objects) in DEMO_PROMPTS {
             let out = path(&folder.join(name))?;
             if Path::new(&out).exists() {
@@ -271,7 +261,7 @@ fn demo(root: &Path) -> Result<()> {
             for object in objects {
                 args.extend(["--object", object]);
             }
-            dex2hoi_without_model_variable(root, &args)?;
+            dex2hoi(root, &args)?;
             outputs.push((model, text, out));
         }
     }

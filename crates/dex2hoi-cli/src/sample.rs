@@ -98,16 +98,12 @@ pub fn run(args: SampleArgs) -> Result<()> {
         bail!("the prompt is empty");
     }
     if let Some(vocabulary) = run.text.vocabulary() {
-        let mut unknown: Vec<String> = Vec::new();
-        for word in prompts.iter().flat_map(|p| vocabulary.unknown_words(&p.text)) {
-            if !unknown.contains(&word) {
-                unknown.push(word);
-            }
-        }
+        let all_prompts: Vec<&str> = prompts.iter().map(|p| p.text.as_str()).collect();
+        let unknown = vocabulary.unknown_words(&all_prompts.join("\n"));
         if !unknown.is_empty() {
             eprintln!(
-                "warning: the model's text encoder never saw {}: they read as an unknown word \
-                 (`dex2hoi model info` lists the words it knows)",
+                "warning: the model's text encoder never saw {}: each reads as the unknown-word \
+                 token (`dex2hoi model info` lists the words it knows)",
                 unknown.iter().map(|w| format!("`{w}`")).collect::<Vec<_>>().join(", ")
             );
         }

@@ -14,7 +14,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor};
 
 use dex2hoi_data::dataset::{FeatureStats, Manifest};
-use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT, FORMAT_KEY, read_tensors, write_tensors};
+use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT_KEY, read_tensors, write_tensors};
 
 use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
@@ -134,14 +134,8 @@ pub fn read_metadata(metadata: &BTreeMap<String, String>, path: &Path) -> Result
     if format != MODEL_FORMAT {
         return Err(SampleError::run(path, MODEL_FORMAT_KEY, MODEL_FORMAT, format));
     }
-    if metadata.get(FORMAT_KEY).map(String::as_str) != Some(FORMAT) {
-        return Err(SampleError::run(
-            path,
-            FORMAT_KEY,
-            FORMAT,
-            format!("{:?}", metadata.get(FORMAT_KEY)),
-        ));
-    }
+    // The checkpoint format and model configuration are checked where the model is built
+    // (`Model::from_checkpoint`), as for any checkpoint.
     let config = RunConfig::parse(entry(TRAIN_CONFIG_KEY, "the run's config.toml")?, path)?;
     let manifest = parse_manifest(entry(MANIFEST_KEY, "the dataset manifest")?.as_bytes(), path)?;
     let stats = parse_stats(
