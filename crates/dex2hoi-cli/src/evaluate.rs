@@ -8,11 +8,12 @@ use candle_core::Device;
 use clap::Args;
 
 use dex2hoi_data::dataset::{Dataset, write_atomically};
-use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_eval::evaluate::{EvaluateOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
 use dex2hoi_sample::{TrainedRun, Weights};
+
+use crate::sampling::SamplingArgs;
 
 /// Arguments of `dex2hoi evaluate`.
 #[derive(Debug, Args)]
@@ -48,12 +49,8 @@ pub struct EvaluateArgs {
     /// Use the paper's MultiModality protocol (100 prompts x 30 repeats x 10 pairs).
     #[arg(long)]
     paper_multimodality: bool,
-    /// DDIM steps.
-    #[arg(long, default_value_t = 50)]
-    ddim_steps: usize,
-    /// Classifier-free guidance scale (0 or 1 turns it off).
-    #[arg(long, default_value_t = 2.5)]
-    guidance: f64,
+    #[command(flatten)]
+    sampling: SamplingArgs,
     /// Seed of the noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -64,9 +61,10 @@ pub struct EvaluateArgs {
 
 /// Runs `dex2hoi evaluate`.
 pub fn run(args: EvaluateArgs) -> Result<()> {
-    if args.replications == 0 || args.ddim_steps == 0 {
-        bail!("--replications and --ddim-steps must be at least 1");
+    if args.replications == 0 {
+        bail!("--replications must be at least 1");
     }
+    let sampler = args.sampling.config()?;
     let multimodality =
         if args.paper_multimodality { MultimodalityProtocol::paper() } else { args.multimodality };
     let device = Device::Cpu;
@@ -89,16 +87,10 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
             dataset.manifest.fps
         );
     }
-    let guidance =
-        if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };
     let options = EvaluateOptions {
         replications: args.replications,
         sequences: args.sequences,
-        sampler: SamplerConfig {
-            kind: SamplerKind::Ddim { eta: 0.0 },
-            steps: args.ddim_steps,
-            guidance,
-        },
+        sampler,
         seed: args.seed,
         multimodality,
     };

@@ -26,11 +26,13 @@ use clap::{Parser, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod body;
+mod compare;
 mod evaluate;
 mod evaluator;
 mod model;
 mod prepare;
 mod sample;
+mod sampling;
 mod show;
 mod train;
 
@@ -64,6 +66,9 @@ enum Command {
     },
     /// Evaluate a run on a dataset's test split: the metrics of the paper's tables.
     Evaluate(evaluate::EvaluateArgs),
+    /// Compare evaluation reports: a table and a plot of every metric against training steps,
+    /// one line per run.
+    Compare(compare::CompareArgs),
     /// Learned evaluators: train the text-motion model and action classifier on a dataset.
     Evaluator {
         #[command(subcommand)]
@@ -112,6 +117,7 @@ fn main() -> Result<()> {
         Command::Sample(args) => sample::run(args),
         Command::Model { command } => model::run(command),
         Command::Evaluate(args) => evaluate::run(args),
+        Command::Compare(args) => compare::run(args),
         Command::Evaluator { command } => evaluator::run(command),
     }
 }

@@ -9,7 +9,7 @@ use glam::Vec2;
 
 use crate::body::BodyArgs;
 use crate::model::ModelSource;
-use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
+use crate::sampling::SamplingArgs;
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
@@ -42,12 +42,8 @@ pub struct SampleArgs {
     /// Seed of the noise: the same seed gives the same motion.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// DDIM steps.
-    #[arg(long, default_value_t = 50)]
-    ddim_steps: usize,
-    /// Classifier-free guidance scale (0 or 1 turns guidance off).
-    #[arg(long, default_value_t = 2.5)]
-    guidance: f64,
+    #[command(flatten)]
+    sampling: SamplingArgs,
     /// Height of the table the objects stand on (metres).
     #[arg(long, default_value_t = DEFAULT_TABLE_HEIGHT)]
     table_height: f32,
@@ -66,12 +62,10 @@ pub fn run(args: SampleArgs) -> Result<()> {
     if args.objects.len() > 2 {
         bail!("the model takes at most two objects, got {}", args.objects.len());
     }
-    if args.frames == 0 || args.ddim_steps == 0 {
-        bail!("--frames and --ddim-steps must be at least 1");
+    if args.frames == 0 {
+        bail!("--frames must be at least 1");
     }
-    if !(args.guidance.is_finite() && args.guidance >= 0.0) {
-        bail!("--guidance must be a non-negative number, got {}", args.guidance);
-    }
+    let sampler = args.sampling.config()?;
     if !(args.table_height.is_finite() && (0.3..=1.5).contains(&args.table_height)) {
         bail!("--table-height must be between 0.3 and 1.5 m, got {}", args.table_height);
     }
@@ -108,18 +102,12 @@ pub fn run(args: SampleArgs) -> Result<()> {
             );
         }
     }
-    let guidance =
-        if args.guidance == 0.0 || args.guidance == 1.0 { None } else { Some(args.guidance) };
     let request = SampleRequest {
         prompts: prompts.clone(),
         objects,
         frames: args.frames,
         seed: args.seed,
-        sampler: SamplerConfig {
-            kind: SamplerKind::Ddim { eta: 0.0 },
-            steps: args.ddim_steps,
-            guidance,
-        },
+        sampler,
         table_height: args.table_height,
     };
     if let Some(mesh) = &body {

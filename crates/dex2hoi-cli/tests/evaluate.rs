@@ -86,6 +86,92 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
     let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();
     assert_eq!(&npz[..2], b"PK");
+    // The setup: the weights' steps and the sampler, in the JSON and the markdown.
+    let setup = &json["setup"];
+    assert_eq!(setup["model_step"], 3, "{setup}");
+    assert_eq!(
+        (setup["sampler"].as_str(), setup["denoising_steps"].as_u64()),
+        (Some("ddim"), Some(2))
+    );
+    assert_eq!(setup["guidance"].as_f64(), Some(2.5), "{setup}");
+    assert!(
+        report.contains(
+            "Weights after 3 training steps; sampler: DDIM (eta 0), 2 steps, guidance 2.5, seed 0."
+        ),
+        "{report}"
+    );
+
+    // DDPM without guidance, recorded as such.
+    let ddpm = dir.join("reports/ddpm");
+    ok(&dex2hoi(&[
+        "evaluate",
+        "--run",
+        run,
+        "--data",
+        data,
+        "--evaluator",
+        evaluator,
+        "--out",
+        ddpm.to_str().unwrap(),
+        "--replications",
+        "1",
+        "--sequences",
+        "2",
+        "--sampler",
+        "ddpm",
+        "--steps",
+        "2",
+        "--guidance",
+        "1",
+        "--multimodality",
+        "0,1,1",
+    ]));
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ddpm.join("report.json")).unwrap()).unwrap();
+    assert_eq!(json["setup"]["sampler"], "ddpm");
+    assert!(json["setup"]["eta"].is_null() && json["setup"]["guidance"].is_null(), "{json}");
+
+    // compare: one series from a report directory, one from a directory of them.
+    std::fs::rename(dir.join("report"), dir.join("reports/ddim")).unwrap();
+    let compared = dir.join("compare");
+    let stdout = ok(&dex2hoi(&[
+        "compare",
+        "--series",
+        &format!("one={}", ddpm.display()),
+        "--series",
+        &format!("both={}", dir.join("reports").display()),
+        "--out",
+        compared.to_str().unwrap(),
+    ]));
+    let markdown = std::fs::read_to_string(compared.join("comparison.md")).unwrap();
+    assert_eq!(stdout.lines().next(), markdown.lines().next());
+    let tables: Vec<&str> = markdown.split("\n## ").skip(1).collect();
+    assert_eq!(tables.len(), 2, "{markdown}");
+    assert!(tables[0].starts_with("one\n") && tables[1].starts_with("both\n"), "{markdown}");
+    let rows = |table: &str| table.lines().filter(|l| l.starts_with('|')).count();
+    assert_eq!(rows(tables[0]), 4, "header, separator, one step, ground truth:\n{markdown}");
+    assert_eq!(rows(tables[1]), 5, "two reports of step 3:\n{markdown}");
+    assert!(tables[1].contains("| 3 | ") && tables[1].contains("| ground truth | "), "{markdown}");
+    assert!(markdown.contains("Evaluated differently from the first row"), "{markdown}");
+    let png = std::fs::read(compared.join("comparison.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    // A report without the setup (an older dex2hoi's), an empty directory, a malformed series.
+    let old = dir.join("old");
+    std::fs::create_dir_all(&old).unwrap();
+    std::fs::write(old.join("report.json"), r#"{"rows": []}"#).unwrap();
+    let series = format!("old={}", old.display());
+    let bad = dex2hoi(&["compare", "--series", &series, "--out", compared.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && stderr.contains("older dex2hoi"), "{stderr}");
+    assert!(stderr.contains(&old.join("report.json").display().to_string()), "{stderr}");
+    std::fs::remove_file(old.join("report.json")).unwrap();
+    let bad = dex2hoi(&["compare", "--series", &series, "--out", compared.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("no report.json"));
+    let bad = dex2hoi(&["compare", "--series", "nolabel", "--out", compared.to_str().unwrap()]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("expected LABEL=DIR"));
+    let out = dir.join("reports/ddim");
+    let out = out.to_str().unwrap();
 
     // Bad input: a missing evaluator, a missing run, zero replications.
     let bad = dex2hoi(&[

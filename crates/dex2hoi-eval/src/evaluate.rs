@@ -41,7 +41,9 @@ use generation::{Generator, Progress, replication_prompts};
 use physical::{ObjectMeshes, Physical, Window, instruction_rows, physical_row};
 use scores::DistributionScores;
 
-pub use report::{Embeddings, Estimate, InstructionRow, PhysicalRow, Report, ReportRow};
+pub use report::{
+    Embeddings, Estimate, EvaluationSetup, InstructionRow, PhysicalRow, Report, ReportRow,
+};
 
 /// How an evaluation runs.
 #[derive(Debug, Clone, PartialEq)]
@@ -221,6 +223,7 @@ pub fn evaluate(
         embeddings.set_replication(embedded, texts, prompts);
     }
     let report = Report {
+        setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),
         rows: vec![
             ReportRow::from_replications(
                 "Ground truth",

@@ -15,6 +15,7 @@
 
 pub mod body_mesh;
 pub mod bvh;
+pub mod chart;
 pub mod error;
 pub mod font;
 pub mod glb;

@@ -60,6 +60,18 @@ pub enum Prediction {
     /// (in normalised feature space): a body or object that stays where the prefix left it is
     /// the head's zero output, so a window continues from its prefix without a jump.
     PrefixResidual,
+    /// The difference from the last prefix frame for the world-frame channels (the body, the
+    /// object's rotation and world position) and the clean values themselves for the
+    /// hand-relative channels (the wrist offsets and the mixture logits), whose targets are far
+    /// from the prefix's values whenever a hand reaches for an object.
+    PrefixResidualWorld,
+}
+
+impl Prediction {
+    /// Whether the model adds the last prefix frame (to some or all channels).
+    pub fn adds_prefix(self) -> bool {
+        !matches!(self, Self::Absolute)
+    }
 }
 
 /// The networks' sizes and variants.
@@ -179,10 +191,10 @@ impl ModelConfig {
                 self.heads,
             ));
         }
-        if self.prediction == Prediction::PrefixResidual && self.prefix_frames == 0 {
+        if self.prediction.adds_prefix() && self.prefix_frames == 0 {
             return Err(ModelError::config(
                 "prefix_frames",
-                "at least 1 with prediction = \"prefix_residual\"",
+                "at least 1 with a prefix-residual prediction",
                 0,
             ));
         }

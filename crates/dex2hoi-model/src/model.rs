@@ -518,17 +518,33 @@ enum Layout {
 pub struct Model {
     config: ModelConfig,
     layout: Layout,
+    /// Which channels of a stream row take the last prefix frame (`None`: all or none, as
+    /// `config.prediction` says), `[6J + 3 + 18]`.
+    residual_mask: Option<Tensor>,
 }
 
 impl Model {
     /// Builds the model; parameter names mirror the module tree (`blocks.3.cross_attention.query`).
     pub fn new(config: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
         config.validate()?;
+        let (device, dtype) = (vb.device().clone(), vb.dtype());
         let layout = match config.stream_layout {
             StreamLayout::Dual => Layout::Dual(DualStream::new(config, vb)?),
             StreamLayout::Single => Layout::Single(SingleStream::new(config, vb)?),
         };
-        Ok(Self { config: config.clone(), layout })
+        let residual_mask = match config.prediction {
+            Prediction::Absolute | Prediction::PrefixResidual => None,
+            Prediction::PrefixResidualWorld => {
+                let features = config.layout();
+                let mut mask = vec![1.0f32; features.stream_width()];
+                for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
+                    mask[features.object_part_range(part)].fill(0.0);
+                }
+                let mask = Tensor::from_vec(mask, features.stream_width(), &device)?;
+                Some(mask.to_dtype(dtype)?)
+            }
+        };
+        Ok(Self { config: config.clone(), layout, residual_mask })
     }
 
     /// The configuration.
@@ -574,28 +590,30 @@ impl Model {
         self.add_prefix_residual(out, input.prefix)
     }
 
-    /// The head's output as clean frames: with [`Prediction::PrefixResidual`] the last prefix
-    /// frame is added to every predicted frame (normalised features, every channel). The body
-    /// is read from stream A's prefix for both streams, as everywhere a frame's body is read,
-    /// so that both streams keep one body.
+    /// The head's output as clean frames: with a prefix-residual [`Prediction`] the last
+    /// prefix frame is added to every predicted frame (normalised features; every channel, or
+    /// the world-frame channels only). The body is read from stream A's prefix for both
+    /// streams, as everywhere a frame's body is read, so that both streams keep one body.
     ///
     /// # Shapes
     /// - `head`: `[batch, 2, T_f, D]`; `prefix`: `[batch, 2, T_p, D]`; returns `head`'s shape
     fn add_prefix_residual(&self, head: Tensor, prefix: &Tensor) -> Result<Tensor> {
-        match self.config.prediction {
-            Prediction::Absolute => Ok(head),
-            Prediction::PrefixResidual => {
-                let last = prefix.narrow(2, self.config.prefix_frames - 1, 1)?;
-                let (batch, streams, _, width) = last.dims4()?;
-                let body_width = self.config.body_features();
-                let body = last
-                    .narrow(1, 0, 1)?
-                    .narrow(3, 0, body_width)?
-                    .broadcast_as((batch, streams, 1, body_width))?;
-                let objects = last.narrow(3, body_width, width - body_width)?;
-                Ok(head.broadcast_add(&Tensor::cat(&[&body, &objects], 3)?)?)
-            }
+        if !self.config.prediction.adds_prefix() {
+            return Ok(head);
         }
+        let last = prefix.narrow(2, self.config.prefix_frames - 1, 1)?;
+        let (batch, streams, _, width) = last.dims4()?;
+        let body_width = self.config.body_features();
+        let body = last
+            .narrow(1, 0, 1)?
+            .narrow(3, 0, body_width)?
+            .broadcast_as((batch, streams, 1, body_width))?;
+        let objects = last.narrow(3, body_width, width - body_width)?;
+        let mut last = Tensor::cat(&[&body, &objects], 3)?;
+        if let Some(mask) = &self.residual_mask {
+            last = last.broadcast_mul(mask)?;
+        }
+        Ok(head.broadcast_add(&last)?)
     }
 
     /// The device of the parameters.

@@ -10,6 +10,7 @@ use dex2hoi_model::{
     BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction, SeededVarMap,
     StreamLayout,
 };
+use dex2hoi_repr::object_repr::{LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE};
 
 struct Inputs {
     noisy: Tensor,
@@ -117,21 +118,60 @@ fn last_prefix_frame(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
     last.broadcast_as((b, s, cfg.predicted_frames, d)).unwrap().contiguous().unwrap()
 }
 
+/// What the residual head adds: the last prefix frame, on every channel or (world variant) with
+/// the hand-relative channels of the object zeroed.
+fn prefix_part(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
+    let mut last = last_prefix_frame(cfg, prefix);
+    if cfg.prediction == Prediction::PrefixResidualWorld {
+        let layout = cfg.layout();
+        let mut values =
+            last.to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        let width = layout.stream_width();
+        for row in values.chunks_mut(width) {
+            for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
+                row[layout.object_part_range(part)].fill(0.0);
+            }
+        }
+        last = Tensor::from_vec(values, last.dims(), last.device())
+            .unwrap()
+            .to_dtype(last.dtype())
+            .unwrap();
+    }
+    last
+}
+
+const PREDICTIONS: [Prediction; 3] =
+    [Prediction::Absolute, Prediction::PrefixResidual, Prediction::PrefixResidualWorld];
+
 #[test]
 fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
     for base in variants() {
-        for prediction in [Prediction::Absolute, Prediction::PrefixResidual] {
+        for prediction in PREDICTIONS {
             let cfg = ModelConfig { prediction, ..base.clone() };
             let (model, _) = build(&cfg, 0, DType::F32);
             let inputs = Inputs::random(&cfg, 3, DType::F32, 1);
             let out = model.forward(&inputs.view(), None).unwrap();
             assert_eq!(out.dims(), &[3, 2, cfg.predicted_frames, cfg.stream_features()]);
-            // Zero-initialised heads: the untrained model predicts zeros, or with the residual
-            // head the last prefix frame (stream A's body in both streams).
+            // Zero-initialised heads: the untrained model predicts zeros, or with a residual
+            // head the last prefix frame (stream A's body in both streams) where it adds it.
             let start = match prediction {
                 Prediction::Absolute => out.zeros_like().unwrap(),
-                Prediction::PrefixResidual => last_prefix_frame(&cfg, &inputs.prefix),
+                _ => prefix_part(&cfg, &inputs.prefix),
             };
+            if prediction == Prediction::PrefixResidualWorld {
+                // The test would pass vacuously if the hand-relative channels were not zero here.
+                let offsets = start
+                    .narrow(3, cfg.layout().object_part_range(LEFT_OFFSET_RANGE).start, 6)
+                    .unwrap();
+                let last = last_prefix_frame(&cfg, &inputs.prefix)
+                    .narrow(3, cfg.layout().object_part_range(LEFT_OFFSET_RANGE).start, 6)
+                    .unwrap();
+                assert_eq!(
+                    offsets.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap(),
+                    0.0
+                );
+                assert!(last.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap() > 0.0);
+            }
             let max = (out - start).unwrap().abs().unwrap().max_all().unwrap();
             assert_eq!(max.to_scalar::<f32>().unwrap(), 0.0, "{cfg:?}");
         }
@@ -141,26 +181,26 @@ fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
 #[test]
 fn the_residual_head_adds_the_last_prefix_frame_to_the_same_network() {
     for base in variants() {
-        let absolute = ModelConfig { prediction: Prediction::Absolute, ..base.clone() };
-        let residual = ModelConfig { prediction: Prediction::PrefixResidual, ..base };
-        let (a, vars_a) = build(&absolute, 0, DType::F64);
-        let (r, vars_r) = build(&residual, 0, DType::F64);
-        randomise(&vars_a, 9);
-        randomise(&vars_r, 9);
-        let inputs = Inputs::random(&residual, 2, DType::F64, 4);
-        let out_a = a.forward(&inputs.view(), None).unwrap();
-        let out_r = r.forward(&inputs.view(), None).unwrap();
-        let expected = (out_a + last_prefix_frame(&residual, &inputs.prefix)).unwrap();
-        let diff = (out_r - expected).unwrap().abs().unwrap().max_all().unwrap();
-        assert!(diff.to_scalar::<f64>().unwrap() < 1e-12, "{residual:?}");
+        for prediction in [Prediction::PrefixResidual, Prediction::PrefixResidualWorld] {
+            let absolute = ModelConfig { prediction: Prediction::Absolute, ..base.clone() };
+            let residual = ModelConfig { prediction, ..base.clone() };
+            let (a, vars_a) = build(&absolute, 0, DType::F64);
+            let (r, vars_r) = build(&residual, 0, DType::F64);
+            randomise(&vars_a, 9);
+            randomise(&vars_r, 9);
+            let inputs = Inputs::random(&residual, 2, DType::F64, 4);
+            let out_a = a.forward(&inputs.view(), None).unwrap();
+            let out_r = r.forward(&inputs.view(), None).unwrap();
+            let expected = (out_a + prefix_part(&residual, &inputs.prefix)).unwrap();
+            let diff = (out_r - expected).unwrap().abs().unwrap().max_all().unwrap();
+            assert!(diff.to_scalar::<f64>().unwrap() < 1e-12, "{residual:?}");
+        }
     }
-    let no_prefix = ModelConfig {
-        prediction: Prediction::PrefixResidual,
-        prefix_frames: 0,
-        ..ModelConfig::tiny()
-    };
-    let error = no_prefix.validate().unwrap_err().to_string();
-    assert!(error.contains("prefix_frames"), "{error}");
+    for prediction in [Prediction::PrefixResidual, Prediction::PrefixResidualWorld] {
+        let no_prefix = ModelConfig { prediction, prefix_frames: 0, ..ModelConfig::tiny() };
+        let error = no_prefix.validate().unwrap_err().to_string();
+        assert!(error.contains("prefix_frames"), "{error}");
+    }
 }
 
 #[test]

@@ -1,7 +1,9 @@
 //! The evaluation report: rows of estimates over replications laid out like the paper's tables
 //! (Sec. 4.2), as markdown and JSON, and the embeddings of the last replication as `.npz`.
 
-use serde::Serialize;
+use serde::{Deserialize, Deserializer, Serialize};
+
+use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 
 use crate::error::Result;
 use crate::metrics;
@@ -10,12 +12,65 @@ use super::embedding::EmbeddedMotions;
 use super::scores::DistributionScores;
 
 /// A value over replications: the mean and the half-width of its 95% interval.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Estimate {
-    /// Mean over replications.
+    /// Mean over replications (JSON writes a non-finite mean as `null`, read back as NaN).
+    #[serde(deserialize_with = "finite_or_nan")]
     pub mean: f64,
     /// `1.96 std / sqrt(R)`.
+    #[serde(deserialize_with = "finite_or_nan")]
     pub interval: f64,
+}
+
+/// Reads a number that `serde_json` wrote as `null` because it was not finite.
+fn finite_or_nan<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
+}
+
+/// Which model and sampler an evaluation measured, so that reports can be compared and
+/// reproduced.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvaluationSetup {
+    /// Training steps of the evaluated weights.
+    pub model_step: usize,
+    /// `ddim` or `ddpm`.
+    pub sampler: String,
+    /// DDIM's noise scale (`None` for DDPM).
+    pub eta: Option<f64>,
+    /// Respaced denoising steps.
+    pub denoising_steps: usize,
+    /// Classifier-free guidance scale (`None`: off).
+    pub guidance: Option<f64>,
+    /// Seed of the first replication's noise.
+    pub seed: u64,
+}
+
+impl EvaluationSetup {
+    /// The setup of an evaluation of weights trained for `model_step` steps.
+    pub fn new(model_step: usize, sampler: &SamplerConfig, seed: u64) -> Self {
+        let (name, eta) = match sampler.kind {
+            SamplerKind::Ddpm => ("ddpm", None),
+            SamplerKind::Ddim { eta } => ("ddim", Some(eta)),
+        };
+        Self {
+            model_step,
+            sampler: name.into(),
+            eta,
+            denoising_steps: sampler.steps,
+            guidance: sampler.guidance,
+            seed,
+        }
+    }
+
+    /// One line for the report: `DDIM (eta 0), 50 steps, guidance 2.5, seed 0`.
+    pub fn describe(&self) -> String {
+        let sampler = match self.eta {
+            Some(eta) => format!("{} (eta {eta})", self.sampler.to_uppercase()),
+            None => self.sampler.to_uppercase(),
+        };
+        let guidance = self.guidance.map_or("no guidance".into(), |g| format!("guidance {g}"));
+        format!("{sampler}, {} steps, {guidance}, seed {}", self.denoising_steps, self.seed)
+    }
 }
 
 impl Estimate {
@@ -27,7 +82,7 @@ impl Estimate {
 }
 
 /// One row of the report (the ground truth or a model).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReportRow {
     /// What the row measures.
     pub name: String,
@@ -48,7 +103,7 @@ pub struct ReportRow {
 }
 
 /// The physical metrics of a row, each over replications.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PhysicalRow {
     /// Mean penetration depth, mm.
     pub penetration_depth_mm: Estimate,
@@ -75,7 +130,7 @@ pub struct PhysicalRow {
 
 /// Instruction following of the generated clips against their ground truth after the same
 /// prefix (`metrics::instruction_following`), for all clips or one action (task family).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct InstructionRow {
     /// `all`, or the action of the sequences.
     pub group: String,
@@ -94,8 +149,10 @@ pub struct InstructionRow {
 }
 
 /// The whole report.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
+    /// The evaluated weights' steps and the sampler.
+    pub setup: EvaluationSetup,
     /// Ground truth, then the model.
     pub rows: Vec<ReportRow>,
     /// The model's instruction following: all clips, then per action.
@@ -211,7 +268,8 @@ impl Report {
              clips of {} frames after the sequence's own prefix. FID, Diversity and MultiModality \
              on {}; R-precision and MMdist on the contrastive embeddings; MultiModality over {} \
              prompts x {} repeats x {} pairs. The ground-truth FID is 0 by definition (the same \
-             clips). Runtime: mean ± standard deviation per generated clip.\n",
+             clips). Runtime: mean ± standard deviation per generated clip. Weights after {} \
+             training steps; sampler: {}.\n",
             self.samples,
             self.skipped,
             self.replications,
@@ -220,6 +278,8 @@ impl Report {
             self.multimodality_protocol[0],
             self.multimodality_protocol[1],
             self.multimodality_protocol[2],
+            self.setup.model_step,
+            self.setup.describe(),
         ));
         out.push_str(
             "\n## Objects\n\n| Method | Start jump (cm, median) ↓ | Untouched object speed (cm/s, median) ↓ |\n|---|---|---|\n",
