@@ -197,6 +197,9 @@ impl Loaded {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
         let value: serde_json::Value = serde_json::from_slice(&bytes)
             .with_context(|| format!("{}: not JSON", path.display()))?;
+        if !value.is_object() {
+            bail!("{}: expected a report of `dex2hoi evaluate` (a JSON object)", path.display());
+        }
         if value.get("setup").is_none() {
             bail!(
                 "{}: no `setup` (the evaluated step and sampler): written by an older dex2hoi; \
@@ -219,6 +222,21 @@ impl Loaded {
     fn value(&self, metric: &Metric, ground_truth: bool) -> Result<Option<f64>> {
         let instruction = if ground_truth { None } else { self.report.instruction.first() };
         Ok((metric.value)(self.row(ground_truth)?, instruction).filter(|v| v.is_finite()))
+    }
+
+    /// What makes two evaluations comparable: the sampler and seed, the test sequences and
+    /// replications, the clip length, the distribution features and the MultiModality protocol.
+    fn protocol(&self) -> String {
+        let r = &self.report;
+        format!(
+            "{}; {} x {}; {} frames; {}; {:?}",
+            r.setup.describe(),
+            r.samples,
+            r.replications,
+            r.clip_frames,
+            r.distribution_features,
+            r.multimodality_protocol
+        )
     }
 }
 
@@ -255,18 +273,26 @@ fn cell(value: Option<f64>, digits: usize) -> String {
     value.map_or("–".into(), |v| format!("{v:.digits$}"))
 }
 
-/// The markdown: per series, a table of the headline metrics by step and the ground truth.
+/// The ground truth's values of every metric in a report.
+fn ground_truth(loaded: &Loaded) -> Result<Vec<Option<f64>>> {
+    METRICS.iter().map(|m| loaded.value(m, true)).collect()
+}
+
+/// The markdown: per series, a table of the headline metrics by step and its first report's
+/// ground truth; then the reports that were evaluated differently from the first one.
 fn markdown(title: &str, series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<String> {
     let headline: Vec<&Metric> = METRICS.iter().filter(|m| m.headline).collect();
     let mut out = format!("# {title}\n");
     for (spec, reports) in series {
-        let first = &reports[0].report;
+        let first = reports.first().context("a series without reports")?;
+        let report = &first.report;
         out.push_str(&format!(
-            "\n## {}\n\n{} test sequences x {} replications, {}; from `{}`.\n\n| steps | {} |\n|---|{}\n",
+            "\n## {}\n\n{} test sequences x {} replication{}, {}; from `{}`.\n\n| steps | {} |\n|---|{}\n",
             spec.label,
-            first.samples,
-            first.replications,
-            first.setup.describe(),
+            report.samples,
+            report.replications,
+            if report.replications == 1 { "" } else { "s" },
+            report.setup.describe(),
             spec.dir.display(),
             headline.iter().map(|m| m.name).collect::<Vec<_>>().join(" | "),
             "---|".repeat(headline.len()),
@@ -282,39 +308,41 @@ fn markdown(title: &str, series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<String>
                 cells.join(" | ")
             ));
         }
-        let last = reports.last().expect("read_series returns at least one report");
         let truth = headline
             .iter()
-            .map(|m| Ok(cell(last.value(m, true)?, m.digits)))
+            .map(|m| Ok(cell(first.value(m, true)?, m.digits)))
             .collect::<Result<Vec<_>>>()?;
         out.push_str(&format!("| ground truth | {} |\n", truth.join(" | ")));
-        let differing: Vec<String> = reports
-            .iter()
-            .filter(|r| {
-                r.report.setup.describe() != first.setup.describe()
-                    || r.report.samples != first.samples
-                    || r.report.replications != first.replications
-            })
-            .map(|r| r.path.display().to_string())
-            .collect();
-        if !differing.is_empty() {
-            out.push_str(&format!(
-                "\nEvaluated differently from the first row (sampler, sequences or \
-                 replications): {}.\n",
-                differing.join(", ")
-            ));
+    }
+    let all: Vec<&Loaded> = series.iter().flat_map(|(_, reports)| reports).collect();
+    let first = all.first().context("no reports")?;
+    let (protocol, truth) = (first.protocol(), ground_truth(first)?);
+    let mut differing = Vec::new();
+    for loaded in &all {
+        if loaded.protocol() != protocol || ground_truth(loaded)? != truth {
+            differing.push(format!("`{}`", loaded.path.display()));
         }
+    }
+    if !differing.is_empty() {
+        out.push_str(&format!(
+            "\n**Not comparable with the first report** (`{}`): evaluated with another sampler, \
+             seed, set of test sequences, replications, clip length or MultiModality protocol, \
+             or against another ground truth: {}.\n",
+            first.path.display(),
+            differing.join(", ")
+        ));
     }
     out.push_str(
         "\nMeans over replications; `dex2hoi evaluate`'s report.md of each row has the 95% \
          intervals and every other metric. comparison.png plots every metric against the steps, \
-         the ground truth's value dashed.\n",
+         the first report's ground truth dashed.\n",
     );
     Ok(out)
 }
 
-/// The chart: a panel per metric, a line per series.
+/// The chart: a panel per metric, a line per series, the first report's ground truth dashed.
 fn chart(series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<Chart> {
+    let first = series.first().and_then(|(_, reports)| reports.first()).context("no reports")?;
     let mut panels = Vec::with_capacity(METRICS.len());
     for metric in &METRICS {
         let mut lines = Vec::with_capacity(series.len());
@@ -327,11 +355,10 @@ fn chart(series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<Chart> {
             }
             lines.push(Series { label: spec.label.clone(), points });
         }
-        let reference = series[0].1[0].value(metric, true)?;
         panels.push(Panel {
             title: metric.name.to_string(),
             series: lines,
-            reference,
+            reference: first.value(metric, true)?,
             scale: Scale::Linear,
         });
     }

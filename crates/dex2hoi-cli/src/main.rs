@@ -15,7 +15,10 @@
 //!   run into one model file, describe a model.
 //! - `dex2hoi evaluator train --data DIR --out EVAL [--steps N] [--seed S]`: train the
 //!   text-motion evaluator and action classifier.
-//! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR`: the paper's metrics.
+//! - `dex2hoi evaluate --run RUN --data DIR --evaluator EVAL --out DIR [--sampler ddim|ddpm]`:
+//!   the paper's metrics.
+//! - `dex2hoi compare --series LABEL=DIR... --out DIR`: evaluation reports against training
+//!   steps, as a table and a chart.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -66,8 +69,8 @@ enum Command {
     },
     /// Evaluate a run on a dataset's test split: the metrics of the paper's tables.
     Evaluate(evaluate::EvaluateArgs),
-    /// Compare evaluation reports: a table and a plot of every metric against training steps,
-    /// one line per run.
+    /// Compare evaluation reports against training steps: a table of the headline metrics and a
+    /// chart of every metric, one line per run.
     Compare(compare::CompareArgs),
     /// Learned evaluators: train the text-motion model and action classifier on a dataset.
     Evaluator {

@@ -1,4 +1,5 @@
-//! The sampler options that `sample` and `evaluate` share.
+//! The sampler options that `sample` and `evaluate` share; their defaults are
+//! `SamplerConfig::default()`'s.
 
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
@@ -8,40 +9,58 @@ use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 /// The reverse process (docs/CONVENTIONS.md, "Diffusion schedule").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Sampler {
-    /// Deterministic DDIM (eta 0).
+    /// DDIM with the default configuration's noise scale (0: deterministic).
     Ddim,
     /// Ancestral DDPM with the posterior variance, on the respaced steps.
     Ddpm,
+}
+
+impl Sampler {
+    /// The sampler of `SamplerConfig::default()`.
+    fn default_kind() -> Self {
+        match SamplerConfig::default().kind {
+            SamplerKind::Ddim { .. } => Self::Ddim,
+            SamplerKind::Ddpm => Self::Ddpm,
+        }
+    }
+
+    fn kind(self) -> SamplerKind {
+        match (self, SamplerConfig::default().kind) {
+            (Self::Ddim, default @ SamplerKind::Ddim { .. }) => default,
+            (Self::Ddim, SamplerKind::Ddpm) => SamplerKind::Ddim { eta: 0.0 },
+            (Self::Ddpm, _) => SamplerKind::Ddpm,
+        }
+    }
 }
 
 /// How to sample.
 #[derive(Debug, Clone, Args)]
 pub struct SamplingArgs {
     /// The reverse process.
-    #[arg(long, value_enum, default_value_t = Sampler::Ddim)]
+    #[arg(long, value_enum, default_value_t = Sampler::default_kind())]
     sampler: Sampler,
-    /// Denoising steps (the 1000 training steps respaced to this many; DDPM takes them too).
-    #[arg(long, visible_alias = "steps", default_value_t = SamplerConfig::default().steps)]
-    ddim_steps: usize,
+    /// Denoising steps: the 1000 training steps respaced to this many (DDIM and DDPM alike).
+    #[arg(long, visible_alias = "ddim-steps", default_value_t = SamplerConfig::default().steps)]
+    denoising_steps: usize,
     /// Classifier-free guidance scale (0 or 1 turns guidance off).
-    #[arg(long, default_value_t = SamplerConfig::default().guidance.unwrap_or(1.0))]
+    #[arg(
+        long,
+        allow_negative_numbers = true,
+        default_value_t = SamplerConfig::default().guidance.unwrap_or(1.0)
+    )]
     guidance: f64,
 }
 
 impl SamplingArgs {
     /// The sampler configuration, or an error naming the option that cannot be used.
     pub fn config(&self) -> Result<SamplerConfig> {
-        if self.ddim_steps == 0 {
-            bail!("--ddim-steps must be at least 1");
+        if self.denoising_steps == 0 {
+            bail!("--denoising-steps (--ddim-steps) must be at least 1");
         }
         if !self.guidance.is_finite() || self.guidance < 0.0 {
             bail!("--guidance must be a non-negative number, got {}", self.guidance);
         }
-        let kind = match self.sampler {
-            Sampler::Ddim => SamplerKind::Ddim { eta: 0.0 },
-            Sampler::Ddpm => SamplerKind::Ddpm,
-        };
         let guidance = (self.guidance != 0.0 && self.guidance != 1.0).then_some(self.guidance);
-        Ok(SamplerConfig { kind, steps: self.ddim_steps, guidance })
+        Ok(SamplerConfig { kind: self.sampler.kind(), steps: self.denoising_steps, guidance })
     }
 }

@@ -119,7 +119,7 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
         "2",
         "--sampler",
         "ddpm",
-        "--steps",
+        "--denoising-steps",
         "2",
         "--guidance",
         "1",
@@ -152,7 +152,9 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert_eq!(rows(tables[0]), 4, "header, separator, one step, ground truth:\n{markdown}");
     assert_eq!(rows(tables[1]), 5, "two reports of step 3:\n{markdown}");
     assert!(tables[1].contains("| 3 | ") && tables[1].contains("| ground truth | "), "{markdown}");
-    assert!(markdown.contains("Evaluated differently from the first row"), "{markdown}");
+    // The DDIM report (in "both") was evaluated differently from the first (DDPM) one.
+    let warning = markdown.split("**Not comparable with the first report**").nth(1).unwrap();
+    assert!(warning.contains("reports/ddim") && !warning.contains("reports/ddpm`,"), "{markdown}");
     let png = std::fs::read(compared.join("comparison.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
     // A report without the setup (an older dex2hoi's), an empty directory, a malformed series.
@@ -257,6 +259,19 @@ fn evaluate_parses_the_multimodality_protocol() {
     let paper = with(&["--paper-multimodality"]);
     assert_eq!(paper.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&paper.stderr).contains("/nonexistent/run"));
+    // The sampler's options are checked before anything is loaded.
+    for (extra, reason) in [
+        (["--ddim-steps", "0"], "--denoising-steps (--ddim-steps) must be at least 1"),
+        (["--guidance", "-1"], "--guidance must be a non-negative number, got -1"),
+        (["--guidance", "NaN"], "--guidance must be a non-negative number, got NaN"),
+    ] {
+        let bad = with(&extra);
+        let stderr = String::from_utf8_lossy(&bad.stderr);
+        assert_eq!(bad.status.code(), Some(1), "{extra:?}: {stderr}");
+        assert!(stderr.contains(reason) && !stderr.contains("/nonexistent"), "{stderr}");
+    }
+    let bad = with(&["--sampler", "euler"]);
+    assert_eq!(bad.status.code(), Some(2), "an unknown sampler is a usage error");
     // The default shown is the library's.
     let help = ok(&dex2hoi(&["evaluate", "--help"]));
     let default = dex2hoi_eval::metrics::MultimodalityProtocol::default();

@@ -43,6 +43,7 @@ use scores::DistributionScores;
 
 pub use report::{
     Embeddings, Estimate, EvaluationSetup, InstructionRow, PhysicalRow, Report, ReportRow,
+    SamplerName,
 };
 
 /// How an evaluation runs.

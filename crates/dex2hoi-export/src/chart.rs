@@ -9,17 +9,17 @@ use crate::font::{GLYPH_HEIGHT, draw_text, text_width};
 const PANEL_WIDTH: usize = 360;
 const PANEL_HEIGHT: usize = 170;
 const MARGIN: usize = 12;
-/// Room for the y range's labels left of the plot area.
-const AXIS_LABEL_WIDTH: usize = 52;
+/// Room for the y range's labels left of the plot area (8 characters, such as `-1.23e-3`).
+const AXIS_LABEL_WIDTH: usize = 68;
 const TEXT_SCALE: usize = 2;
 const LINE_HEIGHT: usize = (GLYPH_HEIGHT + 2) * TEXT_SCALE;
 const BACKGROUND: [u8; 3] = [255, 255, 255];
 const INK: [u8; 3] = [20, 20, 20];
 const AXIS: [u8; 3] = [150, 150, 150];
 const REFERENCE: [u8; 3] = [120, 120, 120];
-/// Colours of the series, by index (distinguishable, also in grey scale by brightness).
+/// Colours of the series, by index (a seventh series takes the first colour again).
 pub const PALETTE: [[u8; 3]; 6] =
-    [[200, 60, 40], [40, 100, 200], [40, 150, 60], [150, 60, 170], [220, 140, 20], [20, 20, 20]];
+    [[200, 60, 40], [40, 100, 200], [40, 150, 60], [150, 60, 170], [220, 140, 20], [0, 150, 150]];
 
 /// How a panel's y axis maps values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -52,8 +52,8 @@ pub struct Panel {
     pub scale: Scale,
 }
 
-/// A chart: panels laid out in `columns`, with a legend of the series' labels on top when
-/// there is more than one series.
+/// A chart: panels laid out in `columns`, with a legend of the series' labels on top unless
+/// `legend` is empty.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Chart {
     /// The panels, row by row.
@@ -96,7 +96,8 @@ impl Canvas {
     }
 }
 
-/// A short label of a value: 3 significant decimals in a readable range, else scientific.
+/// A short label of a value: three decimal places from 0.01 to 1000, whole numbers up to a
+/// million, scientific notation otherwise.
 pub fn short_number(value: f64) -> String {
     if value == 0.0 {
         "0".into()
@@ -172,8 +173,11 @@ impl Panel {
         let low = short_number(self.scale.unmap(y_low));
         canvas.text(label_x(&high), y0 as usize, &high, AXIS);
         canvas.text(label_x(&low), y1 as usize - GLYPH_HEIGHT * TEXT_SCALE, &low, AXIS);
-        let first = short_number(x_low);
-        let last = short_number(x_high);
+        // Steps and other whole numbers without decimals.
+        let x_label = |x: f64| {
+            if x.fract() == 0.0 && x.abs() < 1e6 { format!("{x:.0}") } else { short_number(x) }
+        };
+        let (first, last) = (x_label(x_low), x_label(x_high));
         canvas.text(x0 as usize, y1 as usize + 4, &first, AXIS);
         canvas.text(
             (x1 as usize).saturating_sub(text_width(&last, TEXT_SCALE)),

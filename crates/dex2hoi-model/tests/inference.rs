@@ -8,8 +8,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_model::layers::{layer_norm, softmax};
 use dex2hoi_model::{
-    BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, SeededVarMap,
-    StreamLayout, fused,
+    BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction,
+    SeededVarMap, StreamLayout, fused,
 };
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
@@ -156,6 +156,9 @@ fn variants() -> Vec<ModelConfig> {
     let tiny = ModelConfig::tiny();
     vec![
         tiny.clone(),
+        ModelConfig { prediction: Prediction::Absolute, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidual, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidualWorld, ..tiny.clone() },
         ModelConfig { body_fusion: BodyFusion::Average, ..tiny.clone() },
         ModelConfig { stream_layout: StreamLayout::Single, ..tiny.clone() },
         ModelConfig { object_representation: ObjectRepresentation::GlobalOnly, ..tiny.clone() },

@@ -39,12 +39,13 @@ fn evaluate(trainer: &Trainer) -> Vec<(Term, f64)> {
 /// without those terms (weights 1e-9 keep them measured); the others must fall below 70% of
 /// their value at initialisation.
 ///
-/// The test trains the paper's absolute head. The prefix-residual head of the presets starts at
-/// a much better predictor, the last prefix frame copied forward: its diffusion term starts at
-/// 0.20 (the absolute head's at 0.96, trained to 0.61 here) and the tiny model does not beat
-/// that predictor within this budget (0.20 -> 0.21). The two heads share the objective, the
-/// optimiser and every layer; the residual head's own training is measured on the real budget
-/// in docs/results/steps.md.
+/// The test trains the paper's absolute head. The prefix-residual heads start at a much better
+/// predictor, the last prefix frame copied forward: with `prefix_residual` (every channel) the
+/// diffusion term starts at 0.20 (the absolute head's at 0.96, trained to 0.61 here) and the
+/// tiny model does not beat that predictor within this budget (0.20 -> 0.21); the presets'
+/// `prefix_residual_world` starts between the two. The heads share the objective, the optimiser
+/// and every layer; the residual heads' own training is measured on the real budget in
+/// docs/results/steps.md.
 #[test]
 fn tiny_training_lowers_every_term() {
     let data = dataset(32);

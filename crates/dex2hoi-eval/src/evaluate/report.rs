@@ -27,14 +27,32 @@ fn finite_or_nan<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::E
     Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
 }
 
+/// Reads an optional pair of numbers, each possibly written as `null` (see [`finite_or_nan`]).
+fn optional_pair<'de, D: Deserializer<'de>>(
+    deserializer: D,
+) -> Result<Option<(f64, f64)>, D::Error> {
+    let pair = Option::<(Option<f64>, Option<f64>)>::deserialize(deserializer)?;
+    Ok(pair.map(|(a, b)| (a.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN))))
+}
+
+/// The reverse process of an evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SamplerName {
+    /// DDIM.
+    Ddim,
+    /// Ancestral DDPM.
+    Ddpm,
+}
+
 /// Which model and sampler an evaluation measured, so that reports can be compared and
 /// reproduced.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvaluationSetup {
     /// Training steps of the evaluated weights.
     pub model_step: usize,
-    /// `ddim` or `ddpm`.
-    pub sampler: String,
+    /// The reverse process.
+    pub sampler: SamplerName,
     /// DDIM's noise scale (`None` for DDPM).
     pub eta: Option<f64>,
     /// Respaced denoising steps.
@@ -49,12 +67,12 @@ impl EvaluationSetup {
     /// The setup of an evaluation of weights trained for `model_step` steps.
     pub fn new(model_step: usize, sampler: &SamplerConfig, seed: u64) -> Self {
         let (name, eta) = match sampler.kind {
-            SamplerKind::Ddpm => ("ddpm", None),
-            SamplerKind::Ddim { eta } => ("ddim", Some(eta)),
+            SamplerKind::Ddpm => (SamplerName::Ddpm, None),
+            SamplerKind::Ddim { eta } => (SamplerName::Ddim, Some(eta)),
         };
         Self {
             model_step,
-            sampler: name.into(),
+            sampler: name,
             eta,
             denoising_steps: sampler.steps,
             guidance: sampler.guidance,
@@ -64,9 +82,13 @@ impl EvaluationSetup {
 
     /// One line for the report: `DDIM (eta 0), 50 steps, guidance 2.5, seed 0`.
     pub fn describe(&self) -> String {
+        let name = match self.sampler {
+            SamplerName::Ddim => "DDIM",
+            SamplerName::Ddpm => "DDPM",
+        };
         let sampler = match self.eta {
-            Some(eta) => format!("{} (eta {eta})", self.sampler.to_uppercase()),
-            None => self.sampler.to_uppercase(),
+            Some(eta) => format!("{name} (eta {eta})"),
+            None => name.to_string(),
         };
         let guidance = self.guidance.map_or("no guidance".into(), |g| format!("guidance {g}"));
         format!("{sampler}, {} steps, {guidance}, seed {}", self.denoising_steps, self.seed)
@@ -99,6 +121,7 @@ pub struct ReportRow {
     /// Physical metrics.
     pub physical: PhysicalRow,
     /// Seconds per generated clip (mean and standard deviation over all samples; models only).
+    #[serde(deserialize_with = "optional_pair", default)]
     pub runtime_seconds: Option<(f64, f64)>,
 }
 
@@ -372,5 +395,83 @@ impl Embeddings {
             arrays.push(matrix("ground_truth_action", &self.ground_truth_action));
         }
         Ok(encode_npz(&arrays)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn estimate(mean: f64) -> Estimate {
+        Estimate { mean, interval: 0.5 }
+    }
+
+    /// A report with non-finite values survives JSON (where they become `null`) as NaN.
+    #[test]
+    fn reports_read_back_what_they_wrote_non_finite_values_as_nan() {
+        let physical = PhysicalRow {
+            penetration_depth_mm: estimate(1.0),
+            penetration_frames_percent: estimate(2.0),
+            contact_precision: estimate(0.9),
+            contact_recall: estimate(f64::NAN),
+            contact_f1: estimate(0.8),
+            contact_distance_mm: estimate(f64::INFINITY),
+            foot_sliding_mm: estimate(0.1),
+            mixture_agreement_percent: None,
+            object_start_jump_cm: Some(estimate(0.7)),
+            untouched_speed_cm_s: None,
+        };
+        let row = ReportRow {
+            name: "model".into(),
+            r_precision: [estimate(0.1), estimate(0.2), estimate(0.3)],
+            fid: estimate(40.0),
+            mm_dist: estimate(0.8),
+            diversity: estimate(f64::NAN),
+            multimodality: None,
+            physical,
+            runtime_seconds: Some((1.5, f64::NAN)),
+        };
+        let sampler = SamplerConfig { kind: SamplerKind::Ddpm, steps: 20, guidance: None };
+        let report = Report {
+            setup: EvaluationSetup::new(6000, &sampler, 3),
+            rows: vec![row],
+            instruction: vec![InstructionRow {
+                group: "all".into(),
+                clips: 4,
+                objects_moved_percent: Some(estimate(50.0)),
+                unasked_moves_percent: None,
+                holding_hand_percent: Some(estimate(f64::NAN)),
+                same_side_percent: None,
+                end_distance_cm: None,
+            }],
+            samples: 4,
+            skipped: 1,
+            replications: 2,
+            clip_frames: 60,
+            distribution_features: "features".into(),
+            multimodality_protocol: [2, 2, 1],
+        };
+        let json = serde_json::to_string(&report).unwrap();
+        assert!(json.contains("\"sampler\":\"ddpm\"") && json.contains("null"), "{json}");
+        let back: Report = serde_json::from_str(&json).unwrap();
+        assert_eq!(back.setup, report.setup);
+        assert_eq!(back.setup.describe(), "DDPM, 20 steps, no guidance, seed 3");
+        let (row, read) = (&report.rows[0], &back.rows[0]);
+        assert!(read.diversity.mean.is_nan() && read.physical.contact_recall.mean.is_nan());
+        assert!(read.physical.contact_distance_mm.mean.is_nan(), "infinity is written as null");
+        let (runtime, std) = read.runtime_seconds.unwrap();
+        assert!(runtime == 1.5 && std.is_nan());
+        assert_eq!(read.fid, row.fid);
+        assert_eq!(read.physical.object_start_jump_cm, row.physical.object_start_jump_cm);
+        assert!(back.instruction[0].holding_hand_percent.unwrap().mean.is_nan());
+        assert_eq!(
+            back.instruction[0].objects_moved_percent,
+            report.instruction[0].objects_moved_percent
+        );
+        assert_eq!(
+            (back.samples, back.skipped, back.replications, back.clip_frames),
+            (4, 1, 2, 60)
+        );
+        assert_eq!(back.multimodality_protocol, [2, 2, 1]);
     }
 }
