@@ -60,7 +60,7 @@ struct Metric {
     value: fn(&ReportRow, Option<&InstructionRow>) -> Option<f64>,
 }
 
-const METRICS: [Metric; 23] = [
+const METRICS: [Metric; 25] = [
     Metric {
         name: "R-prec. top-1",
         digits: 3,
@@ -147,6 +147,18 @@ const METRICS: [Metric; 23] = [
         digits: 2,
         headline: true,
         value: |r, _| r.physical.untouched_speed_cm_s.map(|e| e.mean),
+    },
+    Metric {
+        name: "Sinking (cm)",
+        digits: 2,
+        headline: true,
+        value: |r, _| r.physical.sinking_depth_cm.map(|e| e.mean),
+    },
+    Metric {
+        name: "Frames sunk (%)",
+        digits: 1,
+        headline: false,
+        value: |r, _| r.physical.sinking_frames_percent.map(|e| e.mean),
     },
     Metric {
         name: "Objects moved (%)",

@@ -66,7 +66,12 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(report.contains("4 test sequences") && report.contains("2 replications"), "{report}");
     let objects: Vec<&str> = sections[1].lines().filter(|l| l.starts_with('|')).collect();
     assert!(sections[1].starts_with("Objects") && objects.len() == 4, "{report}");
-    assert!(objects[0].contains("Start jump") && objects[0].contains("Untouched"), "{report}");
+    assert!(
+        objects[0].contains("Start jump")
+            && objects[0].contains("Untouched")
+            && objects[0].contains("Sinking"),
+        "{report}"
+    );
     let instruction: Vec<&str> = sections[2].lines().filter(|l| l.starts_with('|')).collect();
     assert!(sections[2].starts_with("Instruction following"), "{report}");
     assert!(instruction[0].contains("Objects moved") && instruction[0].contains("Holding hand"));

@@ -13,7 +13,7 @@
 //! displacement), [`mixture_agreement`] (does the mixture of Eq. 4 pick the hand that holds the
 //! object?), [`instruction_following`] (does a clip move the objects its ground truth moves,
 //! with the same hands, to the same place?), [`object_start_jumps`] and
-//! [`untouched_object_speeds`] (do objects behave like objects?) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
+//! [`untouched_object_speeds`] and [`object_sinking`] (do objects behave like objects?) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
 //! pooled ([`Penetration::pooled`], [`ContactCounts::merge`]).
 //!
 //! Conventions: metres, Y up, floor at `y = 0`; object meshes in their own (bounding-box-centred)
@@ -49,9 +49,9 @@ pub use distribution::{
 };
 pub use foot_sliding::{ANKLE_HEIGHT_M, TOE_HEIGHT_M, foot_sliding};
 pub use instruction::{
-    Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, Side,
-    UNTOUCHED_DISTANCE_M, instruction_following, median, object_start_jumps,
-    untouched_object_speeds,
+    Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, SINK_TOLERANCE_M, Side,
+    Sinking, UNTOUCHED_DISTANCE_M, instruction_following, median, object_sinking,
+    object_start_jumps, untouched_object_speeds,
 };
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use matching::{

@@ -712,7 +712,7 @@ impl Scene {
 #[test]
 fn instruction_following_by_hand() {
     use dex2hoi_eval::metrics::{
-        instruction_following, median, object_start_jumps, untouched_object_speeds,
+        instruction_following, median, object_sinking, object_start_jumps, untouched_object_speeds,
     };
     let skeleton = Skeleton::smplx();
     let query = MeshQuery::new(&box_mesh(Vec3::splat(0.04))).unwrap();
@@ -769,6 +769,26 @@ fn instruction_following_by_hand() {
     let sliding = untouched_object_speeds(&generated, 20.0).unwrap();
     assert_eq!(sliding.len(), 5);
     assert!(sliding.iter().all(|v| (v - 1.2).abs() < 1e-4), "{sliding:?}");
+    // Sinking below the resting heights: the lifted object never goes below; object 1, lowered
+    // by 2 cm per frame, reaches 10 cm below on frame 5 and is more than 1 cm below on frames
+    // 1-5.
+    let sinking = object_sinking(&generated, start).unwrap();
+    assert_eq!(
+        (sinking.deepest_m.clone(), sinking.frames_below, sinking.frames),
+        (vec![0.0, 0.0], 0, 6)
+    );
+    let mut lowered = generated.object_positions.to_vec();
+    for t in 0..frames {
+        lowered[(t * 2 + 1) * 3 + 1] -= 0.02 * t as f32;
+    }
+    let sunk = MotionSample { object_positions: &lowered, ..generated };
+    let sinking = object_sinking(&sunk, start).unwrap();
+    assert!(
+        sinking.deepest_m[0] == 0.0 && (sinking.deepest_m[1] - 0.10).abs() < 1e-6,
+        "{sinking:?}"
+    );
+    assert_eq!((sinking.frames_below, sinking.frames), (5, 6));
+    assert!(object_sinking(&sunk, [Vec3::ZERO, Vec3::NAN]).is_err());
     assert_eq!(median(&[3.0, 1.0, 2.0, 10.0]), Some(2.5));
     assert_eq!(median(&[]), None);
 

@@ -61,6 +61,8 @@ pub(super) struct Physical {
     start_jumps_m: Vec<f64>,
     /// Object speeds on untouched frames, m/s.
     untouched_speeds: Vec<f64>,
+    /// How far the objects go below their resting heights.
+    sinking: metrics::Sinking,
     /// A generated clip's instruction following against its ground truth (`None` for the
     /// ground truth itself).
     instruction: Option<metrics::InstructionCounts>,
@@ -73,6 +75,12 @@ fn prefix_last_positions(sequence: &ProcessedSequence, window: Window) -> [Vec3;
         let base = (frame * MAX_OBJECTS + slot) * 3;
         Vec3::from_slice(&sequence.object_positions[base..base + 3])
     })
+}
+
+/// Each object's position on the sequence's first frame, where it rests before anything moves
+/// it (the prefix starts there).
+fn resting_positions(sequence: &ProcessedSequence) -> [Vec3; MAX_OBJECTS] {
+    std::array::from_fn(|slot| Vec3::from_slice(&sequence.object_positions[slot * 3..slot * 3 + 3]))
 }
 
 /// Measures one clip against its sequence's ground-truth contact over the same frames.
@@ -98,6 +106,7 @@ fn measure(
             .flatten()
             .collect();
     let untouched_speeds = metrics::untouched_object_speeds(sample, fps)?;
+    let sinking = metrics::object_sinking(sample, resting_positions(sequence))?;
     Ok(Physical {
         penetration,
         contact,
@@ -105,6 +114,7 @@ fn measure(
         agreement,
         start_jumps_m,
         untouched_speeds,
+        sinking,
         instruction: None,
     })
 }
@@ -176,6 +186,8 @@ struct Pooled {
     agreement: (usize, usize),
     start_jump_m: Option<f64>,
     untouched_speed: Option<f64>,
+    sink_depth_m: Option<f64>,
+    sink_frames: (usize, usize),
 }
 
 impl Pooled {
@@ -197,6 +209,12 @@ impl Pooled {
             untouched_speed: metrics::median(
                 &clips.iter().flat_map(|p| p.untouched_speeds.iter().copied()).collect::<Vec<_>>(),
             ),
+            sink_depth_m: metrics::median(
+                &clips.iter().flat_map(|p| p.sinking.deepest_m.iter().copied()).collect::<Vec<_>>(),
+            ),
+            sink_frames: clips
+                .iter()
+                .fold((0, 0), |a, p| (a.0 + p.sinking.frames_below, a.1 + p.sinking.frames)),
         }
     }
 }
@@ -232,6 +250,10 @@ pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> Phys
         untouched_speed_cm_s: estimate_all(
             pooled.iter().map(|p| p.untouched_speed.map(|v| 100.0 * v)),
         ),
+        sinking_depth_cm: estimate_all(pooled.iter().map(|p| p.sink_depth_m.map(|m| 100.0 * m))),
+        sinking_frames_percent: estimate_all(pooled.iter().map(|p| {
+            (p.sink_frames.1 > 0).then(|| 100.0 * p.sink_frames.0 as f64 / p.sink_frames.1 as f64)
+        })),
     }
 }
 

@@ -149,6 +149,13 @@ pub struct PhysicalRow {
     pub object_start_jump_cm: Option<Estimate>,
     /// Median speed of objects no hand is near, cm/s (`None` when no frame qualifies).
     pub untouched_speed_cm_s: Option<Estimate>,
+    /// Median over objects of the deepest drop below the height the object rested at, cm
+    /// (`None` without objects; absent in reports of older versions).
+    #[serde(default)]
+    pub sinking_depth_cm: Option<Estimate>,
+    /// Frames with an object more than 1 cm below its resting height, percent.
+    #[serde(default)]
+    pub sinking_frames_percent: Option<Estimate>,
 }
 
 /// Instruction following of the generated clips against their ground truth after the same
@@ -305,21 +312,26 @@ impl Report {
             self.setup.describe(),
         ));
         out.push_str(
-            "\n## Objects\n\n| Method | Start jump (cm, median) ↓ | Untouched object speed (cm/s, median) ↓ |\n|---|---|---|\n",
+            "\n## Objects\n\n| Method | Start jump (cm, median) ↓ | Untouched object speed (cm/s, median) ↓ | Sinking (cm, median deepest) ↓ | Frames sunk (%) ↓ |\n|---|---|---|---|---|\n",
         );
         for row in &self.rows {
             let p = &row.physical;
             out.push_str(&format!(
-                "| {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} |\n",
                 row.name,
                 optional_cell(p.object_start_jump_cm.as_ref(), 2),
                 optional_cell(p.untouched_speed_cm_s.as_ref(), 2),
+                optional_cell(p.sinking_depth_cm.as_ref(), 2),
+                optional_cell(p.sinking_frames_percent.as_ref(), 1),
             ));
         }
         out.push_str(
             "\nStart jump: from each object's last prefix position to its first clip position \
              (the ground truth's is one frame of its own motion). Untouched: frames where every \
-             hand joint is more than 15 cm from the object's surface.\n",
+             hand joint is more than 15 cm from the object's surface. Sinking: how far an \
+             object's origin goes below the height it rested at on the sequence's first frame \
+             (through the table it stood on); frames sunk: frames with an object more than 1 cm \
+             below it.\n",
         );
         out.push_str(
             "\n## Instruction following (generated vs ground truth after the same prefix)\n\n| Group | Clips | Objects moved (%) ↑ | Unasked moves (%) ↓ | Holding hand (%) ↑ | Same side (%) ↑ | End distance (cm, median) ↓ |\n|---|---|---|---|---|---|---|\n",
@@ -420,6 +432,8 @@ mod tests {
             mixture_agreement_percent: None,
             object_start_jump_cm: Some(estimate(0.7)),
             untouched_speed_cm_s: None,
+            sinking_depth_cm: Some(estimate(0.2)),
+            sinking_frames_percent: None,
         };
         let row = ReportRow {
             name: "model".into(),

@@ -35,6 +35,23 @@ pub const MOVED_RISE_M: f32 = 0.05;
 pub const SIDE_MARGIN_M: f32 = 0.05;
 /// Hand-to-surface distance beyond which an object counts as untouched.
 pub const UNTOUCHED_DISTANCE_M: f32 = 0.15;
+/// Drop below the resting height beyond which an object counts as sunk into its support (a
+/// centimetre: a generated object put down again lands within a few millimetres of its old
+/// height when it lands well).
+pub const SINK_TOLERANCE_M: f32 = 0.01;
+
+/// How far a clip's objects go below their resting heights: how deep each one sinks at worst,
+/// and on how many frames any sinks more than [`SINK_TOLERANCE_M`].
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Sinking {
+    /// Per present object, the largest drop of its origin below its resting height, metres
+    /// (0 when it never goes below).
+    pub deepest_m: Vec<f64>,
+    /// Frames on which an object is more than the tolerance below its resting height.
+    pub frames_below: usize,
+    /// Frames judged.
+    pub frames: usize,
+}
 
 /// Which hands hold an object on a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -264,6 +281,37 @@ pub fn object_start_jumps(
         sample.present[slot]
             .then(|| f64::from((sample.object_pose(0, slot).position - prefix_last[slot]).length()))
     }))
+}
+
+/// How far the objects sink below the height they rested at (`resting`: each object's
+/// position before anything moved it, such as the first frame of the sequence): the drop of the
+/// object's origin below that height on every clip frame. Objects rest on a support (a table, the
+/// floor), and nothing should take them through it; a generated object that goes down where the
+/// ground truth's stays is pushed into the table.
+///
+/// # Errors
+/// A sample that fails [`MotionSample::frames`], a non-finite resting position.
+pub fn object_sinking(sample: &MotionSample<'_>, resting: [Vec3; MAX_OBJECTS]) -> Result<Sinking> {
+    let frames = sample.frames()?;
+    if let Some(slot) = (0..MAX_OBJECTS).find(|&s| sample.present[s] && !resting[s].is_finite()) {
+        return Err(EvalError::invalid(
+            "resting object position",
+            "finite numbers",
+            format!("{} in slot {slot}", resting[slot]),
+        ));
+    }
+    let present: Vec<usize> = (0..MAX_OBJECTS).filter(|&s| sample.present[s]).collect();
+    let mut sinking = Sinking { deepest_m: vec![0.0; present.len()], frames, ..Sinking::default() };
+    for t in 0..frames {
+        let mut below = false;
+        for (k, &slot) in present.iter().enumerate() {
+            let drop = resting[slot].y - sample.object_pose(t, slot).position.y;
+            sinking.deepest_m[k] = sinking.deepest_m[k].max(f64::from(drop));
+            below |= drop > SINK_TOLERANCE_M;
+        }
+        sinking.frames_below += usize::from(below);
+    }
+    Ok(sinking)
 }
 
 /// The speed (m/s) of every present object on every frame where it is untouched: every hand
