@@ -285,6 +285,15 @@ fn cell(value: Option<f64>, digits: usize) -> String {
     value.map_or("–".into(), |v| format!("{v:.digits$}"))
 }
 
+/// A report's cells of `metrics` in the model row or the ground-truth row.
+fn cells(loaded: &Loaded, metrics: &[&Metric], ground_truth: bool) -> Result<String> {
+    let cells = metrics
+        .iter()
+        .map(|m| Ok(cell(loaded.value(m, ground_truth)?, m.digits)))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(cells.join(" | "))
+}
+
 /// The ground truth's values of every metric in a report.
 fn ground_truth(loaded: &Loaded) -> Result<Vec<Option<f64>>> {
     METRICS.iter().map(|m| loaded.value(m, true)).collect()
@@ -310,21 +319,10 @@ fn markdown(title: &str, series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<String>
             "---|".repeat(headline.len()),
         ));
         for loaded in reports {
-            let cells = headline
-                .iter()
-                .map(|m| Ok(cell(loaded.value(m, false)?, m.digits)))
-                .collect::<Result<Vec<_>>>()?;
-            out.push_str(&format!(
-                "| {} | {} |\n",
-                loaded.report.setup.model_step,
-                cells.join(" | ")
-            ));
+            let step = loaded.report.setup.model_step;
+            out.push_str(&format!("| {step} | {} |\n", cells(loaded, &headline, false)?));
         }
-        let truth = headline
-            .iter()
-            .map(|m| Ok(cell(first.value(m, true)?, m.digits)))
-            .collect::<Result<Vec<_>>>()?;
-        out.push_str(&format!("| ground truth | {} |\n", truth.join(" | ")));
+        out.push_str(&format!("| ground truth | {} |\n", cells(first, &headline, true)?));
     }
     let all: Vec<&Loaded> = series.iter().flat_map(|(_, reports)| reports).collect();
     let first = all.first().context("no reports")?;

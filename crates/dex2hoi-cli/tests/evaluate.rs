@@ -29,26 +29,27 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     ok(&dex2hoi(&["data", "synth", "--out", data, "--sequences", "80", "--seed", "6"]));
     ok(&dex2hoi(&["train", "--config", &config, "--data", data, "--out", run, "--steps", "3"]));
     ok(&dex2hoi(&["evaluator", "train", "--data", data, "--out", evaluator, "--steps", "3"]));
-    let stdout = ok(&dex2hoi(&[
-        "evaluate",
-        "--run",
-        run,
-        "--data",
-        data,
-        "--evaluator",
-        evaluator,
-        "--out",
+    // `dex2hoi evaluate` of the run into `out`, with more options.
+    let evaluate_into = |out: &str, options: &[&str]| {
+        let mut args =
+            vec!["evaluate", "--run", run, "--data", data, "--evaluator", evaluator, "--out", out];
+        args.extend_from_slice(options);
+        dex2hoi(&args)
+    };
+    let stdout = ok(&evaluate_into(
         out,
-        "--replications",
-        "2",
-        "--sequences",
-        "4",
-        "--ddim-steps",
-        "2",
-        "--multimodality",
-        "2,2,1",
-        "--dump-embeddings",
-    ]));
+        &[
+            "--replications",
+            "2",
+            "--sequences",
+            "4",
+            "--ddim-steps",
+            "2",
+            "--multimodality",
+            "2,2,1",
+            "--dump-embeddings",
+        ],
+    ));
     let report = std::fs::read_to_string(dir.join("report/report.md")).unwrap();
     assert_eq!(stdout.lines().next(), report.lines().next());
     // The main table, then "## Objects" and "## Instruction following" tables.
@@ -108,29 +109,23 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
 
     // DDPM without guidance, recorded as such.
     let ddpm = dir.join("reports/ddpm");
-    ok(&dex2hoi(&[
-        "evaluate",
-        "--run",
-        run,
-        "--data",
-        data,
-        "--evaluator",
-        evaluator,
-        "--out",
+    ok(&evaluate_into(
         ddpm.to_str().unwrap(),
-        "--replications",
-        "1",
-        "--sequences",
-        "2",
-        "--sampler",
-        "ddpm",
-        "--denoising-steps",
-        "2",
-        "--guidance",
-        "1",
-        "--multimodality",
-        "0,1,1",
-    ]));
+        &[
+            "--replications",
+            "1",
+            "--sequences",
+            "2",
+            "--sampler",
+            "ddpm",
+            "--denoising-steps",
+            "2",
+            "--guidance",
+            "1",
+            "--multimodality",
+            "0,1,1",
+        ],
+    ));
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(ddpm.join("report.json")).unwrap()).unwrap();
     assert_eq!(json["setup"]["sampler"], "ddpm");

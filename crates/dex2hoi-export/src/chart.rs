@@ -3,8 +3,9 @@
 //! the axis. Used for a run's loss curves and for metrics against training steps; drawn with the
 //! project's bitmap font, so no plotting library or font file is needed.
 
-use crate::error::{ExportError, Result};
+use crate::error::Result;
 use crate::font::{GLYPH_HEIGHT, draw_text, text_width};
+use crate::preview::encode_rgb_png;
 
 const PANEL_WIDTH: usize = 360;
 const PANEL_HEIGHT: usize = 170;
@@ -127,16 +128,21 @@ impl Scale {
     }
 }
 
+impl Series {
+    /// The points that can be drawn on `scale`, with `y` mapped by it.
+    fn drawable(&self, scale: Scale) -> impl Iterator<Item = (f64, f64)> + '_ {
+        self.points
+            .iter()
+            .filter(|p| p.0.is_finite())
+            .filter_map(move |&(x, y)| Some((x, scale.map(y)?)))
+    }
+}
+
 impl Panel {
     /// The x range and mapped y range over every drawable point and the reference.
     fn ranges(&self) -> Option<((f64, f64), (f64, f64))> {
-        let points: Vec<(f64, f64)> = self
-            .series
-            .iter()
-            .flat_map(|s| s.points.iter())
-            .filter(|p| p.0.is_finite())
-            .filter_map(|&(x, y)| Some((x, self.scale.map(y)?)))
-            .collect();
+        let points: Vec<(f64, f64)> =
+            self.series.iter().flat_map(|s| s.drawable(self.scale)).collect();
         let fold = |values: &mut dyn Iterator<Item = f64>| {
             values.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| (lo.min(v), hi.max(v)))
         };
@@ -190,12 +196,8 @@ impl Panel {
         }
         for (index, series) in self.series.iter().enumerate() {
             let colour = PALETTE[index % PALETTE.len()];
-            let mapped: Vec<(f64, f64)> = series
-                .points
-                .iter()
-                .filter(|p| p.0.is_finite())
-                .filter_map(|&(x, y)| Some(place(x, self.scale.map(y)?)))
-                .collect();
+            let mapped: Vec<(f64, f64)> =
+                series.drawable(self.scale).map(|(x, y)| place(x, y)).collect();
             for pair in mapped.windows(2) {
                 canvas.line(pair[0], pair[1], colour, 0);
             }
@@ -233,17 +235,7 @@ impl Chart {
                 ((n % columns) * PANEL_WIDTH, legend_height + (n / columns) * PANEL_HEIGHT);
             panel.draw(&mut canvas, left, top);
         }
-        let png_error = |e: png::EncodingError| ExportError::invalid("PNG encoding", "success", e);
-        let mut bytes = Vec::new();
-        {
-            let mut encoder = png::Encoder::new(&mut bytes, width as u32, height as u32);
-            encoder.set_color(png::ColorType::Rgb);
-            encoder.set_depth(png::BitDepth::Eight);
-            let mut writer = encoder.write_header().map_err(png_error)?;
-            let data: Vec<u8> = canvas.pixels.iter().flatten().copied().collect();
-            writer.write_image_data(&data).map_err(png_error)?;
-            writer.finish().map_err(png_error)?;
-        }
-        Ok(bytes)
+        let rgb: Vec<u8> = canvas.pixels.iter().flatten().copied().collect();
+        encode_rgb_png(width as u32, height as u32, &rgb)
     }
 }

@@ -740,18 +740,24 @@ impl Preview {
         let (width, height, indices) = self.sheet(text, fps);
         let palette = palette();
         let rgb: Vec<u8> = indices.iter().flat_map(|&i| palette[i as usize]).collect();
-        let png_error = |e: png::EncodingError| ExportError::invalid("PNG encoding", "success", e);
-        let mut bytes = Vec::new();
-        {
-            let mut encoder = png::Encoder::new(&mut bytes, width, height);
-            encoder.set_color(png::ColorType::Rgb);
-            encoder.set_depth(png::BitDepth::Eight);
-            let mut writer = encoder.write_header().map_err(png_error)?;
-            writer.write_image_data(&rgb).map_err(png_error)?;
-            writer.finish().map_err(png_error)?;
-        }
-        Ok(bytes)
+        encode_rgb_png(width, height, &rgb)
     }
+}
+
+/// An 8-bit RGB PNG of `rgb` (rows top to bottom, three bytes a pixel); the preview sheet and
+/// the charts (`chart.rs`) are written with it.
+pub(crate) fn encode_rgb_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>> {
+    let png_error = |e: png::EncodingError| ExportError::invalid("PNG encoding", "success", e);
+    let mut bytes = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut bytes, width, height);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().map_err(png_error)?;
+        writer.write_image_data(rgb).map_err(png_error)?;
+        writer.finish().map_err(png_error)?;
+    }
+    Ok(bytes)
 }
 
 /// The bytes of `preview.gif` (see [`render_preview`]).

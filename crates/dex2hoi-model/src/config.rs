@@ -60,10 +60,10 @@ pub enum Prediction {
     /// (in normalised feature space): a body or object that stays where the prefix left it is
     /// the head's zero output, so a window continues from its prefix without a jump.
     PrefixResidual,
-    /// The difference from the last prefix frame for the world-frame channels (the body, the
-    /// object's rotation and world position) and the clean values themselves for the
-    /// hand-relative channels (the wrist offsets and the mixture logits), whose targets are far
-    /// from the prefix's values whenever a hand reaches for an object.
+    /// The difference from the last prefix frame on every channel but the hand-relative ones
+    /// (so on the body, the object's rotation and its world position), and the clean values
+    /// themselves on the hand-relative channels (the wrist offsets and the mixture logits), whose
+    /// targets are far from the prefix's values whenever a hand reaches for an object.
     PrefixResidualWorld,
 }
 

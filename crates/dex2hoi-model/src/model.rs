@@ -110,6 +110,31 @@ struct Denoiser {
     predicted_frames: usize,
 }
 
+/// A per-channel mask of a frame holding the body and `objects` objects: 1 everywhere but on
+/// each object's hand-relative channels (the wrist offsets and the mixture logits), 0 there.
+///
+/// # Shapes
+/// - returns `[6J + 3 + 18 objects]`
+fn without_hand_relative_channels(
+    cfg: &ModelConfig,
+    objects: usize,
+    device: &candle_core::Device,
+    dtype: DType,
+) -> Result<Tensor> {
+    let layout = cfg.layout();
+    let width = layout.body_width() + objects * layout.object_width();
+    let mut mask = vec![1.0f32; width];
+    for k in 0..objects {
+        // Object `k` of a frame sits `k` object widths after the first one.
+        let shift = k * layout.object_width();
+        for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
+            let range = layout.object_part_range(part);
+            mask[range.start + shift..range.end + shift].fill(0.0);
+        }
+    }
+    Ok(Tensor::from_vec(mask, width, device)?.to_dtype(dtype)?)
+}
+
 impl Denoiser {
     /// A denoiser of frames holding the body and `objects` objects; the blocks cross-attend to
     /// the other stream in the dual layout.
@@ -131,16 +156,7 @@ impl Denoiser {
         let channel_mask = match cfg.object_representation {
             ObjectRepresentation::HandRelative => None,
             ObjectRepresentation::GlobalOnly => {
-                let mut mask = vec![1.0f32; frame_features];
-                for k in 0..objects {
-                    // Object `k` of a frame sits `k` object widths after the first one.
-                    let shift = k * layout.object_width();
-                    for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
-                        let range = layout.object_part_range(part);
-                        mask[range.start + shift..range.end + shift].fill(0.0);
-                    }
-                }
-                Some(Tensor::from_vec(mask, frame_features, vb.device())?.to_dtype(vb.dtype())?)
+                Some(without_hand_relative_channels(cfg, objects, vb.device(), vb.dtype())?)
             }
         };
         let small_normal = Init::Randn { mean: 0.0, stdev: 0.02 };
@@ -534,14 +550,9 @@ impl Model {
         };
         let residual_mask = match config.prediction {
             Prediction::Absolute | Prediction::PrefixResidual => None,
+            // A stream row holds one object.
             Prediction::PrefixResidualWorld => {
-                let features = config.layout();
-                let mut mask = vec![1.0f32; features.stream_width()];
-                for part in [LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE, MIXTURE_RANGE] {
-                    mask[features.object_part_range(part)].fill(0.0);
-                }
-                let mask = Tensor::from_vec(mask, features.stream_width(), &device)?;
-                Some(mask.to_dtype(dtype)?)
+                Some(without_hand_relative_channels(config, 1, &device, dtype)?)
             }
         };
         Ok(Self { config: config.clone(), layout, residual_mask })
@@ -592,7 +603,7 @@ impl Model {
 
     /// The head's output as clean frames: with a prefix-residual [`Prediction`] the last
     /// prefix frame is added to every predicted frame (normalised features; every channel, or
-    /// the world-frame channels only). The body is read from stream A's prefix for both
+    /// every channel but the hand-relative ones). The body is read from stream A's prefix for both
     /// streams, as everywhere a frame's body is read, so that both streams keep one body.
     ///
     /// # Shapes

@@ -68,19 +68,12 @@ pub(super) struct Physical {
     instruction: Option<metrics::InstructionCounts>,
 }
 
-/// Each object's position on the last prefix frame (before `window.start`).
-fn prefix_last_positions(sequence: &ProcessedSequence, window: Window) -> [Vec3; MAX_OBJECTS] {
-    let frame = window.start.saturating_sub(1);
+/// Each object's position on frame `frame` of the sequence.
+fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX_OBJECTS] {
     std::array::from_fn(|slot| {
         let base = (frame * MAX_OBJECTS + slot) * 3;
         Vec3::from_slice(&sequence.object_positions[base..base + 3])
     })
-}
-
-/// Each object's position on the sequence's first frame, where it rests before anything moves
-/// it (the prefix starts there).
-fn resting_positions(sequence: &ProcessedSequence) -> [Vec3; MAX_OBJECTS] {
-    std::array::from_fn(|slot| Vec3::from_slice(&sequence.object_positions[slot * 3..slot * 3 + 3]))
 }
 
 /// Measures one clip against its sequence's ground-truth contact over the same frames.
@@ -101,12 +94,15 @@ fn measure(
         None => (0, 0),
     };
     let start_jumps_m =
-        metrics::object_start_jumps(sample, prefix_last_positions(sequence, window))?
+        // From the last prefix frame, before `window.start`.
+        metrics::object_start_jumps(sample, object_positions_at(sequence, window.start.saturating_sub(1)))?
             .into_iter()
             .flatten()
             .collect();
     let untouched_speeds = metrics::untouched_object_speeds(sample, fps)?;
-    let sinking = metrics::object_sinking(sample, resting_positions(sequence))?;
+    // Objects rest on the sequence's first frame, before anything moves them (the prefix
+    // starts there).
+    let sinking = metrics::object_sinking(sample, object_positions_at(sequence, 0))?;
     Ok(Physical {
         penetration,
         contact,
