@@ -37,6 +37,8 @@ pub(crate) trait Real:
     fn of(x: f64) -> Self;
     fn sqrt(self) -> Self;
     fn exp(self) -> Self;
+    /// `self * a + b`, one fused instruction where the CPU has FMA (see [`simd`]).
+    fn mul_add(self, a: Self, b: Self) -> Self;
     fn values(storage: &CpuStorage) -> Option<&[Self]>;
     fn storage(values: Vec<Self>) -> CpuStorage;
 }
@@ -53,6 +55,10 @@ macro_rules! real {
             fn exp(self) -> Self {
                 <$t>::exp(self)
             }
+            #[inline(always)]
+            fn mul_add(self, a: Self, b: Self) -> Self {
+                <$t>::mul_add(self, a, b)
+            }
             fn values(storage: &CpuStorage) -> Option<&[Self]> {
                 match storage {
                     CpuStorage::$variant(v) => Some(v),
@@ -68,6 +74,17 @@ macro_rules! real {
 
 real!(f32, F32);
 real!(f64, F64);
+
+/// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
+/// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
+/// workspace's default target is baseline x86-64 (SSE2), which runs anywhere. The kernel must
+/// be an `#[inline(always)]` closure (and call only `#[inline(always)]` functions), or it is
+/// compiled apart, for the baseline. On a CPU without AVX2 and FMA pulp runs the scalar
+/// version, correct but slow (`mul_add` is then computed in software).
+#[inline(always)]
+pub(crate) fn simd<R>(kernel: impl FnOnce() -> R) -> R {
+    pulp::Arch::new().dispatch(kernel)
+}
 
 pub(crate) fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
@@ -106,11 +123,13 @@ fn map_rows<T: Real, const N: usize>(
     out
 }
 
+#[inline(always)]
 fn mean<T: Real>(row: &[T]) -> T {
     row.iter().copied().sum::<T>() / T::of(row.len() as f64)
 }
 
 /// The normalised row and `1 / sqrt(variance + eps)`.
+#[inline(always)]
 fn normalise<T: Real>(row: &[T], out: &mut [T]) -> T {
     let mu = mean(row);
     for (o, &x) in out.iter_mut().zip(row) {
@@ -134,6 +153,13 @@ macro_rules! by_dtype {
         }
     };
 }
+
+// After `by_dtype!`, which they use.
+mod attention;
+mod bias;
+mod modulate;
+
+pub use bias::Activation;
 
 /// Layer norm over the last dimension without affine parameters, `eps = 1e-6`.
 #[derive(Debug, Clone, Copy)]
@@ -320,4 +346,47 @@ pub fn layer_norm(x: &Tensor) -> candle_core::Result<Tensor> {
 /// Softmax over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
 pub fn softmax(x: &Tensor) -> candle_core::Result<Tensor> {
     x.contiguous()?.apply_op1(Softmax)
+}
+
+/// `act(y + bias)` over the last dimension (a linear layer's bias and activation after its
+/// product), fused, with its backward pass (CPU, f32/f64 only).
+///
+/// # Shapes
+/// - `y`: `[..., features]`; `bias`: `[features]`; returns `y`'s shape
+pub fn bias_activation(
+    y: &Tensor,
+    bias: &Tensor,
+    activation: Activation,
+) -> candle_core::Result<Tensor> {
+    y.contiguous()?.apply_op2(&bias.contiguous()?, bias::BiasActivation(activation))
+}
+
+/// AdaLN, `norm(x) * (1 + scale) + shift` with `(shift, scale)` the halves of each sequence's
+/// modulation, fused, with its backward pass (CPU, f32/f64 only).
+///
+/// # Shapes
+/// - `x`: `[N, T, latent]`; `modulation`: `[N, 2 latent]`; returns `x`'s shape
+pub fn modulate(x: &Tensor, modulation: &Tensor) -> candle_core::Result<Tensor> {
+    x.contiguous()?.apply_op2(&modulation.contiguous()?, modulate::Modulate)
+}
+
+/// Multi-head attention after the projections (`softmax(Q K^T / sqrt(head))` over the keys
+/// whose mask is 1, times the values; heads merged), fused, with its backward pass (CPU,
+/// f32/f64 only). The mask gets no gradient.
+///
+/// # Shapes
+/// - `queries`: `[N, Tq, latent]`; `keys_values`: `[N, Tk, 2 latent]` (keys, then values)
+/// - `mask`: `[N, Tk]`, 1 = attend, 0 = ignore; returns `[N, Tq, latent]`
+pub fn attention(
+    queries: &Tensor,
+    keys_values: &Tensor,
+    mask: &Tensor,
+    heads: usize,
+) -> candle_core::Result<Tensor> {
+    let mask = mask.to_dtype(queries.dtype())?.contiguous()?;
+    queries.contiguous()?.apply_op3(
+        &keys_values.contiguous()?,
+        &mask,
+        attention::Attention { heads },
+    )
 }

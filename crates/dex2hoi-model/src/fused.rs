@@ -11,7 +11,7 @@
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::differentiable::{ROWS_PER_TASK, op_error};
+use crate::differentiable::{ROWS_PER_TASK, op_error, simd};
 use crate::layers::LAYER_NORM_EPS;
 
 /// The values of a contiguous f32 tensor.
@@ -28,17 +28,6 @@ const QUERY_BLOCK: usize = 4;
 
 /// Floats per SIMD tile of the blocked attention kernel (one AVX register).
 const LANES: usize = 8;
-
-/// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
-/// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
-/// workspace's default target is baseline x86-64 (SSE2), which runs anywhere. The kernel must
-/// be an `#[inline(always)]` closure (and call only `#[inline(always)]` functions), or it is
-/// compiled apart, for the baseline. On a CPU without AVX2 and FMA pulp runs the scalar
-/// version, correct but slow (`mul_add` is then computed in software).
-#[inline(always)]
-fn simd<R>(kernel: impl FnOnce() -> R) -> R {
-    pulp::Arch::new().dispatch(kernel)
-}
 
 /// The last dimension and the number of rows before it.
 fn rows_and_width(layout: &Layout) -> (usize, usize) {

@@ -9,6 +9,7 @@ use candle_nn::{VarBuilder, init::Init};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
+pub use crate::differentiable::Activation;
 use crate::error::Result;
 
 /// The layer norm's epsilon, added to the variance (every implementation: composite, fused
@@ -86,11 +87,29 @@ impl Dense {
     /// # Shapes
     /// - `x`: `[..., input]`; returns `[..., output]`
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.forward_with(x, Activation::Identity)
+    }
+
+    /// `act(x W + b)`: the bias and the activation fused with a hand-written backward pass on
+    /// the CPU ([`crate::differentiable`]), composed elsewhere.
+    ///
+    /// # Shapes
+    /// - `x`: `[..., input]`; returns `[..., output]`
+    pub fn forward_with(&self, x: &Tensor, activation: Activation) -> Result<Tensor> {
         let dims = x.dims();
         let input = dims[dims.len() - 1];
         let rows = x.elem_count() / input.max(1);
         let flat = x.contiguous()?.reshape((rows, input))?;
-        let out = flat.matmul(&self.weight)?.broadcast_add(&self.bias)?;
+        let product = flat.matmul(&self.weight)?;
+        let out = if crate::differentiable::applies(&product) {
+            crate::differentiable::bias_activation(&product, &self.bias, activation)?
+        } else {
+            let biased = product.broadcast_add(&self.bias)?;
+            match activation {
+                Activation::Identity => biased,
+                Activation::Silu => biased.silu()?,
+            }
+        };
         let mut shape = dims.to_vec();
         *shape.last_mut().expect("a non-scalar input") = self.weight.dims()[1];
         Ok(out.reshape(shape)?)
@@ -128,7 +147,11 @@ impl Modulation {
     /// - `x`: `[batch, frames, latent]`; `emb`: `[batch, latent]`; returns `x`'s shape
     pub fn forward(&self, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
         let (_, _, latent) = x.dims3()?;
-        let params = self.linear.forward(&emb.silu()?)?.unsqueeze(1)?;
+        let params = self.linear.forward(&emb.silu()?)?;
+        if crate::differentiable::applies(x) {
+            return Ok(crate::differentiable::modulate(x, &params)?);
+        }
+        let params = params.unsqueeze(1)?;
         let shift = params.narrow(D::Minus1, 0, latent)?;
         let scale = params.narrow(D::Minus1, latent, latent)?;
         Ok(layer_norm(x)?.broadcast_mul(&(scale + 1.0)?)?.broadcast_add(&shift)?)
@@ -179,8 +202,17 @@ impl Attention {
     ) -> Result<Tensor> {
         let (batch, query_frames, latent) = queries.dims3()?;
         let head = latent / self.heads;
-        let q = self.split_heads(&self.query.forward(queries)?)?;
+        let q = self.query.forward(queries)?;
         let key_value = self.key_value.forward(keys)?;
+        if crate::differentiable::applies(&q) {
+            let mask = match key_mask {
+                Some(mask) => mask.clone(),
+                None => Tensor::ones((batch, keys.dims3()?.1), q.dtype(), q.device())?,
+            };
+            let attended = crate::differentiable::attention(&q, &key_value, &mask, self.heads)?;
+            return self.out.forward(&attended);
+        }
+        let q = self.split_heads(&q)?;
         let k = self.split_heads(&key_value.narrow(2, 0, latent)?)?;
         let v = self.split_heads(&key_value.narrow(2, latent, latent)?)?;
         let mut scores = (q.matmul(&k.transpose(2, 3)?.contiguous()?)? / (head as f64).sqrt())?;
@@ -218,7 +250,7 @@ impl FeedForward {
     /// # Shapes
     /// - `x`: `[..., latent]`; returns the same shape
     pub fn forward(&self, x: &Tensor, p: f64, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
-        let hidden = dropout(&self.up.forward(x)?.silu()?, p, rng)?;
+        let hidden = dropout(&self.up.forward_with(x, Activation::Silu)?, p, rng)?;
         self.down.forward(&hidden)
     }
 }

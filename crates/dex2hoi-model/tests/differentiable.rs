@@ -115,3 +115,207 @@ fn other_dtypes_and_strided_inputs() {
     assert!(!differentiable::applies(&half));
     assert!(differentiable::layer_norm(&half).is_err());
 }
+
+/// The fused operations of the transformer block, each as a function of its inputs (the last
+/// input of the attention, the mask, gets no gradient).
+type BlockOp = fn(&[Tensor]) -> Tensor;
+
+fn fused_bias(x: &[Tensor]) -> Tensor {
+    differentiable::bias_activation(&x[0], &x[1], differentiable::Activation::Identity).unwrap()
+}
+fn composite_bias(x: &[Tensor]) -> Tensor {
+    x[0].broadcast_add(&x[1]).unwrap()
+}
+fn fused_bias_silu(x: &[Tensor]) -> Tensor {
+    differentiable::bias_activation(&x[0], &x[1], differentiable::Activation::Silu).unwrap()
+}
+fn composite_bias_silu(x: &[Tensor]) -> Tensor {
+    x[0].broadcast_add(&x[1]).unwrap().silu().unwrap()
+}
+fn fused_modulate(x: &[Tensor]) -> Tensor {
+    differentiable::modulate(&x[0], &x[1]).unwrap()
+}
+/// AdaLN written out: `norm(x) (1 + scale) + shift`.
+fn composite_modulate(x: &[Tensor]) -> Tensor {
+    let latent = x[0].dim(2).unwrap();
+    let modulation = x[1].unsqueeze(1).unwrap();
+    let shift = modulation.narrow(2, 0, latent).unwrap();
+    let scale = (modulation.narrow(2, latent, latent).unwrap() + 1.0).unwrap();
+    layer_norm_composite(&x[0])
+        .unwrap()
+        .broadcast_mul(&scale)
+        .unwrap()
+        .broadcast_add(&shift)
+        .unwrap()
+}
+const HEADS: usize = 2;
+fn fused_attention(x: &[Tensor]) -> Tensor {
+    differentiable::attention(&x[0], &x[1], &x[2], HEADS).unwrap()
+}
+/// Multi-head attention written out with candle's batched products, one head at a time.
+fn composite_attention(x: &[Tensor]) -> Tensor {
+    let (q, kv, mask) = (&x[0], &x[1], &x[2]);
+    let latent = q.dim(2).unwrap();
+    let head = latent / HEADS;
+    let bias = ((mask - 1.0).unwrap() * 1e9).unwrap().unsqueeze(1).unwrap();
+    let heads: Vec<Tensor> = (0..HEADS)
+        .map(|h| {
+            let q = q.narrow(2, h * head, head).unwrap();
+            let k = kv.narrow(2, h * head, head).unwrap();
+            let v = kv.narrow(2, latent + h * head, head).unwrap();
+            let scores = (q.matmul(&k.t().unwrap()).unwrap() / (head as f64).sqrt()).unwrap();
+            let weights = softmax_composite(&scores.broadcast_add(&bias).unwrap()).unwrap();
+            weights.matmul(&v).unwrap()
+        })
+        .collect();
+    Tensor::cat(&heads, 2).unwrap()
+}
+
+/// Name, fused, composite, the inputs' shapes for a size `(n, t, latent)`, and how many of the
+/// inputs get a gradient.
+type BlockCase =
+    (&'static str, BlockOp, BlockOp, fn(usize, usize, usize) -> Vec<Vec<usize>>, usize);
+
+const BLOCK_OPS: [BlockCase; 4] = [
+    ("bias", fused_bias, composite_bias, |n, t, l| vec![vec![n, t, l], vec![l]], 2),
+    (
+        "bias + SiLU",
+        fused_bias_silu,
+        composite_bias_silu,
+        |n, t, l| vec![vec![n, t, l], vec![l]],
+        2,
+    ),
+    (
+        "modulate",
+        fused_modulate,
+        composite_modulate,
+        |n, t, l| vec![vec![n, t, l], vec![n, 2 * l]],
+        2,
+    ),
+    (
+        "attention",
+        fused_attention,
+        composite_attention,
+        |n, t, l| vec![vec![n, t, l], vec![n, t + 1, 2 * l], vec![n, t + 1]],
+        2,
+    ),
+];
+
+/// Random inputs for a case; the attention's mask masks each sequence's last key but one.
+fn block_inputs(
+    case: &BlockCase,
+    size: (usize, usize, usize),
+    rng: &mut ChaCha8Rng,
+) -> Vec<Tensor> {
+    let shapes = (case.3)(size.0, size.1, size.2);
+    let mut inputs: Vec<Tensor> = shapes.iter().map(|s| random(s, 2.0, rng)).collect();
+    if case.0 == "attention" {
+        let (n, keys) = (shapes[2][0], shapes[2][1]);
+        let mask: Vec<f64> =
+            (0..n * keys).map(|i| if i % keys == keys - 2 { 0.0 } else { 1.0 }).collect();
+        inputs[2] = Tensor::from_vec(mask, (n, keys), &Device::Cpu).unwrap();
+    }
+    inputs
+}
+
+/// `sum(op(inputs) * weights)` and its gradients with respect to the first `graded` inputs.
+fn block_value_and_gradients(
+    op: BlockOp,
+    inputs: &[Tensor],
+    graded: usize,
+    weights: &Tensor,
+) -> (f64, Vec<Tensor>) {
+    let vars: Vec<Var> = inputs[..graded].iter().map(|x| Var::from_tensor(x).unwrap()).collect();
+    let mut all: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+    all.extend(inputs[graded..].iter().cloned());
+    let loss = (op(&all) * weights).unwrap().sum_all().unwrap();
+    let grads = loss.backward().unwrap();
+    let value = loss.to_dtype(DType::F64).unwrap().to_scalar::<f64>().unwrap();
+    (value, vars.iter().map(|v| grads.get(v.as_tensor()).unwrap().clone()).collect())
+}
+
+#[test]
+fn block_operations_equal_their_composites_forward_and_backward() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for case in &BLOCK_OPS {
+        let (name, fused, composite, _, graded) = *case;
+        for size in [(2, 5, 8), (1, 1, 4), (3, 17, 12)] {
+            for (dtype, tolerance) in [(DType::F64, 1e-10), (DType::F32, 5e-5)] {
+                let inputs: Vec<Tensor> = block_inputs(case, size, &mut rng)
+                    .iter()
+                    .map(|x| x.to_dtype(dtype).unwrap())
+                    .collect();
+                let out = composite(&inputs);
+                let weights = random(out.dims(), 1.0, &mut rng).to_dtype(dtype).unwrap();
+                let difference = max_difference(&fused(&inputs), &out);
+                assert!(difference < tolerance, "{name} {size:?} {dtype:?}: {difference}");
+                let (_, g_fused) = block_value_and_gradients(fused, &inputs, graded, &weights);
+                let (_, g_composite) =
+                    block_value_and_gradients(composite, &inputs, graded, &weights);
+                for (k, (a, b)) in g_fused.iter().zip(&g_composite).enumerate() {
+                    assert_eq!(a.dims(), b.dims(), "{name} input {k}");
+                    let difference = max_difference(a, b);
+                    assert!(
+                        difference < 10.0 * tolerance,
+                        "{name} {size:?} {dtype:?} input {k}: {difference}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn block_operation_gradients_match_finite_differences() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for case in &BLOCK_OPS {
+        let (name, fused, _, _, graded) = *case;
+        let inputs = block_inputs(case, (2, 3, 4), &mut rng);
+        let out = fused(&inputs);
+        let weights = random(out.dims(), 1.0, &mut rng);
+        let (_, gradients) = block_value_and_gradients(fused, &inputs, graded, &weights);
+        let h = 1e-5;
+        for (k, gradient) in gradients.iter().enumerate() {
+            let gradient: Vec<f64> = gradient.flatten_all().unwrap().to_vec1().unwrap();
+            let base: Vec<f64> = inputs[k].flatten_all().unwrap().to_vec1().unwrap();
+            for e in (0..base.len()).step_by(3) {
+                let at = |delta: f64| {
+                    let mut v = base.clone();
+                    v[e] += delta;
+                    let mut moved = inputs.clone();
+                    moved[k] = Tensor::from_vec(v, inputs[k].dims(), &Device::Cpu).unwrap();
+                    block_value_and_gradients(fused, &moved, graded, &weights).0
+                };
+                let numeric = (at(h) - at(-h)) / (2.0 * h);
+                assert!(
+                    (numeric - gradient[e]).abs() < 1e-6 * (1.0 + numeric.abs()),
+                    "{name} input {k} entry {e}: {numeric} vs {}",
+                    gradient[e]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn block_operations_refuse_mismatched_shapes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let x = random(&[2, 3, 4], 1.0, &mut rng);
+    let error = differentiable::modulate(&x, &random(&[2, 4], 1.0, &mut rng)).unwrap_err();
+    assert!(error.to_string().contains("modulation [N, 2 latent]"), "{error}");
+    let error = differentiable::attention(
+        &x,
+        &random(&[2, 3, 4], 1.0, &mut rng),
+        &random(&[2, 3], 1.0, &mut rng),
+        2,
+    )
+    .unwrap_err();
+    assert!(error.to_string().contains("keys and values [N, Tk, 2 latent]"), "{error}");
+    let error = differentiable::bias_activation(
+        &x,
+        &random(&[3], 1.0, &mut rng),
+        differentiable::Activation::Silu,
+    )
+    .unwrap_err();
+    assert!(error.to_string().contains("a bias of 4"), "{error}");
+}
