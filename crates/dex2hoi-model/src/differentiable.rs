@@ -39,12 +39,14 @@ pub(crate) trait Real:
     fn exp(self) -> Self;
     /// `self * a + b`, one fused instruction where the CPU has FMA (see [`simd`]).
     fn mul_add(self, a: Self, b: Self) -> Self;
+    /// `e^self`, vectorisable in f32 (about 1 ulp, [`crate::fused::exp`]); libm's in f64.
+    fn fast_exp(self) -> Self;
     fn values(storage: &CpuStorage) -> Option<&[Self]>;
     fn storage(values: Vec<Self>) -> CpuStorage;
 }
 
 macro_rules! real {
-    ($t:ty, $variant:ident) => {
+    ($t:ty, $variant:ident, $fast_exp:expr) => {
         impl Real for $t {
             fn of(x: f64) -> Self {
                 x as $t
@@ -59,6 +61,10 @@ macro_rules! real {
             fn mul_add(self, a: Self, b: Self) -> Self {
                 <$t>::mul_add(self, a, b)
             }
+            #[inline(always)]
+            fn fast_exp(self) -> Self {
+                $fast_exp(self)
+            }
             fn values(storage: &CpuStorage) -> Option<&[Self]> {
                 match storage {
                     CpuStorage::$variant(v) => Some(v),
@@ -72,8 +78,8 @@ macro_rules! real {
     };
 }
 
-real!(f32, F32);
-real!(f64, F64);
+real!(f32, F32, crate::fused::exp);
+real!(f64, F64, f64::exp);
 
 /// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
 /// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the
@@ -103,7 +109,8 @@ pub(crate) fn values<'a, T: Real>(
     }
 }
 
-/// Applies `row_op(input rows, output row)` to every row of `width` values, in parallel.
+/// Applies `row_op(input rows, output row)` to every row of `width` values, in parallel, under
+/// [`simd`] (so `row_op` should be an `#[inline(always)]` closure).
 fn map_rows<T: Real, const N: usize>(
     width: usize,
     inputs: [&[T]; N],
@@ -115,17 +122,58 @@ fn map_rows<T: Real, const N: usize>(
     }
     let chunk = width * ROWS_PER_TASK;
     out.par_chunks_mut(chunk).enumerate().for_each(|(task, out)| {
-        for (k, o) in out.chunks_exact_mut(width).enumerate() {
-            let at = task * chunk + k * width;
-            row_op(std::array::from_fn(|i| &inputs[i][at..at + width]), o);
-        }
+        simd(
+            #[inline(always)]
+            || {
+                for (k, o) in out.chunks_exact_mut(width).enumerate() {
+                    let at = task * chunk + k * width;
+                    row_op(std::array::from_fn(|i| &inputs[i][at..at + width]), o);
+                }
+            },
+        )
     });
     out
 }
 
 #[inline(always)]
 fn mean<T: Real>(row: &[T]) -> T {
-    row.iter().copied().sum::<T>() / T::of(row.len() as f64)
+    dot(row, None) / T::of(row.len() as f64)
+}
+
+/// Independent partial sums of [`dot`]: a plain sum is one chain of dependent additions, which
+/// does not vectorise.
+const SUM_LANES: usize = 8;
+
+/// `sum_k a_k b_k`, or `sum_k a_k` without `b`, in [`SUM_LANES`] partial sums (vectorised under
+/// [`simd`]).
+#[inline(always)]
+fn dot<T: Real>(a: &[T], b: Option<&[T]>) -> T {
+    let mut lanes = [T::default(); SUM_LANES];
+    let whole = a.len() / SUM_LANES * SUM_LANES;
+    let mut tail = T::default();
+    match b {
+        Some(b) => {
+            for (a, b) in a[..whole].chunks_exact(SUM_LANES).zip(b.chunks_exact(SUM_LANES)) {
+                for ((lane, &a), &b) in lanes.iter_mut().zip(a).zip(b) {
+                    *lane = a.mul_add(b, *lane);
+                }
+            }
+            for (&a, &b) in a[whole..].iter().zip(&b[whole..]) {
+                tail = a.mul_add(b, tail);
+            }
+        }
+        None => {
+            for a in a[..whole].chunks_exact(SUM_LANES) {
+                for (lane, &a) in lanes.iter_mut().zip(a) {
+                    *lane = *lane + a;
+                }
+            }
+            for &a in &a[whole..] {
+                tail = tail + a;
+            }
+        }
+    }
+    lanes.iter().fold(tail, |total, &lane| total + lane)
 }
 
 /// The normalised row and `1 / sqrt(variance + eps)`.
@@ -135,7 +183,7 @@ fn normalise<T: Real>(row: &[T], out: &mut [T]) -> T {
     for (o, &x) in out.iter_mut().zip(row) {
         *o = x - mu;
     }
-    let variance = out.iter().map(|&c| c * c).sum::<T>() / T::of(row.len() as f64);
+    let variance = dot(out, Some(out)) / T::of(row.len() as f64);
     let inverse = T::of(1.0) / (variance + T::of(LAYER_NORM_EPS)).sqrt();
     for o in out.iter_mut() {
         *o = *o * inverse;
@@ -171,9 +219,14 @@ fn layer_norm_forward<T: Real>(
 ) -> candle_core::Result<(CpuStorage, Shape)> {
     let x = values::<T>("layer-norm", storage, layout)?;
     let width = layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(width, [x], |rows, o| {
-        normalise(rows[0], o);
-    });
+    let out = map_rows(
+        width,
+        [x],
+        #[inline(always)]
+        |rows, o| {
+            normalise(rows[0], o);
+        },
+    );
     Ok((T::storage(out), layout.shape().clone()))
 }
 
@@ -212,16 +265,21 @@ fn layer_norm_backward<T: Real>(
         return Err(op_error("layer-norm-backward", "a gradient of the input's shape"));
     }
     let width = x_layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(width, [x, g], |rows, o| {
-        let (x, g) = (rows[0], rows[1]);
-        let inverse = normalise(x, o); // o = y
-        let n = T::of(width as f64);
-        let g_mean = mean(g);
-        let gy_mean = o.iter().zip(g).map(|(&y, &g)| g * y).sum::<T>() / n;
-        for (o, &g) in o.iter_mut().zip(g) {
-            *o = (g - g_mean - *o * gy_mean) * inverse;
-        }
-    });
+    let out = map_rows(
+        width,
+        [x, g],
+        #[inline(always)]
+        |rows, o| {
+            let (x, g) = (rows[0], rows[1]);
+            let inverse = normalise(x, o); // o = y
+            let n = T::of(width as f64);
+            let g_mean = mean(g);
+            let gy_mean = dot(o, Some(g)) / n;
+            for (o, &g) in o.iter_mut().zip(g) {
+                *o = (g - g_mean - *o * gy_mean) * inverse;
+            }
+        },
+    );
     Ok((T::storage(out), x_layout.shape().clone()))
 }
 
@@ -255,17 +313,22 @@ fn softmax_forward<T: Real>(
 ) -> candle_core::Result<(CpuStorage, Shape)> {
     let x = values::<T>("softmax", storage, layout)?;
     let width = layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(width, [x], |rows, o| {
-        let row = rows[0];
-        let max = row.iter().copied().fold(row[0], |m, v| if v > m { v } else { m });
-        for (o, &v) in o.iter_mut().zip(row) {
-            *o = (v - max).exp();
-        }
-        let total = o.iter().copied().sum::<T>();
-        for o in o.iter_mut() {
-            *o = *o / total;
-        }
-    });
+    let out = map_rows(
+        width,
+        [x],
+        #[inline(always)]
+        |rows, o| {
+            let row = rows[0];
+            let max = row.iter().copied().fold(row[0], |m, v| if v > m { v } else { m });
+            for (o, &v) in o.iter_mut().zip(row) {
+                *o = (v - max).exp();
+            }
+            let total = dot(o, None);
+            for o in o.iter_mut() {
+                *o = *o / total;
+            }
+        },
+    );
     Ok((T::storage(out), layout.shape().clone()))
 }
 
@@ -303,13 +366,18 @@ fn softmax_backward<T: Real>(
         return Err(op_error("softmax-backward", "a gradient of the output's shape"));
     }
     let width = y_layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(width, [y, g], |rows, o| {
-        let (y, g) = (rows[0], rows[1]);
-        let gy = y.iter().zip(g).map(|(&y, &g)| y * g).sum::<T>();
-        for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
-            *o = y * (g - gy);
-        }
-    });
+    let out = map_rows(
+        width,
+        [y, g],
+        #[inline(always)]
+        |rows, o| {
+            let (y, g) = (rows[0], rows[1]);
+            let gy = dot(y, Some(g));
+            for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
+                *o = y * (g - gy);
+            }
+        },
+    );
     Ok((T::storage(out), y_layout.shape().clone()))
 }
 

@@ -57,7 +57,7 @@ fn normalise_row(row: &[f32], out: &mut [f32]) {
 /// `|r| <= ln 2 / 2`, a degree-7 expansion of `e^r` (Cephes' `expf` coefficients), times `2^n`
 /// built in the exponent bits.
 #[inline(always)]
-fn exp(x: f32) -> f32 {
+pub(crate) fn exp(x: f32) -> f32 {
     const LOG2_E: f32 = std::f32::consts::LOG2_E;
     // ln 2 split in a part exact in f32 and the rest (Cody and Waite).
     const LN2_HIGH: f32 = 0.693_359_4;

@@ -8,7 +8,7 @@
 use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{Real, op_error, simd, values};
+use super::{Real, dot, op_error, simd, values};
 
 /// What the composite adds to the scores of a masked key (`(mask - 1) * 1e9`).
 const MASKED: f64 = -1e9;
@@ -60,76 +60,133 @@ impl Attention {
     }
 }
 
-/// One sequence's queries `[Tq, latent]`, keys and values `[Tk, 2 latent]` and mask `[Tk]`.
-#[derive(Clone, Copy)]
-struct Sequence<'a, T> {
-    queries: &'a [T],
-    keys_values: &'a [T],
-    mask: &'a [T],
-}
+/// Rows of the register tile of [`product`].
+const TILE_ROWS: usize = 4;
+/// Columns of the register tile of [`product`] (two AVX registers of f32).
+const TILE_COLUMNS: usize = 16;
 
-impl<'a, T: Real> Sequence<'a, T> {
-    fn of(n: usize, s: Sizes, queries: &'a [T], keys_values: &'a [T], mask: &'a [T]) -> Self {
-        Self {
-            queries: &queries[n * s.query_frames * s.latent..][..s.query_frames * s.latent],
-            keys_values: &keys_values[n * s.key_frames * 2 * s.latent..]
-                [..s.key_frames * 2 * s.latent],
-            mask: &mask[n * s.key_frames..][..s.key_frames],
-        }
-    }
-
-    /// Query `i` of head `h`.
-    #[inline(always)]
-    fn query(&self, s: Sizes, i: usize, h: usize) -> &'a [T] {
-        &self.queries[i * s.latent + h * s.head..][..s.head]
-    }
-
-    /// Key `j` of head `h`.
-    #[inline(always)]
-    fn key(&self, s: Sizes, j: usize, h: usize) -> &'a [T] {
-        &self.keys_values[j * 2 * s.latent + h * s.head..][..s.head]
-    }
-
-    /// Value `j` of head `h`.
-    #[inline(always)]
-    fn value(&self, s: Sizes, j: usize, h: usize) -> &'a [T] {
-        &self.keys_values[j * 2 * s.latent + s.latent + h * s.head..][..s.head]
-    }
-
-    /// Head `h`'s keys (`values = false`) or values transposed into `out`, `[head][Tk]`.
-    #[inline(always)]
-    fn transposed(&self, s: Sizes, h: usize, values: bool, out: &mut [T]) {
-        for j in 0..s.key_frames {
-            let row = if values { self.value(s, j, h) } else { self.key(s, j, h) };
-            for (d, &v) in row.iter().enumerate() {
-                out[d * s.key_frames + j] = v;
-            }
-        }
-    }
-
-    /// Head `h`'s attention weights `[Tq][Tk]` into `weights`; `keys_t` is scratch of
-    /// `[head][Tk]`.
-    #[inline(always)]
-    fn weights(&self, s: Sizes, h: usize, keys_t: &mut [T], weights: &mut [T]) {
-        self.transposed(s, h, false, keys_t);
-        let scale = T::of(1.0 / (s.head as f64).sqrt());
-        for (i, row) in weights.chunks_exact_mut(s.key_frames).enumerate() {
-            row.fill(T::default());
-            for (&q, keys) in self.query(s, i, h).iter().zip(keys_t.chunks_exact(s.key_frames)) {
-                for (r, &k) in row.iter_mut().zip(keys) {
-                    *r = q.mul_add(k, *r);
+/// `c = a b` for row-major `a` `[m, k]`, `b` `[k, n]` and `c` `[m, n]`: the small products of
+/// one head (at most a few hundred rows and columns), register-blocked in tiles of
+/// [`TILE_ROWS`] x [`TILE_COLUMNS`] whose sums stay in registers while the rows of `b` stream
+/// past (vectorised under [`simd`]).
+#[inline(always)]
+fn product<T: Real>(a: &[T], b: &[T], c: &mut [T], (m, k, n): (usize, usize, usize)) {
+    for i in (0..m).step_by(TILE_ROWS) {
+        let rows = TILE_ROWS.min(m - i);
+        for j in (0..n).step_by(TILE_COLUMNS) {
+            let columns = TILE_COLUMNS.min(n - j);
+            if rows == TILE_ROWS && columns == TILE_COLUMNS {
+                let mut sums = [[T::default(); TILE_COLUMNS]; TILE_ROWS];
+                for p in 0..k {
+                    let b_row = &b[p * n + j..][..TILE_COLUMNS];
+                    for (r, sums) in sums.iter_mut().enumerate() {
+                        let a = a[(i + r) * k + p];
+                        for (s, &b) in sums.iter_mut().zip(b_row) {
+                            *s = a.mul_add(b, *s);
+                        }
+                    }
+                }
+                for (r, sums) in sums.iter().enumerate() {
+                    c[(i + r) * n + j..][..TILE_COLUMNS].copy_from_slice(sums);
+                }
+            } else {
+                for r in i..i + rows {
+                    let c_row = &mut c[r * n + j..][..columns];
+                    c_row.fill(T::default());
+                    for p in 0..k {
+                        let a = a[r * k + p];
+                        for (s, &b) in c_row.iter_mut().zip(&b[p * n + j..][..columns]) {
+                            *s = a.mul_add(b, *s);
+                        }
+                    }
                 }
             }
-            for (r, &m) in row.iter_mut().zip(self.mask) {
+        }
+    }
+}
+
+/// `out = x^T` for row-major `x` `[rows, columns]`.
+#[inline(always)]
+fn transpose<T: Real>(x: &[T], out: &mut [T], (rows, columns): (usize, usize)) {
+    for (r, row) in x.chunks_exact(columns).take(rows).enumerate() {
+        for (c, &v) in row.iter().enumerate() {
+            out[c * rows + r] = v;
+        }
+    }
+}
+
+/// Copies columns `column..column + out_width` of every row of `source` (rows of `width`)
+/// into the rows of `out`.
+#[inline(always)]
+fn gather<T: Real>(source: &[T], width: usize, column: usize, out: &mut [T]) {
+    let out_width = out.len() / (source.len() / width.max(1)).max(1);
+    for (o, row) in out.chunks_exact_mut(out_width.max(1)).zip(source.chunks_exact(width.max(1))) {
+        o.copy_from_slice(&row[column..column + out_width]);
+    }
+}
+
+/// Adds the rows of `x` into columns `column..` of the rows of `out` (rows of `width`).
+#[inline(always)]
+fn scatter<T: Real>(x: &[T], out: &mut [T], width: usize, column: usize) {
+    let x_width = x.len() / (out.len() / width.max(1)).max(1);
+    for (o, row) in out.chunks_exact_mut(width.max(1)).zip(x.chunks_exact(x_width.max(1))) {
+        for (o, &v) in o[column..column + x_width].iter_mut().zip(row) {
+            *o = *o + v;
+        }
+    }
+}
+
+/// One sequence's buffers for one head at a time: its queries, keys and values copied out of
+/// the projections' rows, and the products of the forward and backward passes.
+struct Head<T> {
+    s: Sizes,
+    /// `[Tq, head]`, `[Tk, head]`, `[Tk, head]`.
+    queries: Vec<T>,
+    keys: Vec<T>,
+    values: Vec<T>,
+    /// `[head, Tk]`: keys (then values) transposed.
+    transposed: Vec<T>,
+    /// `[Tq, Tk]`: the attention weights.
+    weights: Vec<T>,
+    /// `[Tq, head]`: the output (forward), the output's gradient (backward).
+    out: Vec<T>,
+}
+
+impl<T: Real> Head<T> {
+    fn new(s: Sizes) -> Self {
+        let (q, k, d) = (s.query_frames, s.key_frames, s.head);
+        Self {
+            s,
+            queries: vec![T::default(); q * d],
+            keys: vec![T::default(); k * d],
+            values: vec![T::default(); k * d],
+            transposed: vec![T::default(); d * k],
+            weights: vec![T::default(); q * k],
+            out: vec![T::default(); q * d],
+        }
+    }
+
+    /// Loads head `h` of one sequence (`queries` `[Tq, latent]`, `keys_values`
+    /// `[Tk, 2 latent]`) and computes its attention weights under `mask` (`[Tk]`).
+    #[inline(always)]
+    fn load(&mut self, h: usize, queries: &[T], keys_values: &[T], mask: &[T]) {
+        let Sizes { query_frames, key_frames, latent, head } = self.s;
+        gather(queries, latent, h * head, &mut self.queries);
+        gather(keys_values, 2 * latent, h * head, &mut self.keys);
+        gather(keys_values, 2 * latent, latent + h * head, &mut self.values);
+        transpose(&self.keys, &mut self.transposed, (key_frames, head));
+        let sizes = (query_frames, head, key_frames);
+        product(&self.queries, &self.transposed, &mut self.weights, sizes);
+        let scale = T::of(1.0 / (head as f64).sqrt());
+        for row in self.weights.chunks_exact_mut(key_frames) {
+            for (r, &m) in row.iter_mut().zip(mask) {
                 *r = r.mul_add(scale, (m - T::of(1.0)) * T::of(-MASKED));
             }
             let largest = row.iter().copied().fold(row[0], |a, b| if b > a { b } else { a });
-            let mut total = T::default();
             for r in row.iter_mut() {
-                *r = (*r - largest).exp();
-                total = total + *r;
+                *r = (*r - largest).fast_exp();
             }
-            let inverse = T::of(1.0) / total;
+            let inverse = T::of(1.0) / dot(row, None);
             for r in row.iter_mut() {
                 *r = *r * inverse;
             }
@@ -150,26 +207,22 @@ fn forward<T: Real>(
         values::<T>(name, kv, kv_layout)?,
         values::<T>(name, mask, mask_layout)?,
     );
+    let (query_rows, key_rows) = (s.query_frames * s.latent, s.key_frames * 2 * s.latent);
     let mut out = vec![T::default(); queries.len()];
-    if s.query_frames * s.latent > 0 && s.key_frames > 0 {
-        out.par_chunks_mut(s.query_frames * s.latent).enumerate().for_each(|(n, out)| {
-            let sequence = Sequence::of(n, s, queries, keys_values, mask);
-            let mut keys_t = vec![T::default(); s.head * s.key_frames];
-            let mut weights = vec![T::default(); s.query_frames * s.key_frames];
+    if query_rows > 0 && s.key_frames > 0 {
+        out.par_chunks_mut(query_rows).enumerate().for_each(|(n, out)| {
+            let queries = &queries[n * query_rows..][..query_rows];
+            let keys_values = &keys_values[n * key_rows..][..key_rows];
+            let mask = &mask[n * s.key_frames..][..s.key_frames];
+            let mut head = Head::new(s);
             simd(
                 #[inline(always)]
                 || {
                     for h in 0..op.heads {
-                        sequence.weights(s, h, &mut keys_t, &mut weights);
-                        let rows = weights.chunks_exact(s.key_frames);
-                        for (out, weights) in out.chunks_exact_mut(s.latent).zip(rows) {
-                            let out = &mut out[h * s.head..][..s.head];
-                            for (j, &w) in weights.iter().enumerate() {
-                                for (o, &v) in out.iter_mut().zip(sequence.value(s, j, h)) {
-                                    *o = w.mul_add(v, *o);
-                                }
-                            }
-                        }
+                        head.load(h, queries, keys_values, mask);
+                        let sizes = (s.query_frames, s.key_frames, s.head);
+                        product(&head.weights, &head.values, &mut head.out, sizes);
+                        scatter(&head.out, out, s.latent, h * s.head);
                     }
                 },
             )
@@ -249,64 +302,51 @@ fn backward<T: Real>(
         return Err(op_error(name, "a gradient of the output's shape and a mask [N, Tk]"));
     }
     let mask: Vec<T> = op.mask.iter().map(|&m| T::of(m)).collect();
-    let mask = mask.as_slice();
-    let heads = op.attention.heads;
+    let (query_rows, key_rows) = (s.query_frames * s.latent, s.key_frames * 2 * s.latent);
     let mut out = vec![T::default(); queries.len() + keys_values.len()];
-    if s.query_frames * s.latent > 0 && s.key_frames > 0 {
+    if query_rows > 0 && s.key_frames > 0 {
         let (grad_q, grad_kv) = out.split_at_mut(queries.len());
         let scale = T::of(1.0 / (s.head as f64).sqrt());
+        let (tq, tk, d) = (s.query_frames, s.key_frames, s.head);
         grad_q
-            .par_chunks_mut(s.query_frames * s.latent)
-            .zip(grad_kv.par_chunks_mut(s.key_frames * 2 * s.latent))
+            .par_chunks_mut(query_rows)
+            .zip(grad_kv.par_chunks_mut(key_rows))
             .enumerate()
             .for_each(|(n, (grad_q, grad_kv))| {
-                let sequence = Sequence::of(n, s, queries, keys_values, mask);
-                let grad = &grad[n * s.query_frames * s.latent..][..s.query_frames * s.latent];
-                let mut scratch_t = vec![T::default(); s.head * s.key_frames];
-                let mut weights = vec![T::default(); s.query_frames * s.key_frames];
-                let mut grad_scores = vec![T::default(); s.key_frames];
+                let queries = &queries[n * query_rows..][..query_rows];
+                let keys_values = &keys_values[n * key_rows..][..key_rows];
+                let grad = &grad[n * query_rows..][..query_rows];
+                let mask = &mask[n * tk..][..tk];
+                let mut head = Head::new(s);
+                let mut grad_scores = vec![T::default(); tq * tk];
+                let mut transposed = vec![T::default(); tk * tq];
+                let mut result = vec![T::default(); tq.max(tk) * d];
                 simd(
                     #[inline(always)]
                     || {
-                        for h in 0..heads {
-                            sequence.weights(s, h, &mut scratch_t, &mut weights);
-                            sequence.transposed(s, h, true, &mut scratch_t); // values_t
-                            let rows = weights.chunks_exact(s.key_frames);
-                            for (i, p) in rows.enumerate() {
-                                let g = &grad[i * s.latent + h * s.head..][..s.head];
-                                // dP = G V^T, then dS (scaled by c).
-                                grad_scores.fill(T::default());
-                                let values_t = scratch_t.chunks_exact(s.key_frames);
-                                for (&g, values) in g.iter().zip(values_t) {
-                                    for (d, &v) in grad_scores.iter_mut().zip(values) {
-                                        *d = g.mul_add(v, *d);
-                                    }
-                                }
-                                let mut weighted = T::default();
-                                for (&d, &p) in grad_scores.iter().zip(p) {
-                                    weighted = d.mul_add(p, weighted);
-                                }
-                                for (d, &p) in grad_scores.iter_mut().zip(p) {
-                                    *d = p * (*d - weighted) * scale;
-                                }
-                                let query = sequence.query(s, i, h);
-                                let dq = &mut grad_q[i * s.latent + h * s.head..][..s.head];
-                                for (j, (&ds, &p)) in grad_scores.iter().zip(p).enumerate() {
-                                    for (dq, &k) in dq.iter_mut().zip(sequence.key(s, j, h)) {
-                                        *dq = ds.mul_add(k, *dq);
-                                    }
-                                    let row = &mut grad_kv[j * 2 * s.latent..][..2 * s.latent];
-                                    let (dk, dv) = row.split_at_mut(s.latent);
-                                    let dk = &mut dk[h * s.head..][..s.head];
-                                    for (dk, &q) in dk.iter_mut().zip(query) {
-                                        *dk = ds.mul_add(q, *dk);
-                                    }
-                                    let dv = &mut dv[h * s.head..][..s.head];
-                                    for (dv, &g) in dv.iter_mut().zip(g) {
-                                        *dv = p.mul_add(g, *dv);
-                                    }
+                        for h in 0..op.attention.heads {
+                            head.load(h, queries, keys_values, mask);
+                            gather(grad, s.latent, h * d, &mut head.out);
+                            // dV = P^T G.
+                            transpose(&head.weights, &mut transposed, (tq, tk));
+                            product(&transposed, &head.out, &mut result[..tk * d], (tk, tq, d));
+                            scatter(&result[..tk * d], grad_kv, 2 * s.latent, s.latent + h * d);
+                            // dP = G V^T, then dS = P (dP - rowsum(dP P)), scaled by c.
+                            transpose(&head.values, &mut head.transposed, (tk, d));
+                            product(&head.out, &head.transposed, &mut grad_scores, (tq, d, tk));
+                            let rows = grad_scores.chunks_exact_mut(tk);
+                            for (ds, p) in rows.zip(head.weights.chunks_exact(tk)) {
+                                let weighted = dot(ds, Some(p));
+                                for (ds, &p) in ds.iter_mut().zip(p) {
+                                    *ds = p * (*ds - weighted) * scale;
                                 }
                             }
+                            // dQ = c dS K, dK = c dS^T Q.
+                            product(&grad_scores, &head.keys, &mut result[..tq * d], (tq, tk, d));
+                            scatter(&result[..tq * d], grad_q, s.latent, h * d);
+                            transpose(&grad_scores, &mut transposed, (tq, tk));
+                            product(&transposed, &head.queries, &mut result[..tk * d], (tk, tq, d));
+                            scatter(&result[..tk * d], grad_kv, 2 * s.latent, h * d);
                         }
                     },
                 )

@@ -23,7 +23,7 @@ pub(super) struct BiasActivation(pub(super) Activation);
 
 #[inline(always)]
 fn sigmoid<T: Real>(z: T) -> T {
-    T::of(1.0) / (T::of(1.0) + (T::of(0.0) - z).exp())
+    T::of(1.0) / (T::of(1.0) + (T::of(0.0) - z).fast_exp())
 }
 
 fn forward<T: Real>(
@@ -38,20 +38,20 @@ fn forward<T: Real>(
     if bias.len() != width {
         return Err(op_error(name, format!("a bias of {width}, got {}", bias.len())));
     }
-    let out = map_rows(width, [y_values], |rows, out| {
-        simd(
-            #[inline(always)]
-            || {
-                for ((o, &y), &b) in out.iter_mut().zip(rows[0]).zip(bias) {
-                    let z = y + b;
-                    *o = match activation {
-                        Activation::Identity => z,
-                        Activation::Silu => z * sigmoid(z),
-                    };
-                }
-            },
-        )
-    });
+    let out = map_rows(
+        width,
+        [y_values],
+        #[inline(always)]
+        |rows, out| {
+            for ((o, &y), &b) in out.iter_mut().zip(rows[0]).zip(bias) {
+                let z = y + b;
+                *o = match activation {
+                    Activation::Identity => z,
+                    Activation::Silu => z * sigmoid(z),
+                };
+            }
+        },
+    );
     Ok((T::storage(out), y_layout.shape().clone()))
 }
 
@@ -105,18 +105,18 @@ fn silu_backward<T: Real>(
     if grad.len() != y_values.len() || bias.len() != width {
         return Err(op_error(name, "a gradient of the input's shape and a bias of its width"));
     }
-    let out = map_rows(width, [y_values, grad], |rows, out| {
-        simd(
-            #[inline(always)]
-            || {
-                for (((o, &y), &g), &b) in out.iter_mut().zip(rows[0]).zip(rows[1]).zip(bias) {
-                    let z = y + b;
-                    let s = sigmoid(z);
-                    *o = g * s * (T::of(1.0) + z * (T::of(1.0) - s));
-                }
-            },
-        )
-    });
+    let out = map_rows(
+        width,
+        [y_values, grad],
+        #[inline(always)]
+        |rows, out| {
+            for (((o, &y), &g), &b) in out.iter_mut().zip(rows[0]).zip(rows[1]).zip(bias) {
+                let z = y + b;
+                let s = sigmoid(z);
+                *o = g * s * (T::of(1.0) + z * (T::of(1.0) - s));
+            }
+        },
+    );
     Ok((T::storage(out), y_layout.shape().clone()))
 }
 

@@ -6,7 +6,7 @@
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{Real, normalise, op_error, simd, values};
+use super::{Real, dot, normalise, op_error, simd, values};
 
 /// `norm(x) * (1 + scale) + shift` with `(shift, scale)` the two halves of each sequence's
 /// modulation row.
@@ -126,6 +126,7 @@ fn backward<T: Real>(
                 let x = &x[n * frames * latent..][..frames * latent];
                 let grad = &grad[n * frames * latent..][..frames * latent];
                 let (grad_shift, grad_scale) = grad_modulation.split_at_mut(latent);
+                let mut u = vec![T::default(); latent];
                 simd(
                     #[inline(always)]
                     || {
@@ -134,23 +135,21 @@ fn backward<T: Real>(
                             rows.zip(x.chunks_exact(latent)).zip(grad.chunks_exact(latent))
                         {
                             let inverse = normalise(x, dx); // dx = y for now
-                            let (mut u_mean, mut uy_mean) = (T::default(), T::default());
-                            for ((((&y, &g), &s), d_shift), d_scale) in dx
+                            for (((((&y, &g), &s), d_shift), d_scale), u) in dx
                                 .iter()
                                 .zip(g)
                                 .zip(scale)
                                 .zip(grad_shift.iter_mut())
                                 .zip(grad_scale.iter_mut())
+                                .zip(u.iter_mut())
                             {
                                 *d_shift = *d_shift + g;
                                 *d_scale = g.mul_add(y, *d_scale);
-                                let u = g * (T::of(1.0) + s);
-                                u_mean = u_mean + u;
-                                uy_mean = u.mul_add(y, uy_mean);
+                                *u = g * (T::of(1.0) + s);
                             }
+                            let (u_mean, uy_mean) = (dot(&u, None), dot(&u, Some(dx)));
                             let (u_mean, uy_mean) = (u_mean * n_inverse, uy_mean * n_inverse);
-                            for ((dx, &g), &s) in dx.iter_mut().zip(g).zip(scale) {
-                                let u = g * (T::of(1.0) + s);
+                            for (dx, &u) in dx.iter_mut().zip(u.iter()) {
                                 *dx = (u - u_mean - *dx * uy_mean) * inverse;
                             }
                         }
