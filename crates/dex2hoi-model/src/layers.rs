@@ -90,25 +90,23 @@ impl Dense {
         self.forward_with(x, Activation::Identity)
     }
 
-    /// `act(x W + b)`: the bias and the activation fused with a hand-written backward pass on
-    /// the CPU ([`crate::differentiable`]), composed elsewhere.
+    /// `act(x W + b)`: one fused operation with a hand-written backward pass on the CPU
+    /// ([`crate::differentiable::linear`]), composed elsewhere.
     ///
     /// # Shapes
     /// - `x`: `[..., input]`; returns `[..., output]`
     pub fn forward_with(&self, x: &Tensor, activation: Activation) -> Result<Tensor> {
+        if crate::differentiable::applies(x) {
+            return Ok(crate::differentiable::linear(x, &self.weight, &self.bias, activation)?);
+        }
         let dims = x.dims();
         let input = dims[dims.len() - 1];
         let rows = x.elem_count() / input.max(1);
         let flat = x.contiguous()?.reshape((rows, input))?;
-        let product = flat.matmul(&self.weight)?;
-        let out = if crate::differentiable::applies(&product) {
-            crate::differentiable::bias_activation(&product, &self.bias, activation)?
-        } else {
-            let biased = product.broadcast_add(&self.bias)?;
-            match activation {
-                Activation::Identity => biased,
-                Activation::Silu => biased.silu()?,
-            }
+        let biased = flat.matmul(&self.weight)?.broadcast_add(&self.bias)?;
+        let out = match activation {
+            Activation::Identity => biased,
+            Activation::Silu => biased.silu()?,
         };
         let mut shape = dims.to_vec();
         *shape.last_mut().expect("a non-scalar input") = self.weight.dims()[1];

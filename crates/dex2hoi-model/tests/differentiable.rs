@@ -120,17 +120,21 @@ fn other_dtypes_and_strided_inputs() {
 /// input of the attention, the mask, gets no gradient).
 type BlockOp = fn(&[Tensor]) -> Tensor;
 
-fn fused_bias(x: &[Tensor]) -> Tensor {
-    differentiable::bias_activation(&x[0], &x[1], differentiable::Activation::Identity).unwrap()
+fn fused_linear(x: &[Tensor]) -> Tensor {
+    differentiable::linear(&x[0], &x[1], &x[2], differentiable::Activation::Identity).unwrap()
 }
-fn composite_bias(x: &[Tensor]) -> Tensor {
-    x[0].broadcast_add(&x[1]).unwrap()
+/// `x W + b` over the last dimension.
+fn composite_linear(x: &[Tensor]) -> Tensor {
+    let (n, t, input) = x[0].dims3().unwrap();
+    let flat = x[0].reshape((n * t, input)).unwrap();
+    let out = flat.matmul(&x[1]).unwrap().broadcast_add(&x[2]).unwrap();
+    out.reshape((n, t, x[1].dim(1).unwrap())).unwrap()
 }
-fn fused_bias_silu(x: &[Tensor]) -> Tensor {
-    differentiable::bias_activation(&x[0], &x[1], differentiable::Activation::Silu).unwrap()
+fn fused_linear_silu(x: &[Tensor]) -> Tensor {
+    differentiable::linear(&x[0], &x[1], &x[2], differentiable::Activation::Silu).unwrap()
 }
-fn composite_bias_silu(x: &[Tensor]) -> Tensor {
-    x[0].broadcast_add(&x[1]).unwrap().silu().unwrap()
+fn composite_linear_silu(x: &[Tensor]) -> Tensor {
+    composite_linear(x).silu().unwrap()
 }
 fn fused_modulate(x: &[Tensor]) -> Tensor {
     differentiable::modulate(&x[0], &x[1]).unwrap()
@@ -177,13 +181,19 @@ type BlockCase =
     (&'static str, BlockOp, BlockOp, fn(usize, usize, usize) -> Vec<Vec<usize>>, usize);
 
 const BLOCK_OPS: [BlockCase; 4] = [
-    ("bias", fused_bias, composite_bias, |n, t, l| vec![vec![n, t, l], vec![l]], 2),
     (
-        "bias + SiLU",
-        fused_bias_silu,
-        composite_bias_silu,
-        |n, t, l| vec![vec![n, t, l], vec![l]],
-        2,
+        "linear",
+        fused_linear,
+        composite_linear,
+        |n, t, l| vec![vec![n, t, l], vec![l, l + 3], vec![l + 3]],
+        3,
+    ),
+    (
+        "linear + SiLU",
+        fused_linear_silu,
+        composite_linear_silu,
+        |n, t, l| vec![vec![n, t, l], vec![l, 2 * l], vec![2 * l]],
+        3,
     ),
     (
         "modulate",
@@ -311,11 +321,12 @@ fn block_operations_refuse_mismatched_shapes() {
     )
     .unwrap_err();
     assert!(error.to_string().contains("keys and values [N, Tk, 2 latent]"), "{error}");
-    let error = differentiable::bias_activation(
+    let error = differentiable::linear(
         &x,
+        &random(&[4, 5], 1.0, &mut rng),
         &random(&[3], 1.0, &mut rng),
         differentiable::Activation::Silu,
     )
     .unwrap_err();
-    assert!(error.to_string().contains("a bias of 4"), "{error}");
+    assert!(error.to_string().contains("a bias of 5"), "{error}");
 }

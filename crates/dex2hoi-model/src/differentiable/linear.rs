@@ -1,9 +1,11 @@
-//! A linear layer's bias and activation after its product, `act(y + bias)` with `act` the
-//! identity or SiLU, as one operation with its backward pass. Composed, it is a broadcast add
-//! (and a SiLU) whose backward passes each allocate a zeroed gradient, add into it and reduce
-//! the bias gradient in a single-threaded strided sum.
+//! A linear layer, `act(x W + bias)` with `act` the identity or SiLU, as one operation with its
+//! backward pass.
+//! Composed, a linear layer is four graph nodes over the whole token tensor (two reshapes, the
+//! product, the broadcast add; a fifth with SiLU), and candle's backward pass allocates a
+//! zeroed gradient for each, adds into it, and reduces the bias gradient in a single-threaded
+//! strided sum.
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp3, Layout, Shape, Storage, Tensor};
 use rayon::prelude::*;
 
 use super::{ROWS_PER_TASK, Real, map_rows, op_error, simd, values};
@@ -17,15 +19,12 @@ pub enum Activation {
     Silu,
 }
 
-/// `act(y + bias)` over the last dimension.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct BiasActivation(pub(super) Activation);
-
 #[inline(always)]
 fn sigmoid<T: Real>(z: T) -> T {
     T::of(1.0) / (T::of(1.0) + (T::of(0.0) - z).fast_exp())
 }
 
+/// `act(y + bias)` over the last dimension of `y`.
 fn forward<T: Real>(
     activation: Activation,
     (y, y_layout): (&CpuStorage, &Layout),
@@ -55,35 +54,88 @@ fn forward<T: Real>(
     Ok((T::storage(out), y_layout.shape().clone()))
 }
 
-impl CustomOp2 for BiasActivation {
+/// The gradient with respect to `z = y + bias` of `act(z)`, given the output's.
+fn grad_before_activation(
+    activation: Activation,
+    y: &Tensor,
+    bias: &Tensor,
+    grad: &Tensor,
+) -> candle_core::Result<Tensor> {
+    let grad = grad.contiguous()?;
+    match activation {
+        Activation::Identity => Ok(grad),
+        Activation::Silu => y.contiguous()?.apply_op3_no_bwd(bias, &grad, &SiluBackward),
+    }
+}
+
+/// A linear layer `act(x W + bias)` over the last dimension of `x`, `W` stored
+/// `[input, output]`. The product is computed before the operation, by candle's matrix product
+/// on tensors detached from the graph, and handed to it: an operation computes its output
+/// from its inputs' storage, and a safe one cannot call the matrix product on storage.
+#[derive(Debug, Clone)]
+pub(super) struct Linear {
+    /// `x W`, `[rows, output]` (rows: `x`'s leading dimensions flattened).
+    pub(super) product: Tensor,
+    pub(super) activation: Activation,
+}
+
+impl CustomOp3 for Linear {
     fn name(&self) -> &'static str {
-        "bias-activation"
+        "linear"
     }
 
     fn cpu_fwd(
         &self,
-        y: &CpuStorage,
-        y_layout: &Layout,
+        _: &CpuStorage,
+        x_layout: &Layout,
+        _: &CpuStorage,
+        w_layout: &Layout,
         bias: &CpuStorage,
         bias_layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        by_dtype!(self.name(), y, forward(self.0, (y, y_layout), (bias, bias_layout)))
+        let (input, output) = w_layout.shape().dims2()?;
+        let x_dims = x_layout.dims();
+        let rows = x_layout.shape().elem_count() / input.max(1);
+        if x_dims.last() != Some(&input) || self.product.dims() != [rows, output] {
+            return Err(op_error(
+                self.name(),
+                format!(
+                    "x [..., {input}] and its product [{rows}, {output}]; got {x_dims:?} and {:?}",
+                    self.product.dims()
+                ),
+            ));
+        }
+        let (storage, product_layout) = self.product.storage_and_layout();
+        let Storage::Cpu(product) = &*storage else {
+            return Err(op_error(self.name(), "a product on the CPU"));
+        };
+        let (out, _) = by_dtype!(
+            self.name(),
+            product,
+            forward(self.activation, (product, product_layout), (bias, bias_layout))
+        )?;
+        let mut shape = x_dims.to_vec();
+        *shape.last_mut().expect("x has the input dimension") = output;
+        Ok((out, Shape::from(shape)))
     }
 
     fn bwd(
         &self,
-        y: &Tensor,
+        x: &Tensor,
+        w: &Tensor,
         bias: &Tensor,
         _: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let grad_z = match self.0 {
-            Activation::Identity => grad,
-            Activation::Silu => y.apply_op3_no_bwd(bias, &grad, &SiluBackward)?,
-        };
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (input, output) = w.dims2()?;
+        let rows = self.product.dim(0)?;
+        let grad = grad.reshape((rows, output))?;
+        let grad_z = grad_before_activation(self.activation, &self.product, bias, &grad)?;
+        let grad_x = grad_z.matmul(&w.detach().t()?)?.reshape(x.shape())?;
+        let x = x.detach().contiguous()?.reshape((rows, input))?;
+        let grad_w = x.t()?.matmul(&grad_z)?;
         let grad_bias = grad_z.apply_op1_no_bwd(&ColumnSums)?;
-        Ok((Some(grad_z), Some(grad_bias)))
+        Ok((Some(grad_x), Some(grad_w), Some(grad_bias)))
     }
 }
 
