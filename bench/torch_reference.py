@@ -60,6 +60,11 @@ from torch import nn
 ROTATION_FEATURES = 6  # a 6D rotation per joint
 ROOT_FEATURES = 3  # the root displacement
 OBJECT_FEATURES = 18  # one object slot's channels
+# Channels of an object slot predicted as clean values by the world-frame residual head: the
+# offsets in the two wrist frames and the mixture logits (LEFT_OFFSET_RANGE, RIGHT_OFFSET_RANGE,
+# MIXTURE_RANGE of crates/dex2hoi-repr/src/object_repr.rs).
+HAND_RELATIVE_CHANNELS = (*range(6, 9), *range(9, 12), *range(15, 18))
+PREDICTIONS = ("absolute", "prefix_residual", "prefix_residual_world")
 DIFFUSION_STEPS = 1000  # DEFAULT_DIFFUSION_STEPS of schedule.rs
 SAMPLING_STEPS = 50  # SamplerConfig::default()
 GUIDANCE = 2.5  # SamplerConfig::default()
@@ -94,6 +99,7 @@ class Config:
     object_representation: str
     stream_layout: str
     body_fusion: str
+    prediction: str
 
     @classmethod
     def preset(cls, root: Path, name: str) -> Config:
@@ -125,6 +131,8 @@ class Config:
                     f"{where}: {field} = {value!r} is not implemented by this reference "
                     f"(only {supported!r}: the small and paper presets)"
                 )
+        if self.prediction not in PREDICTIONS:
+            raise SystemExit(f"{where}: prediction {self.prediction!r} is not one of {PREDICTIONS}")
         if self.latent % self.heads != 0:
             raise SystemExit(f"{where}: heads {self.heads} does not divide latent {self.latent}")
         if not 0.0 <= self.dropout < 1.0:
@@ -544,7 +552,24 @@ class DualStream(nn.Module):
             torch.cat([body, stream[..., body_width : body_width + OBJECT_FEATURES]], dim=2)
             for stream in (stream_a, stream_b)
         ]
-        return torch.stack(with_body, dim=1)
+        return self.add_prefix_residual(torch.stack(with_body, dim=1), prefix)
+
+    def add_prefix_residual(self, head: torch.Tensor, prefix: torch.Tensor) -> torch.Tensor:
+        """Model::add_prefix_residual: the residual heads add the last prefix frame (the body of
+        stream A to both streams, each stream its own object), the world-frame head on every
+        channel but the hand-relative ones. `head` `[B, 2, T_f, D]`, `prefix` `[B, 2, T_p, D]`."""
+        if self.cfg.prediction == "absolute":
+            return head
+        last = prefix[:, :, -1:]
+        body_width = self.cfg.body_features
+        body = last[:, :1, :, :body_width].expand(-1, 2, -1, -1)
+        last = torch.cat([body, last[..., body_width:]], dim=3)
+        if self.cfg.prediction == "prefix_residual_world":
+            mask = torch.ones(last.shape[-1], dtype=last.dtype)
+            for k in HAND_RELATIVE_CHANNELS:
+                mask[body_width + k] = 0.0
+            last = last * mask
+        return head + last
 
     def check_input(self, inputs: dict[str, torch.Tensor]) -> None:
         c = self.cfg
