@@ -2,6 +2,7 @@
 
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Tensor};
+use rayon::prelude::*;
 
 use crate::config::OptimizerConfig;
 use crate::error::Result;
@@ -73,19 +74,29 @@ impl AdamW {
         let step_size = (learning_rate / correction1) as f32;
         let root_correction2 = correction2.sqrt() as f32;
         let epsilon = c.epsilon as f32;
-        for (k, parameter) in parameters.iter().enumerate() {
-            let mut values = parameter.values()?;
-            let decay =
-                if parameter.decays() { (learning_rate * c.weight_decay) as f32 } else { 0.0 };
-            let (first, second) = (&mut self.first[k], &mut self.second[k]);
-            let gradient = grads[k].as_deref();
-            for n in 0..values.len() {
-                let g = gradient.map_or(0.0, |g| g[n] * scale);
-                first[n] = beta1 * first[n] + (1.0 - beta1) * g;
-                second[n] = beta2 * second[n] + (1.0 - beta2) * g * g;
-                let denominator = second[n].sqrt() / root_correction2 + epsilon;
-                values[n] = values[n] * (1.0 - decay) - step_size * first[n] / denominator;
-            }
+        // Parameters update in parallel (each element as before, so the result does not
+        // depend on the thread count); the variables are set afterwards, in order.
+        let updated: Vec<Vec<f32>> = parameters
+            .par_iter()
+            .zip(self.first.par_iter_mut())
+            .zip(self.second.par_iter_mut())
+            .zip(grads.par_iter())
+            .map(|(((parameter, first), second), gradient)| -> Result<Vec<f32>> {
+                let mut values = parameter.values()?;
+                let decay =
+                    if parameter.decays() { (learning_rate * c.weight_decay) as f32 } else { 0.0 };
+                let gradient = gradient.as_deref();
+                for n in 0..values.len() {
+                    let g = gradient.map_or(0.0, |g| g[n] * scale);
+                    first[n] = beta1 * first[n] + (1.0 - beta1) * g;
+                    second[n] = beta2 * second[n] + (1.0 - beta2) * g * g;
+                    let denominator = second[n].sqrt() / root_correction2 + epsilon;
+                    values[n] = values[n] * (1.0 - decay) - step_size * first[n] / denominator;
+                }
+                Ok(values)
+            })
+            .collect::<Result<_>>()?;
+        for (parameter, values) in parameters.iter().zip(updated) {
             let shape = parameter.var.shape().clone();
             let tensor = Tensor::from_vec(values, shape, parameter.var.device())?
                 .to_dtype(parameter.var.dtype())?;

@@ -2,6 +2,7 @@
 
 use crate::error::Result;
 use crate::parameter::Parameter;
+use rayon::prelude::*;
 
 /// The exponential moving average of the parameters (the weights used for sampling).
 #[derive(Debug, Clone)]
@@ -19,12 +20,13 @@ impl Ema {
     /// `ema = d ema + (1 - d) theta` with `d = min(decay, (1 + step) / (10 + step))`.
     pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
         let d = decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32;
-        for (average, parameter) in self.values.iter_mut().zip(parameters) {
+        // Parameters in parallel, each element as before (independent of the thread count).
+        self.values.par_iter_mut().zip(parameters).try_for_each(|(average, parameter)| {
             let values = parameter.values()?;
             for (a, v) in average.iter_mut().zip(values) {
                 *a = d * *a + (1.0 - d) * v;
             }
-        }
-        Ok(())
+            Ok(())
+        })
     }
 }
