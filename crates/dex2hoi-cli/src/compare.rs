@@ -299,6 +299,20 @@ fn ground_truth(loaded: &Loaded) -> Result<Vec<Option<f64>>> {
     METRICS.iter().map(|m| loaded.value(m, true)).collect()
 }
 
+/// Relative difference under which two ground-truth figures are the same: the evaluator's
+/// encoders computed in another floating-point order (another build) move them by about 1e-8.
+const GROUND_TRUTH_TOLERANCE: f64 = 1e-6;
+
+/// Whether two reports' ground-truth figures agree (within [`GROUND_TRUTH_TOLERANCE`]).
+fn same_ground_truth(a: &[Option<f64>], b: &[Option<f64>]) -> bool {
+    a.len() == b.len()
+        && a.iter().zip(b).all(|pair| match pair {
+            (Some(a), Some(b)) => (a - b).abs() <= GROUND_TRUTH_TOLERANCE * a.abs().max(b.abs()),
+            (None, None) => true,
+            _ => false,
+        })
+}
+
 /// The markdown: per series, a table of the headline metrics by step and its first report's
 /// ground truth; then the reports that were evaluated differently from the first one.
 fn markdown(title: &str, series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<String> {
@@ -329,7 +343,7 @@ fn markdown(title: &str, series: &[(SeriesSpec, Vec<Loaded>)]) -> Result<String>
     let (protocol, truth) = (first.protocol(), ground_truth(first)?);
     let mut differing = Vec::new();
     for loaded in &all {
-        if loaded.protocol() != protocol || ground_truth(loaded)? != truth {
+        if loaded.protocol() != protocol || !same_ground_truth(&ground_truth(loaded)?, &truth) {
             differing.push(format!("`{}`", loaded.path.display()));
         }
     }
@@ -395,4 +409,22 @@ pub fn run(args: CompareArgs) -> Result<()> {
     println!("{markdown}");
     println!("written to {}", args.out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::same_ground_truth;
+
+    #[test]
+    fn ground_truths_agree_within_float_noise_only() {
+        let truth = [Some(0.299_627_583_032_407), Some(20.657_415_406), None, Some(0.0)];
+        // The figures of the same evaluation by a build whose kernels sum in another order.
+        let rebuilt = [Some(0.299_627_587_846_073), Some(20.657_415_421), None, Some(0.0)];
+        assert!(same_ground_truth(&truth, &rebuilt));
+        let other_data = [Some(0.3), Some(20.657_415_406), None, Some(0.0)];
+        assert!(!same_ground_truth(&truth, &other_data));
+        let missing = [Some(0.299_627_583_032_407), None, None, Some(0.0)];
+        assert!(!same_ground_truth(&truth, &missing));
+        assert!(!same_ground_truth(&truth, &truth[..3]));
+    }
 }
