@@ -1,11 +1,12 @@
-//! Fused CPU operations with hand-written backward passes, for training: layer norm and the
-//! softmax over the last dimension. Composed from candle operations, each is five to seven
-//! passes over memory with a fresh allocation per pass forward and about twice that backward;
-//! fused, one pass each way, row-parallel.
+//! Fused CPU operations with hand-written backward passes, for training: layer norm, a linear
+//! layer with its bias and activation, AdaLN's modulation and multi-head attention (whose
+//! softmax is inside it). Composed from candle operations, each is several graph nodes, each
+//! a pass over memory with a fresh allocation forward and, in candle's backward pass, a
+//! zero-filled gradient added into; fused, one node, row-parallel.
 //!
 //! Like the FK's custom operations they run on the CPU in f32 and f64 (the finite-difference
 //! gradient checks run in f64); [`crate::layers`] uses the composite operations on any other
-//! device or dtype. Each is tested equal to its composite (1e-6 in f64) with the gradient
+//! device or dtype. Each is tested equal to its composite (1e-10 in f64) with every gradient
 //! checked by finite differences (`tests/differentiable.rs`).
 
 use std::ops::{Add, Div, Mul, Sub};
@@ -36,7 +37,6 @@ pub(crate) trait Real:
 {
     fn of(x: f64) -> Self;
     fn sqrt(self) -> Self;
-    fn exp(self) -> Self;
     /// `self * a + b`, one fused instruction where the CPU has FMA (see [`simd`]).
     fn mul_add(self, a: Self, b: Self) -> Self;
     /// `e^self`, vectorisable in f32 (about 1 ulp, [`crate::fused::exp`]); libm's in f64.
@@ -53,9 +53,6 @@ macro_rules! real {
             }
             fn sqrt(self) -> Self {
                 <$t>::sqrt(self)
-            }
-            fn exp(self) -> Self {
-                <$t>::exp(self)
             }
             #[inline(always)]
             fn mul_add(self, a: Self, b: Self) -> Self {
@@ -303,104 +300,6 @@ impl CustomOp2 for LayerNormBackward {
     }
 }
 
-/// Softmax over the last dimension (`exp(x - max) / sum`).
-#[derive(Debug, Clone, Copy)]
-struct Softmax;
-
-fn softmax_forward<T: Real>(
-    storage: &CpuStorage,
-    layout: &Layout,
-) -> candle_core::Result<(CpuStorage, Shape)> {
-    let x = values::<T>("softmax", storage, layout)?;
-    let width = layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(
-        width,
-        [x],
-        #[inline(always)]
-        |rows, o| {
-            let row = rows[0];
-            let max = row.iter().copied().fold(row[0], |m, v| if v > m { v } else { m });
-            for (o, &v) in o.iter_mut().zip(row) {
-                *o = (v - max).exp();
-            }
-            let total = dot(o, None);
-            for o in o.iter_mut() {
-                *o = *o / total;
-            }
-        },
-    );
-    Ok((T::storage(out), layout.shape().clone()))
-}
-
-impl CustomOp1 for Softmax {
-    fn name(&self) -> &'static str {
-        "softmax"
-    }
-
-    fn cpu_fwd(
-        &self,
-        storage: &CpuStorage,
-        layout: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        by_dtype!(self.name(), storage, softmax_forward(storage, layout))
-    }
-
-    fn bwd(&self, _: &Tensor, y: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
-        Ok(Some(y.apply_op2_no_bwd(&grad.contiguous()?, &SoftmaxBackward)?))
-    }
-}
-
-/// The gradient of [`Softmax`] with respect to its input: `dx = y (g - sum(g y))`.
-#[derive(Debug, Clone, Copy)]
-struct SoftmaxBackward;
-
-fn softmax_backward<T: Real>(
-    y_storage: &CpuStorage,
-    y_layout: &Layout,
-    g_storage: &CpuStorage,
-    g_layout: &Layout,
-) -> candle_core::Result<(CpuStorage, Shape)> {
-    let y = values::<T>("softmax-backward", y_storage, y_layout)?;
-    let g = values::<T>("softmax-backward", g_storage, g_layout)?;
-    if y.len() != g.len() {
-        return Err(op_error("softmax-backward", "a gradient of the output's shape"));
-    }
-    let width = y_layout.dims().last().copied().unwrap_or(1);
-    let out = map_rows(
-        width,
-        [y, g],
-        #[inline(always)]
-        |rows, o| {
-            let (y, g) = (rows[0], rows[1]);
-            let gy = dot(y, Some(g));
-            for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
-                *o = y * (g - gy);
-            }
-        },
-    );
-    Ok((T::storage(out), y_layout.shape().clone()))
-}
-
-impl CustomOp2 for SoftmaxBackward {
-    fn name(&self) -> &'static str {
-        "softmax-backward"
-    }
-
-    fn cpu_fwd(
-        &self,
-        y_storage: &CpuStorage,
-        y_layout: &Layout,
-        g_storage: &CpuStorage,
-        g_layout: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        by_dtype!(
-            self.name(),
-            y_storage,
-            softmax_backward(y_storage, y_layout, g_storage, g_layout)
-        )
-    }
-}
-
 /// Whether the fused operations apply to `x` (the CPU, f32 or f64).
 pub fn applies(x: &Tensor) -> bool {
     x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
@@ -409,11 +308,6 @@ pub fn applies(x: &Tensor) -> bool {
 /// Layer norm over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
 pub fn layer_norm(x: &Tensor) -> candle_core::Result<Tensor> {
     x.contiguous()?.apply_op1(LayerNorm)
-}
-
-/// Softmax over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
-pub fn softmax(x: &Tensor) -> candle_core::Result<Tensor> {
-    x.contiguous()?.apply_op1(Softmax)
 }
 
 /// A linear layer, `act(x W + bias)` over the last dimension of `x` with `W` stored

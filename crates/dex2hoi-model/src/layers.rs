@@ -36,18 +36,10 @@ pub fn layer_norm_composite(x: &Tensor) -> Result<Tensor> {
     Ok(centred.broadcast_div(&(variance + LAYER_NORM_EPS)?.sqrt()?)?)
 }
 
-/// Softmax over the last dimension: fused with a hand-written backward pass on the CPU
-/// ([`crate::differentiable`]), composed elsewhere (candle's fused `softmax_last_dim` has no
-/// backward pass).
+/// Softmax over the last dimension, composed of candle operations: the composite attention's
+/// (any device but the CPU, whose fused attention has its softmax inside; candle's fused
+/// `softmax_last_dim` has no backward pass).
 pub fn softmax(x: &Tensor) -> Result<Tensor> {
-    if crate::differentiable::applies(x) {
-        return Ok(crate::differentiable::softmax(x)?);
-    }
-    softmax_composite(x)
-}
-
-/// [`softmax`] composed of candle operations (any device).
-pub fn softmax_composite(x: &Tensor) -> Result<Tensor> {
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
 

@@ -24,13 +24,13 @@ fn sigmoid<T: Real>(z: T) -> T {
     T::of(1.0) / (T::of(1.0) + (T::of(0.0) - z).fast_exp())
 }
 
-/// `act(y + bias)` over the last dimension of `y`.
+/// `act(y + bias)` over the last dimension of `y` (the product of [`Linear`]).
 fn forward<T: Real>(
     activation: Activation,
     (y, y_layout): (&CpuStorage, &Layout),
     (bias, bias_layout): (&CpuStorage, &Layout),
 ) -> candle_core::Result<(CpuStorage, Shape)> {
-    let name = "bias-activation";
+    let name = "linear";
     let y_values = values::<T>(name, y, y_layout)?;
     let bias = values::<T>(name, bias, bias_layout)?;
     let width = y_layout.dims().last().copied().unwrap_or(1);
@@ -198,12 +198,12 @@ impl CustomOp3 for SiluBackward {
 /// blocks of rows in parallel, added in block order, so the result does not depend on the
 /// thread count or scheduling (the bit-exact resume of training relies on that).
 #[derive(Debug, Clone, Copy)]
-pub(super) struct ColumnSums;
+struct ColumnSums;
 
 /// Rows per partial sum of [`ColumnSums`].
 const ROWS_PER_PARTIAL: usize = 4 * ROWS_PER_TASK;
 
-pub(super) fn column_sums<T: Real>(x: &[T], width: usize) -> Vec<T> {
+fn column_sums<T: Real>(x: &[T], width: usize) -> Vec<T> {
     if width == 0 {
         return Vec::new();
     }
