@@ -7,6 +7,9 @@ machine. Run it through `cargo xtask bench compare` (see bench/README.md) or dir
 
     python3 bench/torch_reference.py [--presets small,paper] [--threads 2] [--quick]
 
+With `--device cuda` the same work runs on an NVIDIA GPU (f32 throughout, PyTorch's default
+TF32 setting kept), every timed region bracketed by `torch.cuda.synchronize()`.
+
 It mirrors these Rust sources, which are the specification:
 
 - crates/dex2hoi-model/src/model.rs: Model (dual layout), Conditioning, Denoiser (frame tokens,
@@ -565,7 +568,7 @@ class DualStream(nn.Module):
         body = last[:, :1, :, :body_width].expand(-1, 2, -1, -1)
         last = torch.cat([body, last[..., body_width:]], dim=3)
         if self.cfg.prediction == "prefix_residual_world":
-            mask = torch.ones(last.shape[-1], dtype=last.dtype)
+            mask = torch.ones(last.shape[-1], dtype=last.dtype, device=last.device)
             for k in HAND_RELATIVE_CHANNELS:
                 mask[body_width + k] = 0.0
             last = last * mask
@@ -707,7 +710,9 @@ class CosineSchedule:
         self, x0: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor
     ) -> torch.Tensor:
         """`sqrt(alpha_bar_t) x0 + sqrt(1 - alpha_bar_t) noise`, one timestep per sample."""
-        alpha_bar = torch.tensor(self.alpha_bars, dtype=torch.float64)[timesteps]
+        alpha_bar = torch.tensor(
+            self.alpha_bars, dtype=torch.float64, device=timesteps.device
+        )[timesteps]
         shape = (-1,) + (1,) * (x0.dim() - 1)
         signal = alpha_bar.sqrt().to(x0.dtype).view(shape)
         scale = (1.0 - alpha_bar).sqrt().to(x0.dtype).view(shape)
@@ -737,6 +742,7 @@ def sample_window(
     """DDIM from pure noise with classifier-free guidance: every step runs one forward on a
     batch of the conditional rows followed by the null rows (text zeroed)."""
     batch = condition.text.shape[0]
+    device = condition.text.device  # `generator` must be on it too
     shape = (batch, 2, cfg.predicted_frames, cfg.stream_features)
     # The guided batch: the condition twice, the second copy's text zeroed (ModelDenoiser).
     prefix = torch.cat([condition.prefix, condition.prefix])
@@ -744,9 +750,9 @@ def sample_window(
     bps = torch.cat([condition.bps, condition.bps])
     presence = torch.cat([condition.presence, condition.presence])
     timesteps = schedule.respaced(steps)
-    x = torch.randn(shape, generator=generator)
+    x = torch.randn(shape, generator=generator, device=device)
     for k, t in enumerate(timesteps):
-        t_batch = torch.full((2 * batch,), float(t))
+        t_batch = torch.full((2 * batch,), float(t), device=device)
         x0 = model(torch.cat([x, x]), prefix, t_batch, text, bps, presence)
         conditional, unconditional = x0[:batch], x0[batch:]
         x0 = unconditional + (conditional - unconditional) * guidance
@@ -758,7 +764,7 @@ def sample_window(
         direction = math.sqrt(max(1.0 - ab_prev - sigma * sigma, 0.0))
         x = x0 * math.sqrt(ab_prev) + epsilon * direction
         if sigma > 0.0:
-            x = x + torch.randn(shape, generator=generator) * sigma
+            x = x + torch.randn(shape, generator=generator, device=device) * sigma
     return x
 
 
@@ -770,13 +776,24 @@ def median(values: list[float]) -> float:
     return sorted(values)[len(values) // 2]
 
 
-def timed(f: Callable[[], object], runs: int, warm_up: bool) -> float:
+def synchronize(device: torch.device) -> None:
+    """Waits for the device's queued work (a no-op on the CPU), so that the clock read next
+    covers it: called before each timed region starts and before each clock read in it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(
+    f: Callable[[], object], runs: int, warm_up: bool, device: torch.device = torch.device("cpu")
+) -> float:
     if warm_up:
         f()
     times = []
     for _ in range(runs):
+        synchronize(device)
         start = time.perf_counter()
         f()
+        synchronize(device)
         times.append(time.perf_counter() - start)
     return median(times)
 
@@ -786,13 +803,44 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def matmul_gflops() -> float:
-    """A 1024 x 1024 x 1024 f32 product, median of 9 after a warm-up: 2 * 1024^3 / seconds."""
+def peak_memory(device: torch.device) -> dict:
+    """The process's peak resident memory and, on a GPU, the peak of the memory PyTorch's
+    allocator handed out on it (`torch.cuda.max_memory_allocated`, GiB; each case runs in its
+    own process, so it is the case's)."""
+    out: dict = {"peak_rss_mb": peak_rss_mb()}
+    if device.type == "cuda":
+        out["peak_gpu_gib"] = torch.cuda.max_memory_allocated(device) / 2.0**30
+    return out
+
+
+# Products per timed run on a GPU: one 1024^3 f32 product takes tens of microseconds there, about
+# what a launch and a synchronisation cost, so each timed run queues several.
+GPU_MATMUL_REPEATS = 10
+
+
+def matmul_gflops(device: torch.device) -> float:
+    """A 1024 x 1024 x 1024 f32 product, median of 9 after a warm-up: 2 * 1024^3 / seconds (on
+    a GPU each timed run is GPU_MATMUL_REPEATS products, synchronised)."""
     g = torch.Generator().manual_seed(0)
-    a = torch.randn(1024, 1024, generator=g)
-    b = torch.randn(1024, 1024, generator=g)
-    seconds = timed(lambda: torch.mm(a, b), 9, warm_up=True)
+    a = torch.randn(1024, 1024, generator=g).to(device)
+    b = torch.randn(1024, 1024, generator=g).to(device)
+    repeats = GPU_MATMUL_REPEATS if device.type == "cuda" else 1
+
+    def products() -> None:
+        for _ in range(repeats):
+            torch.mm(a, b)
+
+    seconds = timed(products, 9, warm_up=True, device=device) / repeats
     return 2.0 * 1024**3 / seconds / 1e9
+
+
+def tf32_matmul() -> bool:
+    """Whether float32 matrix products on CUDA may use TF32 (PyTorch's default: no)."""
+    return bool(torch.backends.cuda.matmul.allow_tf32)
+
+
+def device_name(device: torch.device) -> str:
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
 
 
 def reference_path(root: Path, preset: str) -> Path:
@@ -806,39 +854,42 @@ def missing_reference(root: Path, preset: str) -> str:
     )
 
 
-def build_model(cfg: Config, root: Path, preset: str, skip_check: bool):
-    """The model with dex2hoi's reference weights, the reference inputs and output (None with
-    `--skip-check` when the file is absent: then the weights are a fresh initialisation)."""
+def build_model(cfg: Config, root: Path, preset: str, skip_check: bool, device: torch.device):
+    """The model on `device` with dex2hoi's reference weights, the reference inputs (on
+    `device`) and output (on the host); None with `--skip-check` when the file is absent: then
+    the weights are a fresh initialisation (made on the host, so the same on every device)."""
     torch.manual_seed(0)
     model = DualStream(cfg)
     path = reference_path(root, preset)
     if not path.exists():
         if skip_check:
-            return model, None, None
+            return model.to(device), None, None
         raise SystemExit(missing_reference(root, preset))
     weights = SafeTensors(path)
     load_parameters(model, weights)
     inputs = reference_inputs(weights)
     model.check_input(inputs)
-    return model, inputs, weights.get("output")
+    inputs = {name: value.to(device) for name, value in inputs.items()}
+    return model.to(device), inputs, weights.get("output")
 
 
 def max_abs_diff(model: Callable[..., torch.Tensor], inputs, expected) -> float | None:
+    """The largest |model(inputs) - expected|, compared on the host."""
     if inputs is None:
         return None
     with torch.no_grad():
-        out = model(**inputs)
+        out = model(**inputs).cpu()
     return float((out - expected).abs().max())
 
 
-def sample_condition(cfg: Config) -> WindowCondition:
-    """Batch 1, two objects present (benches/sample.rs)."""
+def sample_condition(cfg: Config, device: torch.device) -> WindowCondition:
+    """Batch 1, two objects present (benches/sample.rs); drawn on the host, moved to `device`."""
     g = torch.Generator().manual_seed(1)
     return WindowCondition(
-        prefix=torch.randn(1, 2, cfg.prefix_frames, cfg.stream_features, generator=g),
-        text=torch.randn(1, cfg.text_embedding, generator=g),
-        bps=torch.randn(1, 2, cfg.bps_points * 3, generator=g),
-        presence=torch.ones(1, 2),
+        prefix=torch.randn(1, 2, cfg.prefix_frames, cfg.stream_features, generator=g).to(device),
+        text=torch.randn(1, cfg.text_embedding, generator=g).to(device),
+        bps=torch.randn(1, 2, cfg.bps_points * 3, generator=g).to(device),
+        presence=torch.ones(1, 2, device=device),
     )
 
 
@@ -852,62 +903,67 @@ def sample_runs(preset: str, quick: bool) -> tuple[int, bool]:
 def case_sample(args, preset: str) -> dict:
     """Checks the forward pass, then times sampling eagerly under no_grad and inference_mode."""
     cfg = Config.preset(args.root, preset)
-    model, inputs, expected = build_model(cfg, args.root, preset, args.skip_check)
+    device = torch.device(args.device)
+    model, inputs, expected = build_model(cfg, args.root, preset, args.skip_check, device)
     model.eval()
     diff = max_abs_diff(model, inputs, expected)
     if diff is not None:
         print(f"{preset}: max |torch - dex2hoi| = {diff:.3e}", file=sys.stderr)
-    schedule, condition = CosineSchedule(), sample_condition(cfg)
+    schedule, condition = CosineSchedule(), sample_condition(cfg, device)
     runs, warm_up = sample_runs(preset, args.quick)
-    generator = torch.Generator().manual_seed(2)
+    generator = torch.Generator(device=device).manual_seed(2)
 
     def one() -> None:
         sample_window(model, cfg, schedule, condition, generator)
 
     with torch.no_grad():
-        eager = timed(one, runs, warm_up)
+        eager = timed(one, runs, warm_up, device)
     with torch.inference_mode():
-        inference = timed(one, runs, warm_up)
+        inference = timed(one, runs, warm_up, device)
     return {
         "max_abs_diff": diff,
         "eager": eager,
         "inference_mode": inference,
-        "peak_rss_mb": peak_rss_mb(),
+        **peak_memory(device),
     }
 
 
 def case_compile(args, preset: str) -> dict:
     """torch.compile of the model: the first call's time (compilation) and sampling with it."""
     cfg = Config.preset(args.root, preset)
-    model, inputs, expected = build_model(cfg, args.root, preset, args.skip_check)
+    device = torch.device(args.device)
+    model, inputs, expected = build_model(cfg, args.root, preset, args.skip_check, device)
     model.eval()
-    schedule, condition = CosineSchedule(), sample_condition(cfg)
+    schedule, condition = CosineSchedule(), sample_condition(cfg, device)
     runs, warm_up = sample_runs(preset, args.quick)
-    generator = torch.Generator().manual_seed(2)
+    generator = torch.Generator(device=device).manual_seed(2)
     try:
         compiled = torch.compile(model, dynamic=False)
         with torch.no_grad():
             # The reference batch has the guided batch's shapes (2 rows): one compilation.
+            synchronize(device)
             start = time.perf_counter()
             if inputs is not None:
                 diff = max_abs_diff(compiled, inputs, expected)
             else:
                 diff = None
                 sample_window(compiled, cfg, schedule, condition, generator, steps=1)
+            synchronize(device)
             compile_seconds = time.perf_counter() - start
             seconds = timed(
                 lambda: sample_window(compiled, cfg, schedule, condition, generator),
                 runs,
                 warm_up,
+                device,
             )
     except Exception as error:  # report why, the compiled mode is optional
         reason = f"{type(error).__name__}: {error}".strip().splitlines()[0][:400]
-        return {"seconds": None, "reason": reason, "peak_rss_mb": peak_rss_mb()}
+        return {"seconds": None, "reason": reason, **peak_memory(device)}
     return {
         "seconds": seconds,
         "compile_seconds": compile_seconds,
         "max_abs_diff": diff,
-        "peak_rss_mb": peak_rss_mb(),
+        **peak_memory(device),
     }
 
 
@@ -915,7 +971,7 @@ def diffusion_loss_weights(cfg: Config, presence: torch.Tensor) -> tuple[torch.T
     """L_diff's channel weights `[B, 2, 1, D]` and count (loss.rs feature_terms): the body once
     (stream A), each present object's channels in its own stream, every frame real."""
     batch = presence.shape[0]
-    weights = torch.zeros(batch, 2, 1, cfg.stream_features)
+    weights = torch.zeros(batch, 2, 1, cfg.stream_features, device=presence.device)
     weights[:, 0, :, : cfg.body_features] = 1.0
     weights[:, :, :, cfg.body_features :] = presence[:, :, None, None]
     count = float(weights.sum()) * cfg.predicted_frames
@@ -926,8 +982,9 @@ def case_train(args, preset: str) -> dict:
     """Training steps on random windows: q_sample, forward in training mode, L_diff, backward,
     clipped AdamW and the EMA update, as dex2hoi-train's Trainer::step with `mse_only`."""
     cfg = Config.preset(args.root, preset)
+    device = torch.device(args.device)
     torch.manual_seed(0)
-    model = DualStream(cfg)
+    model = DualStream(cfg).to(device)  # before the optimiser: its state follows the parameters
     model.train()
     params = list(model.parameters())
     optimizer = torch.optim.AdamW(
@@ -942,37 +999,43 @@ def case_train(args, preset: str) -> dict:
     )
     ema = [p.detach().clone() for p in params]
     schedule = CosineSchedule()
-    g = torch.Generator().manual_seed(3)
+    # The random windows are drawn on the device (a CUDA generator there).
+    g = torch.Generator(device=device).manual_seed(3)
     b, d, tp, tf = TRAIN_BATCH, cfg.stream_features, cfg.prefix_frames, cfg.predicted_frames
-    presence = torch.ones(b, 2)
+    presence = torch.ones(b, 2, device=device)
     weights, count = diffusion_loss_weights(cfg, presence)
     step = 0
 
+    def clock() -> float:
+        synchronize(device)
+        return time.perf_counter()
+
     def one_step() -> tuple[float, float, float, float]:
         nonlocal step
-        start = time.perf_counter()
-        features = torch.randn(b, 2, tp + tf, d, generator=g)
+        start = clock()
+        features = torch.randn(b, 2, tp + tf, d, generator=g, device=device)
         prefix, x0 = features[:, :, :tp], features[:, :, tp:]
-        text = torch.randn(b, cfg.text_embedding, generator=g)
-        bps = torch.randn(b, 2, cfg.bps_points * 3, generator=g)
-        timesteps = torch.randint(0, schedule.steps, (b,), generator=g)
-        noisy = schedule.add_noise(x0, torch.randn(x0.shape, generator=g), timesteps)
+        text = torch.randn(b, cfg.text_embedding, generator=g, device=device)
+        bps = torch.randn(b, 2, cfg.bps_points * 3, generator=g, device=device)
+        timesteps = torch.randint(0, schedule.steps, (b,), generator=g, device=device)
+        noise = torch.randn(x0.shape, generator=g, device=device)
+        noisy = schedule.add_noise(x0, noise, timesteps)
         # dex2hoi's trainer always passes the window's frame mask (all real here).
-        frame_mask = torch.ones(b, tp + tf)
-        batch_done = time.perf_counter()
+        frame_mask = torch.ones(b, tp + tf, device=device)
+        batch_done = clock()
         prediction = model(noisy, prefix, timesteps.float(), text, bps, presence, frame_mask)
         loss = ((prediction - x0).square() * weights).sum() / count
-        forward_done = time.perf_counter()
+        forward_done = clock()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        backward_done = time.perf_counter()
+        backward_done = clock()
         torch.nn.utils.clip_grad_norm_(params, GRADIENT_CLIP, foreach=True)
         optimizer.step()
         decay = min(EMA_DECAY, (1.0 + step) / (10.0 + step))
         with torch.no_grad():
             torch._foreach_lerp_(ema, [p.detach() for p in params], 1.0 - decay)
         step += 1
-        update_done = time.perf_counter()
+        update_done = clock()
         return (
             update_done - start,
             forward_done - batch_done,
@@ -990,7 +1053,7 @@ def case_train(args, preset: str) -> dict:
         "backward": backward,
         "update": update,
         "batch": TRAIN_BATCH,
-        "peak_rss_mb": peak_rss_mb(),
+        **peak_memory(device),
     }
 
 
@@ -1017,10 +1080,17 @@ def run_case(args, case: str, timeout: float | None = None) -> dict:
         str(args.threads),
         "--root",
         str(args.root),
+        "--device",
+        args.device,
     ]
     command += ["--quick"] * args.quick + ["--skip-check"] * args.skip_check
     with tempfile.TemporaryDirectory(prefix="torch-reference-") as cache:
-        env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache}
+        # Triton's kernel cache (compilation on a GPU) is emptied too.
+        env = {
+            **os.environ,
+            "TORCHINDUCTOR_CACHE_DIR": cache,
+            "TRITON_CACHE_DIR": os.path.join(cache, "triton"),
+        }
         child = subprocess.Popen(
             command, stdout=subprocess.PIPE, text=True, env=env, start_new_session=True
         )
@@ -1099,14 +1169,21 @@ def bench_preset(args, preset: str, matmul: float, failed: list[str]) -> dict:
     }
     for mode, result in modes.items():
         print_mode(mode, result)
+    if "peak_gpu_gib" in sampled:
+        print(
+            f"  peak GPU memory while sampling: {sampled['peak_gpu_gib']:.3f} GiB "
+            "(torch.cuda.max_memory_allocated)"
+        )
     print(
         f"  peak RSS while sampling: {sampled['peak_rss_mb']:.0f} MB "
         f"({sampled['import_rss_mb']:.0f} MB of it once torch is imported)\n"
     )
+    gpu = {k: sampled[k] for k in ("peak_gpu_gib",) if k in sampled}
     return {
         "max_abs_diff": sampled["max_abs_diff"],
         "flops_per_sample": flops,
         "sample": modes,
+        **gpu,
         "peak_rss_mb": sampled["peak_rss_mb"],
         "import_rss_mb": sampled["import_rss_mb"],
     }
@@ -1118,10 +1195,13 @@ def bench_training(args, failed: list[str]) -> dict:
         failed.append(f"training: {trained['error']}")
         print(f"training step (small) failed: {trained['error']}")
         return trained
+    gpu = ""
+    if "peak_gpu_gib" in trained:
+        gpu = f"peak GPU memory {trained['peak_gpu_gib']:.3f} GiB (max_memory_allocated), "
     print(
         f"training step (small, batch {TRAIN_BATCH} x 60 frames): {trained['seconds']:.3f} s "
         f"(forward {trained['forward']:.3f}, backward {trained['backward']:.3f}, "
-        f"update {trained['update']:.3f}); peak RSS {trained['peak_rss_mb']:.0f} MB "
+        f"update {trained['update']:.3f}); {gpu}peak RSS {trained['peak_rss_mb']:.0f} MB "
         f"({trained['import_rss_mb']:.0f} MB once torch is imported)"
     )
     return trained
@@ -1140,16 +1220,29 @@ def run_all(args) -> int:
         if not args.skip_check and not reference_path(args.root, preset).exists():
             raise SystemExit(missing_reference(args.root, preset))
     torch.set_num_threads(args.threads)
-    matmul = matmul_gflops()
+    device = torch.device(args.device)
+    matmul = matmul_gflops(device)
+    name = device_name(device)
     report: dict = {
         "torch": torch.__version__,
+        "device": name,
         "threads": args.threads,
         "quick": args.quick,
         "matmul_gflops": matmul,
     }
     threads = f"{args.threads} thread{'s' * (args.threads != 1)}"
-    print(f"PyTorch reference for dex2hoi (torch {torch.__version__}, {threads}; medians)\n")
-    print(f"{'matmul 1024 x 1024 x 1024 (f32)':<44} {matmul:>8.1f} GFLOP/s\n")
+    where = "cpu"
+    matmul_what = "f32"
+    if device.type == "cuda":
+        tf32 = tf32_matmul()
+        report["cuda"] = torch.version.cuda
+        report["matmul_allow_tf32"] = tf32
+        where = f"cuda: {name}, CUDA {torch.version.cuda}"
+        matmul_what = f"f32, TF32 {'on' if tf32 else 'off'}"
+    print(
+        f"PyTorch reference for dex2hoi (torch {torch.__version__}, {where}, {threads}; medians)\n"
+    )
+    print(f"{f'matmul 1024 x 1024 x 1024 ({matmul_what})':<44} {matmul:>8.1f} GFLOP/s\n")
     failed: list[str] = []
     for preset in args.presets:
         report[preset] = bench_preset(args, preset, matmul, failed)
@@ -1167,6 +1260,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", default="small,paper", help="comma-separated presets")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument(
+        "--device",
+        choices=("cpu", "cuda"),
+        default="cpu",
+        help="where the model runs (cuda: the current NVIDIA GPU, f32, synchronised timings)",
+    )
     parser.add_argument(
         "--out",
         type=Path,
@@ -1192,6 +1291,13 @@ def main() -> int:
     args.presets = [p for p in args.presets.split(",") if p]
     if args.threads < 1:
         parser.error("--threads must be at least 1")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        cuda = torch.version.cuda
+        build = f"built with CUDA {cuda}" if cuda else "a CPU-only build"
+        raise SystemExit(
+            f"--device cuda: torch.cuda.is_available() is false (torch {torch.__version__}, "
+            f"{build}): no usable NVIDIA GPU or driver here"
+        )
     if args.case is not None:
         torch.set_num_threads(args.threads)
         preset, _, kind = args.case.rpartition("-")

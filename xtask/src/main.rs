@@ -9,12 +9,15 @@
 //! - `ablate [--preset NAME] [--steps N]`: the paper's Table 3 on the procedural dataset: the
 //!   full model, its variants and the MDM-style baseline trained with equal budgets, evaluated
 //!   with one evaluator, written to `docs/results/ablation.md`; resumable (see [`ablate`]).
+//! - `build-cuda`: the `cuda` build of `dex2hoi` and its CUDA tests, packed for a GPU machine
+//!   (see [`cuda`]).
 //! - `fuzz NAME|all [SECONDS]`, `fuzz check`: the fuzz targets of the file readers (see [`fuzz`]).
 //! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
 //!   through, so that a checkout drives everything through xtask.
 
 mod ablate;
 mod compare;
+mod cuda;
 mod fuzz;
 
 use std::path::{Path, PathBuf};
@@ -31,6 +34,7 @@ commands:
   ablate [--preset NAME] [--steps N]
                 train and evaluate the full model and the Table 3 variants, write docs/results/ablation.md
   demo          generate the procedural dataset, train the demo preset, sample and render two prompts
+  build-cuda    build the GPU binary and CUDA tests (toolkit from PyPI) and pack them into target/cuda-pack
   fuzz NAME|all [SECONDS]
                 fuzz a file reader (pickle, npy, glb, mesh) with libFuzzer for SECONDS (600) each
   fuzz check    build the fuzz targets without sanitizers and run each over its seed corpus
@@ -51,6 +55,7 @@ fn main() -> Result<()> {
         Some("ci") => ci(&root),
         Some("bench") => bench(&root, args.get(1).map(String::as_str)),
         Some("demo") => demo(&root),
+        Some("build-cuda") => cuda::build_cuda(&root),
         Some("ablate") => ablate::ablate(&root, &args[1..]),
         Some("fuzz") => fuzz::fuzz(&root, &args[1..]),
         Some(command @ ("train" | "sample" | "evaluate")) => {

@@ -4,7 +4,6 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use candle_core::Device;
 use clap::Args;
 
 use dex2hoi_data::dataset::{Dataset, write_atomically};
@@ -13,6 +12,7 @@ use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
 use dex2hoi_sample::{TrainedRun, Weights};
 
+use crate::device::DeviceArgs;
 use crate::sampling::SamplingArgs;
 
 /// Arguments of `dex2hoi evaluate`.
@@ -57,22 +57,24 @@ pub struct EvaluateArgs {
     /// Also write the embeddings (generated, ground truth, texts) to embeddings.npz.
     #[arg(long)]
     dump_embeddings: bool,
+    #[command(flatten)]
+    device: DeviceArgs,
 }
 
 /// Runs `dex2hoi evaluate`.
 pub fn run(args: EvaluateArgs) -> Result<()> {
+    let device = args.device.open()?;
     if args.replications == 0 {
         bail!("--replications must be at least 1");
     }
     let sampler = args.sampling.config()?;
     let multimodality =
         if args.paper_multimodality { MultimodalityProtocol::paper() } else { args.multimodality };
-    let device = Device::Cpu;
     let run = TrainedRun::load(&args.run, Weights::Ema, &device)
         .with_context(|| format!("loading the run {}", args.run.display()))?;
     let dataset = Dataset::load(&args.data)
         .with_context(|| format!("loading the dataset {}", args.data.display()))?;
-    let evaluator = Evaluator::load(&args.evaluator)
+    let evaluator = Evaluator::load(&args.evaluator, &device)
         .with_context(|| format!("loading the evaluator {}", args.evaluator.display()))?;
     evaluator.check_dataset(&dataset.manifest, &args.data)?;
     if run.manifest.skeleton != dataset.manifest.skeleton

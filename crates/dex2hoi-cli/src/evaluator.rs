@@ -9,6 +9,8 @@ use clap::{Args, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_eval::evaluator::{EVALUATOR_FILE, EvaluatorConfig, STATS_FILE, train_evaluator};
 
+use crate::device::DeviceArgs;
+
 /// Pairs per batch of the held-out retrieval (R-precision's 32).
 const RETRIEVAL_BATCH: usize = 32;
 
@@ -38,6 +40,8 @@ pub struct EvaluatorTrainArgs {
     /// Seed of the initialisation and the batches (overrides the configuration's `seed`).
     #[arg(long)]
     seed: Option<u64>,
+    #[command(flatten)]
+    device: DeviceArgs,
 }
 
 /// Runs `dex2hoi evaluator ...`.
@@ -48,6 +52,7 @@ pub fn run(command: EvaluatorCommand) -> Result<()> {
 }
 
 fn train(args: EvaluatorTrainArgs) -> Result<()> {
+    let device = args.device.open()?;
     let mut config = match &args.config {
         Some(path) => {
             let text = std::fs::read_to_string(path).with_context(|| {
@@ -92,7 +97,7 @@ fn train(args: EvaluatorTrainArgs) -> Result<()> {
         .context("progress bar template")?
         .progress_chars("=> "),
     );
-    let trained = train_evaluator(&dataset, &args.data, &config, &mut |step, loss| {
+    let trained = train_evaluator(&dataset, &args.data, &config, &device, &mut |step, loss| {
         bar.set_position(step as u64);
         bar.set_message(format!("{loss:.4}"));
     });

@@ -8,6 +8,7 @@
 //! - `dex2hoi data show DIR --sequence ID|INDEX --out DIR [--smplx-model FILE|DIR]`: export one
 //!   sequence of a dataset (npz, glb, bvh, preview gif and png) to look at it.
 //! - `dex2hoi train --config FILE --data DIR --out RUN [--steps N] [--resume]`: train.
+//!   `train`, `sample`, `evaluate` and `evaluator train` take `--device cpu|cuda[:N]`.
 //! - `dex2hoi sample [--run RUN|MODEL] --text TEXT --object NAME|FILE... --out DIR
 //!   [--smplx-model FILE|DIR [--betas B,...]]`: generate and export (with the shipped model
 //!   unless a run or `DEX2HOI_MODEL` says otherwise).
@@ -30,6 +31,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 
 mod body;
 mod compare;
+mod device;
 mod evaluate;
 mod evaluator;
 mod model;
@@ -108,8 +110,21 @@ enum DataCommand {
     Show(show::ShowArgs),
 }
 
-fn main() -> Result<()> {
-    match Cli::parse().command {
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse().command) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("Error: {error:?}");
+            if let Some(hint) = device::out_of_memory_hint(&error) {
+                eprintln!("hint: {hint}");
+            }
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(command: Command) -> Result<()> {
+    match command {
         Command::Data { command: DataCommand::Synth { out, sequences, seed, fps } } => {
             synth(&out, sequences, seed, fps)
         }

@@ -130,6 +130,7 @@ pub fn run(command: ModelCommand) -> Result<()> {
         }
         ModelCommand::Info(args) => {
             let source = ModelSource::resolve(args.run.as_deref());
+            // Describing a model reads its weights and computes nothing: the host will do.
             let run = source.load(&Device::Cpu)?;
             let model = &run.config.model;
             println!("model: {}", source.describe());

@@ -3,11 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use candle_core::Device;
 use clap::Args;
 use glam::Vec2;
 
 use crate::body::BodyArgs;
+use crate::device::DeviceArgs;
 use crate::model::ModelSource;
 use crate::sampling::SamplingArgs;
 use dex2hoi_export::{
@@ -55,10 +55,13 @@ pub struct SampleArgs {
     /// Output directory for motion.npz, motion.glb, motion.bvh, preview.gif and preview.png.
     #[arg(long)]
     out: PathBuf,
+    #[command(flatten)]
+    device: DeviceArgs,
 }
 
 /// Runs `dex2hoi sample`.
 pub fn run(args: SampleArgs) -> Result<()> {
+    let device = args.device.open()?;
     if args.objects.len() > 2 {
         bail!("the model takes at most two objects, got {}", args.objects.len());
     }
@@ -76,7 +79,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
     let body = args.body.load()?;
     let source = ModelSource::resolve(args.run.as_deref());
-    let run = source.load(&Device::Cpu)?;
+    let run = source.load(&device)?;
     println!("sampling with {} ({} training steps)", source.describe(), run.step);
     let fps = run.manifest.fps;
     let prompts = match (&args.text, &args.timeline) {
@@ -142,7 +145,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         .with_context(|| format!("exporting to {}", args.out.display()))?;
     let duration = sampled.frames as f64 / f64::from(fps);
     println!(
-        "generated {} frames ({duration:.1} s at {fps} fps) in {:.1} s: {:.2}x real time",
+        "generated {} frames ({duration:.1} s at {fps} fps) in {:.2} s: {:.2}x real time",
         sampled.frames,
         sampled.seconds,
         duration / sampled.seconds

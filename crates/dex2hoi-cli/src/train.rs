@@ -11,6 +11,8 @@ use dex2hoi_data::dataset::Dataset;
 use dex2hoi_sample::RunFiles;
 use dex2hoi_train::{TrainConfig, TrainOptions, train};
 
+use crate::device::DeviceArgs;
+
 /// Arguments of `dex2hoi train`.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
@@ -34,10 +36,13 @@ pub struct TrainArgs {
     /// that `sample` and `evaluate` take as `--run`), for metrics against training steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(usize))]
     snapshot_every: Option<usize>,
+    #[command(flatten)]
+    device: DeviceArgs,
 }
 
 /// Runs `dex2hoi train`.
 pub fn run(args: TrainArgs) -> Result<()> {
+    let device = args.device.open()?;
     let mut config = match (&args.config, args.resume) {
         (Some(path), _) => TrainConfig::load(path)?,
         (None, true) => TrainConfig::load(&RunFiles::new(&args.out).config)
@@ -73,15 +78,20 @@ pub fn run(args: TrainArgs) -> Result<()> {
         .progress_chars("=> "),
     );
     println!(
-        "training a latent-{} model with {} layers on {} for {} steps -> {}",
+        "training a latent-{} model with {} layers on {} for {} steps on {} -> {}",
         config.model.latent,
         config.model.layers,
         args.data.display(),
         config.training.steps,
+        args.device.device,
         args.out.display()
     );
-    let options =
-        TrainOptions { resume: args.resume, stop: &stop, snapshot_every: args.snapshot_every };
+    let options = TrainOptions {
+        resume: args.resume,
+        stop: &stop,
+        snapshot_every: args.snapshot_every,
+        device: &device,
+    };
     let summary = train(&args.out, config, &dataset, &args.data, options, &mut |report, total| {
         bar.set_length(total as u64);
         bar.set_position(report.step as u64);

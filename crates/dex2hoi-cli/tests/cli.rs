@@ -48,3 +48,41 @@ fn bad_input_gives_clear_errors() {
     let unknown = dex2hoi(&["data", "frobnicate"]);
     assert!(!unknown.status.success());
 }
+
+/// `--device` on every command that computes: a malformed name is refused by the parser, and
+/// CUDA in a build without it says how to get the GPU build, before anything is read.
+#[test]
+fn devices_are_checked_before_any_work() {
+    let commands: [&[&str]; 4] = [
+        &["train", "--config", "configs/tiny.toml", "--data", "/nonexistent", "--out", "/tmp/x"],
+        &["sample", "--text", "The person lifts the mug.", "--object", "mug", "--out", "/tmp/x"],
+        &[
+            "evaluate",
+            "--run",
+            "/nonexistent",
+            "--data",
+            "/nonexistent",
+            "--evaluator",
+            "/x",
+            "--out",
+            "/tmp/x",
+        ],
+        &["evaluator", "train", "--data", "/nonexistent", "--out", "/tmp/x"],
+    ];
+    for command in commands {
+        let bad = dex2hoi(&[command, &["--device", "gpu"]].concat());
+        assert!(!bad.status.success());
+        let stderr = String::from_utf8_lossy(&bad.stderr);
+        assert!(stderr.contains("expected cpu, cuda or cuda:N"), "{command:?}: {stderr}");
+        if !cfg!(feature = "cuda") {
+            let cuda = dex2hoi(&[command, &["--device", "cuda:0"]].concat());
+            assert!(!cuda.status.success());
+            let stderr = String::from_utf8_lossy(&cuda.stderr);
+            assert!(
+                stderr.contains("built without CUDA support")
+                    && stderr.contains("cargo xtask build-cuda"),
+                "{command:?}: {stderr}"
+            );
+        }
+    }
+}

@@ -40,7 +40,7 @@ fn evaluator_train_writes_the_evaluator_and_refuses_bad_input() {
     assert!(out.join("evaluator.safetensors").is_file());
     let stats = std::fs::read_to_string(out.join("stats.json")).unwrap();
     assert!(stats.contains("\"feature_size\""), "{stats}");
-    let loaded = dex2hoi_eval::evaluator::Evaluator::load(&out).unwrap();
+    let loaded = dex2hoi_eval::evaluator::Evaluator::load(&out, &candle_core::Device::Cpu).unwrap();
     assert_eq!(loaded.config().steps, 20);
     assert_eq!(loaded.config().seed, 3);
     assert_eq!(loaded.config().latent, 32);

@@ -98,12 +98,13 @@ impl std::fmt::Debug for Evaluator {
 impl Evaluator {
     /// A freshly initialised evaluator for a dataset: vocabulary of the training texts, action
     /// labels of the training split (sorted), feature statistics of the training split, and
-    /// weights from `config.seed`.
+    /// weights from `config.seed`, on `device`.
     pub fn initialise(
         dataset: &Dataset,
         dataset_path: &Path,
         config: &EvaluatorConfig,
         dtype: DType,
+        device: &Device,
     ) -> Result<Self> {
         config.validate()?;
         let sequences = usable_sequences(dataset);
@@ -133,6 +134,7 @@ impl Evaluator {
             stats,
             (manifest.skeleton.clone(), manifest.joints, manifest.fps),
             dtype,
+            device,
         )
     }
 
@@ -143,20 +145,20 @@ impl Evaluator {
         stats: ClipStats,
         (skeleton, joints, fps): (String, usize, f32),
         dtype: DType,
+        device: &Device,
     ) -> Result<Self> {
-        let device = Device::Cpu;
         let motion_vars = SeededVarMap::new(config.seed);
         let text_vars = SeededVarMap::new(config.seed ^ TEXT_SEED_SALT);
         let motion = MotionEncoder::new(
             &config,
             stats.feature_size,
             labels.len(),
-            motion_vars.builder(dtype, &device),
+            motion_vars.builder(dtype, device),
         )?;
         let text = BuiltinTextEncoder::new(
             vocabulary,
             config.text_config(),
-            text_vars.builder(dtype, &device),
+            text_vars.builder(dtype, device),
         )?;
         Ok(Self {
             config,
@@ -171,7 +173,7 @@ impl Evaluator {
             fps,
             training: None,
             origin: None,
-            device,
+            device: device.clone(),
             dtype,
         })
     }

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use candle_core::{DType, Tensor};
+use candle_core::{DType, Device, Tensor};
 
 use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, decode_features};
@@ -71,8 +71,10 @@ fn values(evaluator: &Evaluator) -> Vec<(String, Vec<f32>)> {
 fn training_lowers_the_loss_retrieves_and_classifies_above_chance_and_round_trips() {
     let mut losses = Vec::new();
     let evaluator =
-        train_evaluator(dataset(), &data_path(), &tiny(150), &mut |_, loss| losses.push(loss))
-            .unwrap();
+        train_evaluator(dataset(), &data_path(), &tiny(150), &Device::Cpu, &mut |_, loss| {
+            losses.push(loss)
+        })
+        .unwrap();
     assert_eq!(losses.len(), 150);
     let summary = evaluator.training().unwrap().clone();
     assert!(
@@ -106,8 +108,8 @@ fn training_lowers_the_loss_retrieves_and_classifies_above_chance_and_round_trip
     let dir = temporary("round-trip");
     evaluator.save(&dir).unwrap();
     assert!(dir.join(EVALUATOR_FILE).is_file() && dir.join(STATS_FILE).is_file());
-    let loaded = Evaluator::load(&dir).unwrap();
-    let by_file = Evaluator::load(&dir.join(EVALUATOR_FILE)).unwrap();
+    let loaded = Evaluator::load(&dir, &Device::Cpu).unwrap();
+    let by_file = Evaluator::load(&dir.join(EVALUATOR_FILE), &Device::Cpu).unwrap();
     assert_eq!(by_file.embed_motions(&windows[..2]).unwrap(), motion[..2]);
     assert_eq!(loaded.config(), evaluator.config());
     assert_eq!(loaded.labels(), evaluator.labels());
@@ -136,7 +138,8 @@ fn gradients_match_finite_differences() {
         batch_size: 5,
         ..EvaluatorConfig::default()
     };
-    let evaluator = Evaluator::initialise(dataset(), &data_path(), &config, DType::F64).unwrap();
+    let evaluator =
+        Evaluator::initialise(dataset(), &data_path(), &config, DType::F64, &Device::Cpu).unwrap();
     let sequences: Vec<_> = train_split().iter().collect();
     let batch = evaluator.draw_batch(&sequences, &mut step_rng(3, 0)).unwrap();
     let loss = evaluator.loss(&batch).unwrap();
@@ -175,9 +178,7 @@ fn gradients_match_finite_differences() {
         let at = |delta: f64| {
             let mut shifted = original.clone();
             shifted[index] += delta;
-            let tensor =
-                Tensor::from_vec(shifted, parameter.var.shape(), &candle_core::Device::Cpu)
-                    .unwrap();
+            let tensor = Tensor::from_vec(shifted, parameter.var.shape(), &Device::Cpu).unwrap();
             parameter.var.set(&tensor).unwrap();
             total(&evaluator)
         };
@@ -196,7 +197,10 @@ fn gradients_match_finite_differences() {
 fn the_seed_decides_the_weights() {
     let run = |seed: u64| {
         let config = EvaluatorConfig { seed, ..tiny(3) };
-        values(&train_evaluator(dataset(), &data_path(), &config, &mut |_, _| {}).unwrap())
+        values(
+            &train_evaluator(dataset(), &data_path(), &config, &Device::Cpu, &mut |_, _| {})
+                .unwrap(),
+        )
     };
     let first = run(5);
     assert_eq!(first, run(5));
@@ -205,10 +209,11 @@ fn the_seed_decides_the_weights() {
 
 #[test]
 fn datasets_files_and_inputs_that_do_not_fit_are_refused() {
-    let evaluator = Evaluator::initialise(dataset(), &data_path(), &tiny(1), DType::F32).unwrap();
+    let evaluator =
+        Evaluator::initialise(dataset(), &data_path(), &tiny(1), DType::F32, &Device::Cpu).unwrap();
     let dir = temporary("refusals");
     evaluator.save(&dir).unwrap();
-    let loaded = Evaluator::load(&dir).unwrap();
+    let loaded = Evaluator::load(&dir, &Device::Cpu).unwrap();
 
     let other = Path::new("other-dataset");
     let mut manifest = dataset().manifest.clone();
@@ -237,14 +242,14 @@ fn datasets_files_and_inputs_that_do_not_fit_are_refused() {
     // Corrupt and missing files.
     let weights = dir.join(EVALUATOR_FILE);
     std::fs::write(&weights, b"not a safetensors file").unwrap();
-    let error = Evaluator::load(&dir).unwrap_err().to_string();
+    let error = Evaluator::load(&dir, &Device::Cpu).unwrap_err().to_string();
     assert!(error.contains(&weights.display().to_string()), "{error}");
     evaluator.save(&dir).unwrap();
     std::fs::write(dir.join(STATS_FILE), b"{\"feature_size\": 3}").unwrap();
-    let error = Evaluator::load(&dir).unwrap_err().to_string();
+    let error = Evaluator::load(&dir, &Device::Cpu).unwrap_err().to_string();
     assert!(error.contains(STATS_FILE), "{error}");
     std::fs::remove_file(dir.join(STATS_FILE)).unwrap();
-    let error = Evaluator::load(&dir).unwrap_err().to_string();
+    let error = Evaluator::load(&dir, &Device::Cpu).unwrap_err().to_string();
     assert!(error.contains(STATS_FILE), "{error}");
     std::fs::remove_dir_all(&dir).ok();
 
@@ -253,7 +258,9 @@ fn datasets_files_and_inputs_that_do_not_fit_are_refused() {
     for sequence in unlabelled.splits.values_mut().flatten() {
         sequence.action = None;
     }
-    let plain = Evaluator::initialise(&unlabelled, &data_path(), &tiny(1), DType::F32).unwrap();
+    let plain =
+        Evaluator::initialise(&unlabelled, &data_path(), &tiny(1), DType::F32, &Device::Cpu)
+            .unwrap();
     assert!(plain.labels().is_empty());
     let windows = plain.evaluation_windows(&train_split()[..2]).unwrap();
     assert!(plain.action_features(&windows).is_err());
@@ -262,11 +269,14 @@ fn datasets_files_and_inputs_that_do_not_fit_are_refused() {
     for sequence in silent.splits.values_mut().flatten() {
         sequence.texts.clear();
     }
-    let error =
-        Evaluator::initialise(&silent, &data_path(), &tiny(1), DType::F32).unwrap_err().to_string();
+    let error = Evaluator::initialise(&silent, &data_path(), &tiny(1), DType::F32, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
     assert!(error.contains("procedural-dataset") && error.contains("training split"), "{error}");
     let bad = EvaluatorConfig { heads: 3, ..tiny(1) };
-    assert!(Evaluator::initialise(dataset(), &data_path(), &bad, DType::F32).is_err());
+    assert!(
+        Evaluator::initialise(dataset(), &data_path(), &bad, DType::F32, &Device::Cpu).is_err()
+    );
 }
 
 #[test]

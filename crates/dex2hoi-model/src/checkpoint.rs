@@ -144,7 +144,7 @@ pub fn assign_parameters(
                 format!("{:?}", tensor.dims()),
             ));
         }
-        var.set(&tensor.to_dtype(var.dtype())?)?;
+        var.set(&tensor.to_dtype(var.dtype())?.to_device(var.device())?)?;
     }
     if let Some(extra) =
         tensors.keys().find(|k| k.starts_with(prefix) && !data.contains_key(&k[prefix.len()..]))

@@ -17,91 +17,218 @@ pub struct UpdateReport {
     pub gradient_norm: f64,
 }
 
-/// AdamW state: first and second moments per parameter and the number of updates.
+/// AdamW state: first and second moments per parameter (`f32` tensors of the parameter's
+/// shape, on its device) and the number of updates.
 #[derive(Debug, Clone)]
 pub struct AdamW {
     config: OptimizerConfig,
-    /// First moments per parameter.
-    pub first: Vec<Vec<f32>>,
-    /// Second moments per parameter.
-    pub second: Vec<Vec<f32>>,
+    first: Vec<Tensor>,
+    second: Vec<Tensor>,
     /// Updates done.
     pub updates: usize,
 }
 
+/// The constants of one update, shared by every parameter.
+#[derive(Debug, Clone, Copy)]
+struct UpdateConstants {
+    beta1: f32,
+    beta2: f32,
+    /// `lr / (1 - beta1^t)`.
+    step_size: f32,
+    /// `sqrt(1 - beta2^t)`.
+    root_correction2: f32,
+    epsilon: f32,
+    /// The gradient's clipping factor.
+    scale: f32,
+}
+
 impl AdamW {
-    /// Zero moments for the parameters.
-    pub fn new(config: OptimizerConfig, parameters: &[Parameter]) -> Self {
-        let zeros: Vec<Vec<f32>> =
-            parameters.iter().map(|p| vec![0.0; p.var.elem_count()]).collect();
-        Self { config, first: zeros.clone(), second: zeros, updates: 0 }
+    /// Zero moments for the parameters, on their devices.
+    pub fn new(config: OptimizerConfig, parameters: &[Parameter]) -> Result<Self> {
+        let zeros: Vec<Tensor> = parameters
+            .iter()
+            .map(|p| Tensor::zeros(p.var.shape(), DType::F32, p.var.device()))
+            .collect::<candle_core::Result<_>>()?;
+        Ok(Self { config, first: zeros.clone(), second: zeros, updates: 0 })
+    }
+
+    /// The first and second moments of parameter `k` (`f32`, the parameter's shape and device).
+    pub fn moments(&self, k: usize) -> (&Tensor, &Tensor) {
+        (&self.first[k], &self.second[k])
+    }
+
+    /// Replaces the moments of parameter `k` (restoring a checkpoint); they are moved to the
+    /// parameter's device as `f32`.
+    pub fn set_moments(
+        &mut self,
+        k: usize,
+        parameter: &Parameter,
+        first: &Tensor,
+        second: &Tensor,
+    ) -> Result<()> {
+        let on_device = |t: &Tensor| -> Result<Tensor> {
+            Ok(t.to_dtype(DType::F32)?
+                .reshape(parameter.var.shape())?
+                .to_device(parameter.var.device())?)
+        };
+        self.first[k] = on_device(first)?;
+        self.second[k] = on_device(second)?;
+        Ok(())
     }
 
     /// One update from the gradients of a backward pass; a parameter without a gradient (not
     /// used by the loss) gets a zero gradient and still decays.
+    ///
+    /// On the CPU the update is a parallel loop over host copies (one pass per parameter, each
+    /// element in a fixed order, so it does not depend on the thread count); on other devices
+    /// it is a few elementwise tensor operations per parameter on the device, and the only
+    /// transfer to the host is the gradient norm.
     pub fn update(
         &mut self,
         parameters: &[Parameter],
         gradients: &GradStore,
         learning_rate: f64,
     ) -> Result<UpdateReport> {
-        let grads: Vec<Option<Vec<f32>>> = parameters
-            .iter()
-            .map(|p| {
-                gradients
-                    .get(p.var.as_tensor())
-                    .map(|g| -> Result<Vec<f32>> {
-                        Ok(g.flatten_all()?.to_dtype(DType::F32)?.to_vec1()?)
-                    })
-                    .transpose()
-            })
-            .collect::<Result<_>>()?;
-        let squared: f64 = grads
-            .iter()
-            .flatten()
-            .map(|g| g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>())
-            .sum();
-        let gradient_norm = squared.sqrt();
+        let grads: Vec<Option<&Tensor>> =
+            parameters.iter().map(|p| gradients.get(p.var.as_tensor())).collect();
+        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
+        let host_grads: Vec<Option<Vec<f32>>> = if on_cpu {
+            grads
+                .iter()
+                .map(|g| {
+                    g.map(|g| Ok(g.flatten_all()?.to_dtype(DType::F32)?.to_vec1()?)).transpose()
+                })
+                .collect::<Result<_>>()?
+        } else {
+            Vec::new()
+        };
+        let gradient_norm = if on_cpu {
+            host_grads
+                .iter()
+                .flatten()
+                .map(|g| g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>())
+                .sum::<f64>()
+                .sqrt()
+        } else {
+            device_norm(&grads)?
+        };
         let scale = match self.config.gradient_clip {
             Some(clip) if gradient_norm > clip => (clip / (gradient_norm + 1e-6)) as f32,
             _ => 1.0,
         };
         self.updates += 1;
         let c = &self.config;
-        let (beta1, beta2) = (c.beta1 as f32, c.beta2 as f32);
         let correction1 = 1.0 - c.beta1.powi(self.updates as i32);
         let correction2 = 1.0 - c.beta2.powi(self.updates as i32);
-        let step_size = (learning_rate / correction1) as f32;
-        let root_correction2 = correction2.sqrt() as f32;
-        let epsilon = c.epsilon as f32;
-        // Parameters update in parallel (each element as before, so the result does not
-        // depend on the thread count); the variables are set afterwards, in order.
-        let updated: Vec<Vec<f32>> = parameters
-            .par_iter()
-            .zip(self.first.par_iter_mut())
-            .zip(self.second.par_iter_mut())
-            .zip(grads.par_iter())
-            .map(|(((parameter, first), second), gradient)| -> Result<Vec<f32>> {
-                let mut values = parameter.values()?;
-                let decay =
-                    if parameter.decays() { (learning_rate * c.weight_decay) as f32 } else { 0.0 };
-                let gradient = gradient.as_deref();
-                for n in 0..values.len() {
-                    let g = gradient.map_or(0.0, |g| g[n] * scale);
-                    first[n] = beta1 * first[n] + (1.0 - beta1) * g;
-                    second[n] = beta2 * second[n] + (1.0 - beta2) * g * g;
-                    let denominator = second[n].sqrt() / root_correction2 + epsilon;
-                    values[n] = values[n] * (1.0 - decay) - step_size * first[n] / denominator;
-                }
-                Ok(values)
-            })
-            .collect::<Result<_>>()?;
-        for (parameter, values) in parameters.iter().zip(updated) {
-            let shape = parameter.var.shape().clone();
-            let tensor = Tensor::from_vec(values, shape, parameter.var.device())?
-                .to_dtype(parameter.var.dtype())?;
-            parameter.var.set(&tensor)?;
+        let constants = UpdateConstants {
+            beta1: c.beta1 as f32,
+            beta2: c.beta2 as f32,
+            step_size: (learning_rate / correction1) as f32,
+            root_correction2: correction2.sqrt() as f32,
+            epsilon: c.epsilon as f32,
+            scale,
+        };
+        let weight_decay = (learning_rate * c.weight_decay) as f32;
+        let decay_of = move |p: &Parameter| if p.decays() { weight_decay } else { 0.0 };
+        if on_cpu {
+            self.update_on_host(parameters, &host_grads, constants, &decay_of)?;
+        } else {
+            for (k, parameter) in parameters.iter().enumerate() {
+                let (first, second, value) = update_on_device(
+                    parameter,
+                    &self.first[k],
+                    &self.second[k],
+                    grads[k],
+                    constants,
+                    decay_of(parameter),
+                )?;
+                self.first[k] = first;
+                self.second[k] = second;
+                parameter.var.set(&value)?;
+            }
         }
         Ok(UpdateReport { learning_rate, gradient_norm })
     }
+
+    fn update_on_host(
+        &mut self,
+        parameters: &[Parameter],
+        grads: &[Option<Vec<f32>>],
+        u: UpdateConstants,
+        decay_of: &(dyn Fn(&Parameter) -> f32 + Sync),
+    ) -> Result<()> {
+        // Parameters update in parallel (each element as before, so the result does not
+        // depend on the thread count); the variables are set afterwards, in order.
+        let updated: Vec<[Vec<f32>; 3]> = parameters
+            .par_iter()
+            .zip(self.first.par_iter())
+            .zip(self.second.par_iter())
+            .zip(grads.par_iter())
+            .map(|(((parameter, first), second), gradient)| -> Result<[Vec<f32>; 3]> {
+                let mut values = parameter.values()?;
+                let mut first: Vec<f32> = first.flatten_all()?.to_vec1()?;
+                let mut second: Vec<f32> = second.flatten_all()?.to_vec1()?;
+                let decay = decay_of(parameter);
+                let gradient = gradient.as_deref();
+                for n in 0..values.len() {
+                    let g = gradient.map_or(0.0, |g| g[n] * u.scale);
+                    first[n] = u.beta1 * first[n] + (1.0 - u.beta1) * g;
+                    second[n] = u.beta2 * second[n] + (1.0 - u.beta2) * g * g;
+                    let denominator = second[n].sqrt() / u.root_correction2 + u.epsilon;
+                    values[n] = values[n] * (1.0 - decay) - u.step_size * first[n] / denominator;
+                }
+                Ok([values, first, second])
+            })
+            .collect::<Result<_>>()?;
+        for (k, (parameter, [values, first, second])) in parameters.iter().zip(updated).enumerate()
+        {
+            let (shape, device) = (parameter.var.shape().clone(), parameter.var.device());
+            self.first[k] = Tensor::from_vec(first, shape.clone(), device)?;
+            self.second[k] = Tensor::from_vec(second, shape.clone(), device)?;
+            let tensor =
+                Tensor::from_vec(values, shape, device)?.to_dtype(parameter.var.dtype())?;
+            parameter.var.set(&tensor)?;
+        }
+        Ok(())
+    }
+}
+
+/// The global gradient norm computed on the device (one scalar comes back to the host).
+fn device_norm(grads: &[Option<&Tensor>]) -> Result<f64> {
+    let squares: Vec<Tensor> = grads
+        .iter()
+        .flatten()
+        .map(|g| g.to_dtype(DType::F32)?.sqr()?.sum_all())
+        .collect::<candle_core::Result<_>>()?;
+    if squares.is_empty() {
+        return Ok(0.0);
+    }
+    let total: f32 = Tensor::stack(&squares, 0)?.sum_all()?.to_scalar()?;
+    Ok(f64::from(total).sqrt())
+}
+
+/// One parameter's AdamW update as tensor operations on its device: the new first and second
+/// moments and the new value (in the parameter's dtype). Same formula as the host loop.
+fn update_on_device(
+    parameter: &Parameter,
+    first: &Tensor,
+    second: &Tensor,
+    gradient: Option<&Tensor>,
+    u: UpdateConstants,
+    decay: f32,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let gradient = match gradient {
+        Some(g) => g.to_dtype(DType::F32)?.affine(f64::from(u.scale), 0.0)?,
+        None => first.zeros_like()?,
+    };
+    let first = (first.affine(f64::from(u.beta1), 0.0)?
+        + gradient.affine(f64::from(1.0 - u.beta1), 0.0)?)?;
+    let second = (second.affine(f64::from(u.beta2), 0.0)?
+        + gradient.sqr()?.affine(f64::from(1.0 - u.beta2), 0.0)?)?;
+    let denominator =
+        second.sqrt()?.affine(1.0 / f64::from(u.root_correction2), f64::from(u.epsilon))?;
+    let value = parameter.var.as_tensor().to_dtype(DType::F32)?;
+    let value = (value.affine(f64::from(1.0 - decay), 0.0)?
+        - (first.affine(f64::from(u.step_size), 0.0)? / denominator)?)?;
+    Ok((first, second, value.to_dtype(parameter.var.dtype())?))
 }

@@ -1,32 +1,65 @@
 //! The exponential moving average of the weights, which sampling uses.
 
-use crate::error::Result;
-use crate::parameter::Parameter;
+use candle_core::{DType, Tensor};
 use rayon::prelude::*;
 
-/// The exponential moving average of the parameters (the weights used for sampling).
+use crate::error::Result;
+use crate::parameter::Parameter;
+
+/// The exponential moving average of the parameters (the weights used for sampling), `f32`
+/// tensors of each parameter's shape on its device.
 #[derive(Debug, Clone)]
 pub struct Ema {
-    /// Averaged values per parameter.
-    pub values: Vec<Vec<f32>>,
+    values: Vec<Tensor>,
 }
 
 impl Ema {
     /// Starts at the parameters' current values.
     pub fn new(parameters: &[Parameter]) -> Result<Self> {
-        Ok(Self { values: parameters.iter().map(Parameter::values).collect::<Result<_>>()? })
+        let values = parameters
+            .iter()
+            .map(|p| p.var.as_tensor().to_dtype(DType::F32)?.copy())
+            .collect::<candle_core::Result<_>>()?;
+        Ok(Self { values })
     }
 
-    /// `ema = d ema + (1 - d) theta` with `d = min(decay, (1 + step) / (10 + step))`.
+    /// The average of parameter `k`.
+    pub fn value(&self, k: usize) -> &Tensor {
+        &self.values[k]
+    }
+
+    /// Replaces the average of parameter `k` (restoring a checkpoint), moved to the parameter's
+    /// device as `f32`.
+    pub fn set_value(&mut self, k: usize, parameter: &Parameter, value: &Tensor) -> Result<()> {
+        self.values[k] = value
+            .to_dtype(DType::F32)?
+            .reshape(parameter.var.shape())?
+            .to_device(parameter.var.device())?;
+        Ok(())
+    }
+
+    /// `ema = d ema + (1 - d) theta` with `d = min(decay, (1 + step) / (10 + step))`. On the CPU
+    /// a parallel host loop (each element as before, independent of the thread count); on
+    /// other devices one tensor expression per parameter.
     pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
         let d = decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32;
-        // Parameters in parallel, each element as before (independent of the thread count).
-        self.values.par_iter_mut().zip(parameters).try_for_each(|(average, parameter)| {
-            let values = parameter.values()?;
-            for (a, v) in average.iter_mut().zip(values) {
-                *a = d * *a + (1.0 - d) * v;
-            }
-            Ok(())
-        })
+        if parameters.first().is_none_or(|p| p.var.device().is_cpu()) {
+            return self.values.par_iter_mut().zip(parameters).try_for_each(
+                |(average, parameter)| {
+                    let mut host: Vec<f32> = average.flatten_all()?.to_vec1()?;
+                    for (a, v) in host.iter_mut().zip(parameter.values()?) {
+                        *a = d * *a + (1.0 - d) * v;
+                    }
+                    *average = Tensor::from_vec(host, average.shape(), average.device())?;
+                    Ok(())
+                },
+            );
+        }
+        for (average, parameter) in self.values.iter_mut().zip(parameters) {
+            let value = parameter.var.as_tensor().to_dtype(DType::F32)?;
+            *average =
+                (average.affine(f64::from(d), 0.0)? + value.affine(f64::from(1.0 - d), 0.0)?)?;
+        }
+        Ok(())
     }
 }

@@ -3,8 +3,9 @@
 //! decay, global gradient-norm clipping, an exponential moving average of the weights, and the
 //! per-step random stream that makes a resumed run draw what an uninterrupted one would.
 //!
-//! The state is plain `f32` vectors per parameter so that a checkpoint holds it exactly and a
-//! resumed run continues bit for bit.
+//! The state is `f32` tensors per parameter on the parameters' device, so that a checkpoint
+//! holds it exactly and a resumed run continues bit for bit on the same device. On the CPU the
+//! updates are parallel host loops; elsewhere, elementwise tensor operations on the device.
 
 mod adamw;
 mod config;

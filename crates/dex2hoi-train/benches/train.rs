@@ -48,8 +48,13 @@ fn main() {
     let mut results = Vec::new();
     for (label, mse_only) in [("mse_only", true), ("full", false)] {
         config.loss.mse_only = mse_only;
-        let mut trainer =
-            Trainer::new(config.clone(), &dataset, Path::new("procedural")).expect("a trainer");
+        let mut trainer = Trainer::new(
+            config.clone(),
+            &dataset,
+            Path::new("procedural"),
+            &candle_core::Device::Cpu,
+        )
+        .expect("a trainer");
         reset_peak_memory();
         let (seconds, parts) = median_step(&mut trainer, runs);
         let peak = peak_memory_mib();

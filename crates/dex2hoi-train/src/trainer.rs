@@ -95,11 +95,17 @@ pub struct Trainer {
 }
 
 impl Trainer {
-    /// A fresh trainer (parameters from the seed) for a dataset that fits the configuration.
-    pub fn new(config: TrainConfig, dataset: &Dataset, dataset_path: &Path) -> Result<Self> {
+    /// A fresh trainer (parameters from the seed) on `device` for a dataset that fits the
+    /// configuration.
+    pub fn new(
+        config: TrainConfig,
+        dataset: &Dataset,
+        dataset_path: &Path,
+        device: &Device,
+    ) -> Result<Self> {
         config.validate("config")?;
         config.check_dataset(&dataset.manifest, dataset_path)?;
-        let device = Device::Cpu;
+        let device = device.clone();
         let window = WindowConfig {
             prefix_frames: config.model.prefix_frames,
             predicted_frames: config.model.predicted_frames,
@@ -119,7 +125,7 @@ impl Trainer {
             &device,
         )?;
         let parameters = trained_parameters(&model_vars, &text);
-        let optimizer = AdamW::new(config.optimizer.clone(), &parameters);
+        let optimizer = AdamW::new(config.optimizer.clone(), &parameters)?;
         let ema = Ema::new(&parameters)?;
         let loss = LossContext::new(
             config.loss.clone(),
@@ -314,16 +320,16 @@ impl Trainer {
     /// vocabulary) atomically.
     pub fn save(&self, path: &Path) -> Result<()> {
         let mut tensors = BTreeMap::new();
+        // Everything is written as host f32 tensors, so the file is the same whatever device
+        // trained it.
+        let host =
+            |t: &Tensor| -> Result<Tensor> { Ok(t.to_dtype(DType::F32)?.to_device(&Device::Cpu)?) };
         for (k, p) in self.parameters.iter().enumerate() {
-            let shape = p.var.shape().clone();
-            let named = |values: &[f32]| -> Result<Tensor> {
-                Ok(Tensor::from_vec(values.to_vec(), shape.clone(), &Device::Cpu)?)
-            };
-            tensors.insert(p.name.clone(), p.var.as_tensor().to_dtype(DType::F32)?);
-            tensors.insert(format!("ema.{}", p.name), named(&self.ema.values[k])?);
-            tensors.insert(format!("optimizer.first.{}", p.name), named(&self.optimizer.first[k])?);
-            tensors
-                .insert(format!("optimizer.second.{}", p.name), named(&self.optimizer.second[k])?);
+            let (first, second) = self.optimizer.moments(k);
+            tensors.insert(p.name.clone(), host(p.var.as_tensor())?);
+            tensors.insert(format!("ema.{}", p.name), host(self.ema.value(k))?);
+            tensors.insert(format!("optimizer.first.{}", p.name), host(first)?);
+            tensors.insert(format!("optimizer.second.{}", p.name), host(second)?);
         }
         let mut metadata = BTreeMap::from([
             (FORMAT_KEY.to_string(), FORMAT.to_string()),
@@ -352,6 +358,7 @@ impl Trainer {
     /// Restores a checkpoint written by [`Trainer::save`] for the same configuration (the
     /// number of steps may differ) and vocabulary.
     pub fn restore(&mut self, path: &Path) -> Result<()> {
+        // Read on the host (the file holds host f32 tensors) and placed on the trainer's device.
         let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
         let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
             TrainError::checkpoint(path, TRAIN_CONFIG_KEY, "the training configuration", "nothing")
@@ -382,28 +389,31 @@ impl Trainer {
                 ));
             }
         }
-        let read = |name: &str, count: usize| -> Result<Vec<f32>> {
+        let read = |name: &str, p: &Parameter| -> Result<&Tensor> {
             let t = tensors
                 .get(name)
                 .ok_or_else(|| TrainError::checkpoint(path, name, "a tensor", "nothing"))?;
-            let values: Vec<f32> = t.flatten_all()?.to_dtype(DType::F32)?.to_vec1()?;
-            if values.len() != count {
+            let count = p.var.elem_count();
+            if t.elem_count() != count {
                 return Err(TrainError::checkpoint(
                     path,
                     name,
                     format!("{count} values"),
-                    values.len(),
+                    t.elem_count(),
                 ));
             }
-            Ok(values)
+            Ok(t)
         };
         for (k, p) in self.parameters.iter().enumerate() {
-            let count = p.var.elem_count();
-            let values = read(&p.name, count)?;
-            p.var.set(&Tensor::from_vec(values, p.var.shape().clone(), &Device::Cpu)?)?;
-            self.ema.values[k] = read(&format!("ema.{}", p.name), count)?;
-            self.optimizer.first[k] = read(&format!("optimizer.first.{}", p.name), count)?;
-            self.optimizer.second[k] = read(&format!("optimizer.second.{}", p.name), count)?;
+            let value = read(&p.name, p)?.reshape(p.var.shape())?;
+            p.var.set(&value.to_dtype(p.var.dtype())?.to_device(p.var.device())?)?;
+            self.ema.set_value(k, p, read(&format!("ema.{}", p.name), p)?)?;
+            self.optimizer.set_moments(
+                k,
+                p,
+                read(&format!("optimizer.first.{}", p.name), p)?,
+                read(&format!("optimizer.second.{}", p.name), p)?,
+            )?;
         }
         let number = |key: &str| -> Result<usize> {
             metadata
@@ -427,6 +437,9 @@ pub struct TrainOptions<'a> {
     /// Keep a numbered snapshot every this many steps ([`SNAPSHOTS_DIR`]); a run-time choice,
     /// not part of the configuration, so a resumed run may change it.
     pub snapshot_every: Option<usize>,
+    /// Where the model trains; a run-time choice, not part of the configuration or the
+    /// checkpoint, so a run may be resumed on another device.
+    pub device: &'a Device,
 }
 
 /// Folder of a run directory that holds its snapshots: `step-000300/` and so on, each a run
@@ -517,7 +530,7 @@ pub fn train(
             "no such file",
         ));
     }
-    let mut trainer = Trainer::new(config, dataset, dataset_path)?;
+    let mut trainer = Trainer::new(config, dataset, dataset_path, options.device)?;
     let mut last_checkpoint = 0;
     if options.resume {
         trainer.restore(&files.checkpoint)?;

@@ -14,7 +14,8 @@ use dex2hoi_train::{Term, TrainConfig, Trainer};
 fn every_term_has_the_gradient_of_its_finite_differences() {
     let data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
     let config = TrainConfig::preset("tiny").unwrap();
-    let trainer = Trainer::new(config.clone(), &data, Path::new("procedural")).unwrap();
+    let trainer =
+        Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
     let device = Device::Cpu;
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let options = BatchOptions { size: 3, swap_probability: 0.5, mirror_probability: 0.5 };

@@ -30,7 +30,8 @@ fn the_ground_truth_has_no_joint_error_on_its_own_body() {
             decoded.joints.positions.iter().flat_map(|p| p.to_array()).collect();
     }
     let config = TrainConfig::preset("tiny").unwrap();
-    let trainer = Trainer::new(config.clone(), &data, Path::new("procedural")).unwrap();
+    let trainer =
+        Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     let options = BatchOptions { size: 6, swap_probability: 0.5, mirror_probability: 0.5 };
     let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();

@@ -52,7 +52,8 @@ fn tiny_training_lowers_every_term() {
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.model.prediction = dex2hoi_model::Prediction::Absolute;
     let run = |config: &TrainConfig| {
-        let mut trainer = Trainer::new(config.clone(), &data, Path::new("procedural")).unwrap();
+        let mut trainer =
+            Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
         let before = evaluate(&trainer);
         for _ in 0..config.training.steps {
             trainer.step(0).unwrap();
@@ -113,7 +114,8 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
     let stopped = dir.join("stopped");
     let config_model = config.model.clone();
     let never = AtomicBool::new(false);
-    let fresh = TrainOptions { resume: false, stop: &never, snapshot_every: None };
+    let fresh =
+        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu };
     train(&straight, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
 
     let stop = AtomicBool::new(false);
@@ -122,7 +124,7 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &stop, snapshot_every: Some(8) },
+        TrainOptions { resume: false, stop: &stop, snapshot_every: Some(8), device: &Device::Cpu },
         &mut |report, _| {
             if report.step == 13 {
                 stop.store(true, Ordering::SeqCst);
@@ -137,7 +139,7 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: Some(8) },
+        TrainOptions { resume: true, stop: &never, snapshot_every: Some(8), device: &Device::Cpu },
         &mut |_, _| {},
     )
     .unwrap();
@@ -201,7 +203,7 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &never, snapshot_every: None },
+        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu },
         &mut |_, _| {},
     )
     .unwrap();
@@ -218,7 +220,7 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: None },
+        TrainOptions { resume: true, stop: &never, snapshot_every: None, device: &Device::Cpu },
         &mut |_, _| {},
     )
     .unwrap_err();
@@ -249,17 +251,24 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
     let data = dataset(8);
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.model.bps_points = 256;
-    let error = Trainer::new(config, &data, Path::new("/data/x")).unwrap_err().to_string();
+    let error =
+        Trainer::new(config, &data, Path::new("/data/x"), &Device::Cpu).unwrap_err().to_string();
     assert!(error.contains("/data/x") && error.contains("BPS points"), "{error}");
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.model.joints = 65;
-    let error = Trainer::new(config, &data, Path::new("/data/x")).unwrap_err().to_string();
+    let error =
+        Trainer::new(config, &data, Path::new("/data/x"), &Device::Cpu).unwrap_err().to_string();
     assert!(error.contains("joints") && error.contains("smplx52"), "{error}");
     let mut empty = data.clone();
     empty.splits.clear();
-    let error = Trainer::new(TrainConfig::preset("tiny").unwrap(), &empty, Path::new("/data/x"))
-        .unwrap_err()
-        .to_string();
+    let error = Trainer::new(
+        TrainConfig::preset("tiny").unwrap(),
+        &empty,
+        Path::new("/data/x"),
+        &Device::Cpu,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(error.contains("training split"), "{error}");
 
     // A run directory with a checkpoint is never overwritten by a fresh run.
@@ -267,7 +276,8 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.training.steps = 2;
     let never = AtomicBool::new(false);
-    let fresh = TrainOptions { resume: false, stop: &never, snapshot_every: None };
+    let fresh =
+        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu };
     train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
     let error = train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {})
         .unwrap_err()
@@ -280,7 +290,7 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: None },
+        TrainOptions { resume: true, stop: &never, snapshot_every: None, device: &Device::Cpu },
         &mut |_, _| {},
     )
     .unwrap_err()

@@ -74,14 +74,15 @@ impl Evaluator {
 
     /// Reads an evaluator written by [`Evaluator::save`], refusing a file of another format, a
     /// missing or malformed entry, weights that do not fit the configuration, or statistics of
-    /// another size. `dir` is the evaluator directory (or its `evaluator.safetensors`).
-    pub fn load(dir: &Path) -> Result<Self> {
+    /// another size. `dir` is the evaluator directory (or its `evaluator.safetensors`); the
+    /// weights are placed on `device`.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self> {
         let (dir, path) = if dir.is_file() {
             (dir.parent().unwrap_or(Path::new(".")), dir.to_path_buf())
         } else {
             (dir, dir.join(EVALUATOR_FILE))
         };
-        let (tensors, metadata) = read_tensors(&path, &Device::Cpu)?;
+        let (tensors, metadata) = read_tensors(&path, device)?;
         let entry = |key: &str| {
             metadata
                 .get(key)
@@ -142,6 +143,7 @@ impl Evaluator {
             stats,
             (skeleton, joints, fps),
             DType::F32,
+            device,
         )?;
         assign_parameters(&evaluator.motion_vars, &tensors, "motion.", &path)?;
         assign_parameters(&evaluator.text_vars, &tensors, "text.", &path)?;

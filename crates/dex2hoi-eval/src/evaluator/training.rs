@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use candle_core::{DType, Tensor};
+use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use dex2hoi_data::dataset::Dataset;
@@ -82,13 +82,14 @@ pub fn train_evaluator(
     dataset: &Dataset,
     dataset_path: &Path,
     config: &EvaluatorConfig,
+    device: &Device,
     progress: &mut dyn FnMut(usize, f64),
 ) -> Result<Evaluator> {
-    let mut evaluator = Evaluator::initialise(dataset, dataset_path, config, DType::F32)?;
+    let mut evaluator = Evaluator::initialise(dataset, dataset_path, config, DType::F32, device)?;
     let sequences = usable_sequences(dataset);
     let parameters = evaluator.parameters();
     let optimizer_config = config.optimizer();
-    let mut optimizer = AdamW::new(optimizer_config.clone(), &parameters);
+    let mut optimizer = AdamW::new(optimizer_config.clone(), &parameters)?;
     let mut losses = Vec::with_capacity(config.steps);
     for step in 0..config.steps {
         let mut rng = step_rng(config.seed ^ BATCH_SEED_SALT, step);

@@ -1,0 +1,202 @@
+//! The CUDA device against the CPU (built with `--features cuda`, run on a machine with an
+//! NVIDIA GPU: `cargo xtask build-cuda` packs these tests): every model variant's forward, one
+//! training step's loss and gradients, and a checkpoint written on the GPU sampled on both.
+//! Weights are randomised or trained first: a fresh model's zero-initialised heads output
+//! exact zeros, which would compare equal on any device.
+#![cfg(feature = "cuda")]
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+use candle_core::{DType, Device, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::dataset::Dataset;
+use dex2hoi_diffusion::SamplerConfig;
+use dex2hoi_model::{
+    BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction,
+    SeededVarMap, StreamLayout,
+};
+use dex2hoi_sample::{Prompt, SampleRequest, SceneObject, TrainedRun, Weights, sample};
+use dex2hoi_train::{TrainConfig, TrainOptions, Trainer, train};
+
+const TOLERANCE: f32 = 1e-4;
+
+fn gpu() -> Device {
+    Device::new_cuda(0).expect("a CUDA device (these tests run on a GPU machine)")
+}
+
+fn dataset() -> Dataset {
+    dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).expect("a procedural dataset")
+}
+
+fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+}
+
+/// The largest absolute difference, relative to the larger of 1 and the reference's largest
+/// magnitude.
+fn relative_difference(gpu: &Tensor, cpu: &Tensor) -> f32 {
+    assert_eq!(gpu.dims(), cpu.dims());
+    let a: Vec<f32> =
+        gpu.to_device(&Device::Cpu).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+    let b: Vec<f32> = cpu.flatten_all().unwrap().to_vec1().unwrap();
+    let scale = b.iter().fold(1f32, |m, v| m.max(v.abs()));
+    a.iter().zip(&b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+fn variants() -> Vec<ModelConfig> {
+    let tiny = ModelConfig::tiny();
+    vec![
+        tiny.clone(),
+        ModelConfig { prediction: Prediction::Absolute, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidual, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidualWorld, ..tiny.clone() },
+        ModelConfig { body_fusion: BodyFusion::Average, ..tiny.clone() },
+        ModelConfig { stream_layout: StreamLayout::Single, ..tiny.clone() },
+        ModelConfig { object_representation: ObjectRepresentation::GlobalOnly, ..tiny.clone() },
+        ModelConfig {
+            latent: 24,
+            heads: 3,
+            feed_forward: 40,
+            prefix_frames: 3,
+            predicted_frames: 7,
+            ..tiny
+        },
+    ]
+}
+
+#[test]
+fn every_model_variant_computes_on_the_gpu_what_it_computes_on_the_cpu() {
+    let gpu = gpu();
+    for cfg in variants() {
+        let build = |device: &Device| {
+            let vars = SeededVarMap::new(0);
+            let model = Model::new(&cfg, vars.builder(DType::F32, device)).unwrap();
+            vars.randomise_zero_parameters(9).unwrap();
+            model
+        };
+        let (on_cpu, on_gpu) = (build(&Device::Cpu), build(&gpu));
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let d = cfg.stream_features();
+        let noisy = random(&[3, 2, cfg.predicted_frames, d], &mut rng);
+        let prefix = random(&[3, 2, cfg.prefix_frames, d], &mut rng);
+        let text = random(&[3, cfg.text_embedding], &mut rng);
+        let bps = random(&[3, 2, cfg.bps_points * 3], &mut rng);
+        let presence = Tensor::new(&[[1f32, 1.0], [1.0, 0.0], [1.0, 1.0]], &Device::Cpu).unwrap();
+        let timesteps = Tensor::new(&[0u32, 411, 999], &Device::Cpu).unwrap();
+        let inputs = [&noisy, &prefix, &timesteps, &text, &bps, &presence];
+        let moved: Vec<Tensor> = inputs.iter().map(|t| t.to_device(&gpu).unwrap()).collect();
+        let input = |t: &[&Tensor]| ModelInput {
+            noisy: t[0],
+            prefix: t[1],
+            timesteps: t[2],
+            text: t[3],
+            bps: t[4],
+            presence: t[5],
+            frame_mask: None,
+        };
+        let moved_refs: Vec<&Tensor> = moved.iter().collect();
+        let expected = on_cpu.forward(&input(&inputs), None).unwrap();
+        let got = on_gpu.forward(&input(&moved_refs), None).unwrap();
+        let difference = relative_difference(&got, &expected);
+        assert!(difference < TOLERANCE, "{cfg:?}: forward differs by {difference}");
+        // The sampler's no-grad model: fused on the CPU, the composite on the GPU.
+        let fused = InferenceModel::new(&on_cpu).unwrap();
+        let composite = InferenceModel::new(&on_gpu).unwrap();
+        assert!(fused.is_fused() && !composite.is_fused());
+    }
+}
+
+#[test]
+fn a_training_step_on_the_gpu_gives_the_loss_and_gradients_of_the_cpu() {
+    let data = dataset();
+    let config = TrainConfig::preset("tiny").unwrap();
+    let gpu = gpu();
+    let mut trainers: Vec<Trainer> = [Device::Cpu, gpu.clone()]
+        .iter()
+        .map(|device| Trainer::new(config.clone(), &data, Path::new("procedural"), device).unwrap())
+        .collect();
+    // Three updates first, so that no layer is still at its zero initialisation; each step's
+    // loss must agree on the way.
+    for _ in 0..3 {
+        let cpu = trainers[0].step(0).unwrap();
+        let on_gpu = trainers[1].step(0).unwrap();
+        let difference = (cpu.loss - on_gpu.loss).abs() / cpu.loss.abs().max(1.0);
+        assert!(
+            difference < f64::from(TOLERANCE),
+            "step {}: {} vs {}",
+            cpu.step,
+            cpu.loss,
+            on_gpu.loss
+        );
+        assert!((cpu.gradient_norm - on_gpu.gradient_norm).abs() / cpu.gradient_norm < 1e-3);
+    }
+    let objectives: Vec<_> = trainers.iter().map(|t| t.objective_at(3).unwrap()).collect();
+    let losses: Vec<f32> = objectives
+        .iter()
+        .map(|o| o.total.to_device(&Device::Cpu).unwrap().to_scalar().unwrap())
+        .collect();
+    assert!((losses[0] - losses[1]).abs() / losses[0].abs().max(1.0) < TOLERANCE, "{losses:?}");
+    let gradients: Vec<_> = objectives.iter().map(|o| o.total.backward().unwrap()).collect();
+    for (p_cpu, p_gpu) in trainers[0].parameters().iter().zip(trainers[1].parameters()) {
+        assert_eq!(p_cpu.name, p_gpu.name);
+        assert!(p_gpu.var.device().is_cuda());
+        match (gradients[0].get(p_cpu.var.as_tensor()), gradients[1].get(p_gpu.var.as_tensor())) {
+            (Some(cpu), Some(on_gpu)) => {
+                let difference = relative_difference(on_gpu, cpu);
+                assert!(difference < TOLERANCE, "{}: gradient differs by {difference}", p_cpu.name);
+            }
+            (None, None) => {}
+            _ => panic!("{}: a gradient on one device only", p_cpu.name),
+        }
+    }
+}
+
+#[test]
+fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
+    let data = dataset();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.steps = 20;
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cuda-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let gpu = gpu();
+    let never = AtomicBool::new(false);
+    let options = TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &gpu };
+    train(&dir, config, &data, Path::new("procedural"), options, &mut |_, _| {}).unwrap();
+    let request = SampleRequest {
+        prompts: vec![Prompt {
+            start_frame: 0,
+            text: data.splits.values().flatten().next().unwrap().texts[0].clone(),
+        }],
+        objects: vec![SceneObject::parse("mug").unwrap()],
+        frames: 30,
+        seed: 7,
+        sampler: SamplerConfig { steps: 10, ..SamplerConfig::default() },
+        table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
+    };
+    let motions: Vec<_> = [Device::Cpu, gpu]
+        .iter()
+        .map(|device| {
+            let run = TrainedRun::load(&dir, Weights::Ema, device).unwrap();
+            sample(&run, &request).unwrap().motion
+        })
+        .collect();
+    let roots = |i: usize| -> Vec<f32> {
+        motions[i].root_positions.iter().flat_map(|p| p.to_array()).collect()
+    };
+    let (cpu, on_gpu) = (roots(0), roots(1));
+    assert_eq!(cpu.len(), on_gpu.len());
+    let difference = cpu.iter().zip(&on_gpu).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(difference < TOLERANCE, "root positions differ by {difference} m");
+    let rotations = |i: usize| -> Vec<f32> {
+        motions[i].local_rotations.iter().flat_map(|m| m.to_cols_array()).collect()
+    };
+    let (cpu, on_gpu) = (rotations(0), rotations(1));
+    let difference = cpu.iter().zip(&on_gpu).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(difference < TOLERANCE, "joint rotations differ by {difference}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,187 @@
+//! `cargo xtask build-cuda`: the GPU build of dex2hoi, made on a machine without a GPU or a
+//! CUDA installation, packed to be carried to one.
+//!
+//! candle's `cuda` feature needs, at build time, `nvcc` (its kernels are compiled to PTX and a
+//! static library) and the CUDA libraries to link against (`cudarc` links the driver, NVRTC,
+//! cuRAND and cuBLAS dynamically). Here:
+//! 1. The CUDA 13.0 compiler, runtime and headers come from PyPI's `nvidia-*` wheels, installed
+//!    with `pip --target` under `target/cuda-toolkit/` (once). nvcc stays at 13.0: the GPU
+//!    machines' driver (580) supports CUDA 13.0 and cannot load PTX of a newer compiler.
+//! 2. No wheel ships the driver's `libcuda.so`, and the other libraries are not needed to link:
+//!    stand-ins (empty shared libraries with the real sonames) are linked instead, so the binary
+//!    records the right names and finds the real libraries at run time. It therefore cannot
+//!    start on a machine without the NVIDIA driver: it is a separate binary, never the default.
+//! 3. `CUDA_COMPUTE_CAP=90` (H100 and H200; candle makes it sm_90a) since there is no GPU to
+//!    ask.
+//! 4. The `dex2hoi` binary and the `cuda` test executables are built into `target/cuda/`
+//!    (release profile), stripped and gzipped into `target/cuda-pack/` with
+//!    `scripts/gpu-check.sh`'s list of them. That folder is what a GPU session carries; the
+//!    script unpacks it there, finds the CUDA libraries of the machine's PyTorch, and runs the
+//!    tests and the measurements.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Context, Result, bail};
+
+/// The pinned wheels of the CUDA 13.0 toolkit pieces the build needs.
+const WHEELS: [&str; 5] = [
+    "nvidia-cuda-nvcc==13.0.88",
+    "nvidia-nvvm==13.0.88",
+    "nvidia-cuda-runtime==13.0.96",
+    "nvidia-cuda-crt==13.0.88",
+    "nvidia-cuda-cccl==13.0.85",
+];
+
+/// The libraries `cudarc` links, by soname; stand-ins are linked here, the real ones load on
+/// the GPU machine.
+const STAND_INS: [&str; 5] =
+    ["libcuda.so.1", "libnvrtc.so.13", "libcurand.so.10", "libcublas.so.13", "libcublasLt.so.13"];
+
+/// H100 and H200.
+const COMPUTE_CAPABILITY: &str = "90";
+
+/// The test targets built with the `cuda` feature: package and test name.
+const CUDA_TESTS: [(&str, &str); 1] = [("dex2hoi-train", "cuda")];
+
+/// Runs `cargo xtask build-cuda`.
+pub fn build_cuda(root: &Path) -> Result<()> {
+    let toolkit = toolkit(root)?;
+    let target_dir = root.join("target/cuda");
+    let path =
+        format!("{}:{}", toolkit.join("bin").display(), std::env::var("PATH").unwrap_or_default());
+    let cargo_command = |args: &[&str]| {
+        let mut command = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+        command
+            .args(args)
+            .arg("--target-dir")
+            .arg(&target_dir)
+            .current_dir(root)
+            .env("CUDA_HOME", &toolkit)
+            .env("CUDA_PATH", &toolkit)
+            .env("CUDA_COMPUTE_CAP", COMPUTE_CAPABILITY)
+            .env("PATH", &path);
+        command
+    };
+    let build = ["build", "--release", "--locked", "-p", "dex2hoi-cli", "--features", "cuda"];
+    eprintln!("\n==> cargo {} (CUDA_HOME={})", build.join(" "), toolkit.display());
+    run(&mut cargo_command(&build))?;
+    let mut executables = vec![("dex2hoi".to_string(), target_dir.join("release/dex2hoi"))];
+    for (package, test) in CUDA_TESTS {
+        let args = [
+            "test",
+            "--release",
+            "--locked",
+            "-p",
+            package,
+            "--features",
+            "cuda",
+            "--test",
+            test,
+            "--no-run",
+            "--message-format=json",
+        ];
+        eprintln!("\n==> cargo {}", args.join(" "));
+        let output = cargo_command(&args)
+            .stderr(std::process::Stdio::inherit())
+            .output()
+            .context("cannot run cargo test --no-run")?;
+        if !output.status.success() {
+            bail!("`cargo {}` failed ({})", args.join(" "), output.status);
+        }
+        let executable = test_executable(&output.stdout, test)
+            .with_context(|| format!("cargo named no executable for the test `{test}`"))?;
+        executables.push((format!("{package}-{test}"), executable));
+    }
+    pack(root, &executables)
+}
+
+/// The toolkit folder (`CUDA_HOME`): made once from the wheels, with the stand-in libraries.
+fn toolkit(root: &Path) -> Result<PathBuf> {
+    let base = root.join("target/cuda-toolkit");
+    let home = base.join("home");
+    let wheels = base.join("pkgs");
+    let cuda = wheels.join("nvidia/cu13");
+    if !cuda.join("bin/nvcc").exists() {
+        eprintln!("\n==> pip install --no-deps --target {} {}", wheels.display(), WHEELS.join(" "));
+        run(Command::new("python3")
+            .args(["-m", "pip", "install", "--quiet", "--no-deps", "--target"])
+            .arg(&wheels)
+            .args(WHEELS))?;
+    }
+    let lib = home.join("lib64");
+    std::fs::create_dir_all(&lib).with_context(|| format!("creating {}", lib.display()))?;
+    for folder in ["bin", "include", "nvvm"] {
+        link(&cuda.join(folder), &home.join(folder))?;
+    }
+    link(&cuda.join("lib/libcudart.so.13"), &lib.join("libcudart.so.13"))?;
+    link(&lib.join("libcudart.so.13"), &lib.join("libcudart.so"))?;
+    let empty = base.join("empty.c");
+    std::fs::write(&empty, "/* a stand-in library: see xtask/src/cuda.rs */\n")
+        .with_context(|| format!("writing {}", empty.display()))?;
+    for soname in STAND_INS {
+        let file = lib.join(soname);
+        if !file.exists() {
+            run(Command::new("cc")
+                .args(["-shared", "-fPIC", "-o"])
+                .arg(&file)
+                .arg(format!("-Wl,-soname,{soname}"))
+                .arg(&empty))?;
+        }
+        let unversioned = soname.split(".so").next().expect("a soname has a stem").to_string();
+        link(&file, &lib.join(format!("{unversioned}.so")))?;
+    }
+    Ok(home)
+}
+
+/// A symbolic link `to -> from` (replacing an old one).
+fn link(from: &Path, to: &Path) -> Result<()> {
+    if !from.exists() {
+        bail!("{} is missing from the CUDA wheels", from.display());
+    }
+    let _ = std::fs::remove_file(to);
+    std::os::unix::fs::symlink(from, to)
+        .with_context(|| format!("linking {} to {}", to.display(), from.display()))
+}
+
+/// The executable of a test target in cargo's JSON messages.
+fn test_executable(messages: &[u8], test: &str) -> Option<PathBuf> {
+    String::from_utf8_lossy(messages).lines().find_map(|line| {
+        let message: serde_json::Value = serde_json::from_str(line).ok()?;
+        let target = message.get("target")?;
+        let is_test = target.get("kind")?.as_array()?.iter().any(|k| k == "test");
+        (is_test && target.get("name")? == test)
+            .then(|| message.get("executable")?.as_str().map(PathBuf::from))
+            .flatten()
+    })
+}
+
+/// Strips and gzips the executables into `target/cuda-pack/`.
+fn pack(root: &Path, executables: &[(String, PathBuf)]) -> Result<()> {
+    let pack = root.join("target/cuda-pack");
+    let _ = std::fs::remove_dir_all(&pack);
+    std::fs::create_dir_all(&pack).with_context(|| format!("creating {}", pack.display()))?;
+    let mut total = 0;
+    for (name, executable) in executables {
+        let stripped = pack.join(name);
+        run(Command::new("strip").arg("-o").arg(&stripped).arg(executable))?;
+        run(Command::new("gzip").arg("-9").arg(&stripped))?;
+        let size = std::fs::metadata(pack.join(format!("{name}.gz")))?.len();
+        total += size;
+        eprintln!("packed {name}: {:.1} MiB", size as f64 / (1 << 20) as f64);
+    }
+    eprintln!(
+        "\n{} ({:.1} MiB): carry it to a GPU machine and run `bash scripts/gpu-check.sh`",
+        pack.display(),
+        total as f64 / (1 << 20) as f64
+    );
+    Ok(())
+}
+
+fn run(command: &mut Command) -> Result<()> {
+    let status = command.status().with_context(|| format!("cannot run {command:?}"))?;
+    if !status.success() {
+        bail!("{command:?} failed ({status})");
+    }
+    Ok(())
+}
