@@ -54,7 +54,7 @@ if ldd "$BIN/dex2hoi" | grep -q 'not found'; then
 fi
 
 phase "CUDA tests"
-timeout "${GPU_CHECK_TESTS_SECONDS:-150}" "$BIN/dex2hoi-train-cuda" --test-threads=1 2>&1 |
+timeout "${GPU_CHECK_TESTS_SECONDS:-120}" "$BIN/dex2hoi-train-cuda" --test-threads=1 2>&1 |
     tee "$OUT/tests.log"
 
 phase "procedural dataset ($SEQUENCES sequences)"
@@ -65,14 +65,14 @@ timeout 120 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCE
 sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/small.toml"
 
 phase "train small on the GPU"
-timeout -s INT "${GPU_CHECK_TRAIN_SECONDS:-150}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+timeout -s INT "${GPU_CHECK_TRAIN_SECONDS:-120}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
     --data "$WORK/synth" --out "$WORK/run-gpu" --steps 5000 --device cuda 2>&1 | tail -5
 cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
 cp "$WORK/run-gpu/loss_curve.png" "$OUT/loss-curve-gpu.png" 2>/dev/null
 nvidia-smi --query-gpu=memory.used --format=csv,noheader
 
 phase "train small on the CPU ($(nproc) cores), the same run's first steps"
-timeout -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-60}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+timeout -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-45}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
     --data "$WORK/synth" --out "$WORK/run-cpu" --steps 5000 --device cpu 2>&1 | tail -3
 cp "$WORK/run-cpu/metrics.jsonl" "$OUT/metrics-cpu.jsonl"
 
@@ -87,7 +87,7 @@ done
 cp "$WORK/sample-cuda/preview.png" "$OUT/sample-gpu.png" 2>/dev/null
 
 phase "PyTorch reference on the GPU"
-timeout "${GPU_CHECK_TORCH_SECONDS:-120}" python3 bench/torch_reference.py --device cuda \
+timeout "${GPU_CHECK_TORCH_SECONDS:-90}" python3 bench/torch_reference.py --device cuda \
     --presets small --skip-check --no-compile --out "$OUT/torch-gpu.json" 2>&1 | tail -30
 
 phase done

@@ -8,9 +8,13 @@
 //!    with `pip --target` under `target/cuda-toolkit/` (once). nvcc stays at 13.0: the GPU
 //!    machines' driver (580) supports CUDA 13.0 and cannot load PTX of a newer compiler.
 //! 2. No wheel ships the driver's `libcuda.so`, and the other libraries are not needed to link:
-//!    stand-ins (empty shared libraries with the real sonames) are linked instead, so the binary
-//!    records the right names and finds the real libraries at run time. It therefore cannot
-//!    start on a machine without the NVIDIA driver: it is a separate binary, never the default.
+//!    stand-ins are linked instead, shared libraries with the real sonames that define every
+//!    function `cudarc` declares for them (read from its `sys` bindings; the bodies are empty
+//!    and never run), so the binary records the right names and binds to the real libraries
+//!    at run time. It therefore cannot start on a machine without the NVIDIA driver and the
+//!    CUDA libraries: it is a separate binary, never the default. (`cudarc`'s
+//!    `dynamic-loading` would avoid this, but candle asks for `dynamic-linking` and the two
+//!    exclude each other.)
 //! 3. `CUDA_COMPUTE_CAP=90` (H100 and H200; candle makes it sm_90a) since there is no GPU to
 //!    ask.
 //! 4. The `dex2hoi` binary and the `cuda` test executables are built into `target/cuda/`
@@ -33,10 +37,15 @@ const WHEELS: [&str; 5] = [
     "nvidia-cuda-cccl==13.0.85",
 ];
 
-/// The libraries `cudarc` links, by soname; stand-ins are linked here, the real ones load on
-/// the GPU machine.
-const STAND_INS: [&str; 5] =
-    ["libcuda.so.1", "libnvrtc.so.13", "libcurand.so.10", "libcublas.so.13", "libcublasLt.so.13"];
+/// The libraries `cudarc` links, by soname, with the `cudarc` module whose `sys` bindings
+/// declare their functions; stand-ins are linked here, the real ones load on the GPU machine.
+const STAND_INS: [(&str, &str); 5] = [
+    ("libcuda.so.1", "driver"),
+    ("libnvrtc.so.13", "nvrtc"),
+    ("libcurand.so.10", "curand"),
+    ("libcublas.so.13", "cublas"),
+    ("libcublasLt.so.13", "cublaslt"),
+];
 
 /// H100 and H200.
 const COMPUTE_CAPABILITY: &str = "90";
@@ -116,22 +125,91 @@ fn toolkit(root: &Path) -> Result<PathBuf> {
     }
     link(&cuda.join("lib/libcudart.so.13"), &lib.join("libcudart.so.13"))?;
     link(&lib.join("libcudart.so.13"), &lib.join("libcudart.so"))?;
-    let empty = base.join("empty.c");
-    std::fs::write(&empty, "/* a stand-in library: see xtask/src/cuda.rs */\n")
-        .with_context(|| format!("writing {}", empty.display()))?;
-    for soname in STAND_INS {
+    let bindings = cudarc_source(root)?.join("src");
+    for (soname, module) in STAND_INS {
         let file = lib.join(soname);
-        if !file.exists() {
-            run(Command::new("cc")
-                .args(["-shared", "-fPIC", "-o"])
-                .arg(&file)
-                .arg(format!("-Wl,-soname,{soname}"))
-                .arg(&empty))?;
+        let declarations = bindings.join(module).join("sys/mod.rs");
+        let text = std::fs::read_to_string(&declarations)
+            .with_context(|| format!("reading {}", declarations.display()))?;
+        let functions = linked_functions(&text);
+        if functions.is_empty() {
+            bail!("{} declares no linked function", declarations.display());
         }
+        let source = base.join(format!("{soname}.c"));
+        let mut c = String::from("/* A stand-in to link against: see xtask/src/cuda.rs. */\n");
+        for function in &functions {
+            c.push_str(&format!("void {function}(void) {{}}\n"));
+        }
+        std::fs::write(&source, c).with_context(|| format!("writing {}", source.display()))?;
+        run(Command::new("cc")
+            .args(["-shared", "-fPIC", "-o"])
+            .arg(&file)
+            .arg(format!("-Wl,-soname,{soname}"))
+            .arg(&source))?;
         let unversioned = soname.split(".so").next().expect("a soname has a stem").to_string();
         link(&file, &lib.join(format!("{unversioned}.so")))?;
     }
     Ok(home)
+}
+
+/// The source folder of the `cudarc` the lock file names (from `cargo metadata`).
+fn cudarc_source(root: &Path) -> Result<PathBuf> {
+    let output = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+        .args(["metadata", "--format-version", "1", "--locked", "--all-features"])
+        .current_dir(root)
+        .output()
+        .context("cannot run cargo metadata")?;
+    if !output.status.success() {
+        bail!("cargo metadata failed: {}", String::from_utf8_lossy(&output.stderr));
+    }
+    let metadata: serde_json::Value =
+        serde_json::from_slice(&output.stdout).context("cargo metadata's output")?;
+    let manifest = metadata["packages"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .find(|p| p["name"] == "cudarc")
+        .and_then(|p| p["manifest_path"].as_str())
+        .context("Cargo.lock has no cudarc (the `cuda` features pull it in)")?;
+    Ok(Path::new(manifest).parent().context("a manifest has a folder")?.to_path_buf())
+}
+
+/// The functions a `cudarc` binding module links (`extern "C" { fn name(`), in order, once each.
+fn linked_functions(bindings: &str) -> Vec<String> {
+    const OPENING: &str = "extern \"C\" {";
+    let mut functions: Vec<String> = Vec::new();
+    let mut rest = bindings;
+    while let Some(at) = rest.find(OPENING) {
+        rest = &rest[at + OPENING.len()..];
+        let Some(declaration) = rest.trim_start().strip_prefix("fn ") else { continue };
+        let name: String =
+            declaration.chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
+        if !name.is_empty() && !functions.contains(&name) {
+            functions.push(name);
+        }
+    }
+    functions
+}
+
+#[cfg(test)]
+mod tests {
+    use super::linked_functions;
+
+    #[test]
+    fn linked_functions_are_read_from_the_bindings() {
+        let bindings = r#"pub unsafe fn cuInit(flags: u32) -> CUresult {
+            #[cfg(not(feature = "dynamic-loading"))]
+            {
+                extern "C" {
+                    fn cuInit(flags: u32) -> CUresult;
+                }
+            }
+        }
+        type F = unsafe extern "C" fn(u32);
+        extern "C" { fn cuDriverGetVersion(v: *mut i32); }
+        extern "C" { fn cuInit(flags: u32); }"#;
+        assert_eq!(linked_functions(bindings), ["cuInit", "cuDriverGetVersion"]);
+    }
 }
 
 /// A symbolic link `to -> from` (replacing an old one).

@@ -48,6 +48,19 @@ fn relative_difference(gpu: &Tensor, cpu: &Tensor) -> f32 {
     a.iter().zip(&b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
 }
 
+/// Noisy window, prefix, timesteps, text, BPS and presence as a model input.
+fn input<'a>(t: &[&'a Tensor]) -> ModelInput<'a> {
+    ModelInput {
+        noisy: t[0],
+        prefix: t[1],
+        timesteps: t[2],
+        text: t[3],
+        bps: t[4],
+        presence: t[5],
+        frame_mask: None,
+    }
+}
+
 fn variants() -> Vec<ModelConfig> {
     let tiny = ModelConfig::tiny();
     vec![
@@ -90,15 +103,7 @@ fn every_model_variant_computes_on_the_gpu_what_it_computes_on_the_cpu() {
         let timesteps = Tensor::new(&[0u32, 411, 999], &Device::Cpu).unwrap();
         let inputs = [&noisy, &prefix, &timesteps, &text, &bps, &presence];
         let moved: Vec<Tensor> = inputs.iter().map(|t| t.to_device(&gpu).unwrap()).collect();
-        let input = |t: &[&Tensor]| ModelInput {
-            noisy: t[0],
-            prefix: t[1],
-            timesteps: t[2],
-            text: t[3],
-            bps: t[4],
-            presence: t[5],
-            frame_mask: None,
-        };
+
         let moved_refs: Vec<&Tensor> = moved.iter().collect();
         let expected = on_cpu.forward(&input(&inputs), None).unwrap();
         let got = on_gpu.forward(&input(&moved_refs), None).unwrap();
