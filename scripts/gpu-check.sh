@@ -48,7 +48,7 @@ print(":".join(sorted(dirs)))
 PY
 )
 export LD_LIBRARY_PATH="$CUDA_LIBS${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
-ldd "$BIN/dex2hoi" | grep -E 'cuda|nvrtc|curand|cublas' | tee "$OUT/ldd.txt"
+ldd "$BIN/dex2hoi" | grep -E 'cuda|nvrtc|curand|cublas'
 if ldd "$BIN/dex2hoi" | grep -q 'not found'; then
     echo "missing libraries: the binary cannot start"
 fi
@@ -65,26 +65,27 @@ timeout 120 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCE
 sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/small.toml"
 
 phase "train small on the GPU"
-timeout -s INT "${GPU_CHECK_TRAIN_SECONDS:-120}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
-    --data "$WORK/synth" --out "$WORK/run-gpu" --steps 5000 --device cuda 2>&1 | tail -5
+timeout -s INT "${GPU_CHECK_TRAIN_SECONDS:-300}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+    --data "$WORK/synth" --out "$WORK/run-gpu" --steps 5000 --device cuda 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -8
 cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
-cp "$WORK/run-gpu/loss_curve.png" "$OUT/loss-curve-gpu.png" 2>/dev/null
+cp "$WORK/run-gpu/loss.png" "$OUT/loss-gpu.png" 2>/dev/null
 nvidia-smi --query-gpu=memory.used --format=csv,noheader
 
 phase "train small on the CPU ($(nproc) cores), the same run's first steps"
-timeout -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-45}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
-    --data "$WORK/synth" --out "$WORK/run-cpu" --steps 5000 --device cpu 2>&1 | tail -3
+timeout -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-30}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+    --data "$WORK/synth" --out "$WORK/run-cpu" --steps 5000 --device cpu 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -4
 cp "$WORK/run-cpu/metrics.jsonl" "$OUT/metrics-cpu.jsonl"
 
 phase "one-window samples"
 for device in cuda cuda cpu; do
     /usr/bin/time -f "$device: %e s wall, %M KiB peak resident" "$BIN/dex2hoi" sample \
         --run "$WORK/run-gpu" --device "$device" --text "The person picks up the mug." \
-        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | grep -vi warning | tail -3
+        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | grep -v "^ *[0-9]*: \|^ *at \|warning" | tail -4
 done
 "$BIN/dex2hoi" sample --run "$WORK/run-gpu" --device cuda --text "The person picks up the mug." \
     --object mug --frames 300 --out "$WORK/sample-300" 2>&1 | grep "generated"
 cp "$WORK/sample-cuda/preview.png" "$OUT/sample-gpu.png" 2>/dev/null
+cp "$WORK/sample-300/preview.gif" "$OUT/sample-300-gpu.gif" 2>/dev/null
 
 phase "PyTorch reference on the GPU"
 timeout "${GPU_CHECK_TORCH_SECONDS:-90}" python3 bench/torch_reference.py --device cuda \

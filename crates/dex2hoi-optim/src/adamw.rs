@@ -89,9 +89,22 @@ impl AdamW {
         gradients: &GradStore,
         learning_rate: f64,
     ) -> Result<UpdateReport> {
+        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
+        self.update_on(parameters, gradients, learning_rate, on_cpu)
+    }
+
+    /// [`AdamW::update`] with the path chosen: the host loop, or the tensor operations (which
+    /// run on any device, the CPU included: the tests compare the two there).
+    #[doc(hidden)]
+    pub fn update_on(
+        &mut self,
+        parameters: &[Parameter],
+        gradients: &GradStore,
+        learning_rate: f64,
+        on_cpu: bool,
+    ) -> Result<UpdateReport> {
         let grads: Vec<Option<&Tensor>> =
             parameters.iter().map(|p| gradients.get(p.var.as_tensor())).collect();
-        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
         let host_grads: Vec<Option<Vec<f32>>> = if on_cpu {
             grads
                 .iter()
@@ -209,6 +222,11 @@ fn device_norm(grads: &[Option<&Tensor>]) -> Result<f64> {
 
 /// One parameter's AdamW update as tensor operations on its device: the new first and second
 /// moments and the new value (in the parameter's dtype). Same formula as the host loop.
+///
+/// Every input is detached first: the parameter is a variable and the gradient may come out of
+/// the backward graph, and a result that tracked them would keep that step's whole graph
+/// alive in the moments, one more step's worth at every update (seen: a GPU out of memory
+/// after 74 steps).
 fn update_on_device(
     parameter: &Parameter,
     first: &Tensor,
@@ -218,16 +236,17 @@ fn update_on_device(
     decay: f32,
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let gradient = match gradient {
-        Some(g) => g.to_dtype(DType::F32)?.affine(f64::from(u.scale), 0.0)?,
+        Some(g) => g.detach().to_dtype(DType::F32)?.affine(f64::from(u.scale), 0.0)?,
         None => first.zeros_like()?,
     };
+    let (first, second) = (first.detach(), second.detach());
     let first = (first.affine(f64::from(u.beta1), 0.0)?
         + gradient.affine(f64::from(1.0 - u.beta1), 0.0)?)?;
     let second = (second.affine(f64::from(u.beta2), 0.0)?
         + gradient.sqr()?.affine(f64::from(1.0 - u.beta2), 0.0)?)?;
     let denominator =
         second.sqrt()?.affine(1.0 / f64::from(u.root_correction2), f64::from(u.epsilon))?;
-    let value = parameter.var.as_tensor().to_dtype(DType::F32)?;
+    let value = parameter.var.as_tensor().detach().to_dtype(DType::F32)?;
     let value = (value.affine(f64::from(1.0 - decay), 0.0)?
         - (first.affine(f64::from(u.step_size), 0.0)? / denominator)?)?;
     Ok((first, second, value.to_dtype(parameter.var.dtype())?))

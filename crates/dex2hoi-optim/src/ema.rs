@@ -18,7 +18,7 @@ impl Ema {
     pub fn new(parameters: &[Parameter]) -> Result<Self> {
         let values = parameters
             .iter()
-            .map(|p| p.var.as_tensor().to_dtype(DType::F32)?.copy())
+            .map(|p| p.var.as_tensor().detach().to_dtype(DType::F32)?.copy())
             .collect::<candle_core::Result<_>>()?;
         Ok(Self { values })
     }
@@ -42,8 +42,22 @@ impl Ema {
     /// a parallel host loop (each element as before, independent of the thread count); on
     /// other devices one tensor expression per parameter.
     pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
+        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
+        self.update_on(parameters, decay, step, on_cpu)
+    }
+
+    /// [`Ema::update`] with the path chosen: the host loop, or the tensor operations (any
+    /// device; the tests compare the two on the CPU).
+    #[doc(hidden)]
+    pub fn update_on(
+        &mut self,
+        parameters: &[Parameter],
+        decay: f64,
+        step: usize,
+        on_cpu: bool,
+    ) -> Result<()> {
         let d = decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32;
-        if parameters.first().is_none_or(|p| p.var.device().is_cpu()) {
+        if on_cpu {
             return self.values.par_iter_mut().zip(parameters).try_for_each(
                 |(average, parameter)| {
                     let mut host: Vec<f32> = average.flatten_all()?.to_vec1()?;
@@ -56,7 +70,9 @@ impl Ema {
             );
         }
         for (average, parameter) in self.values.iter_mut().zip(parameters) {
-            let value = parameter.var.as_tensor().to_dtype(DType::F32)?;
+            // Detached: an average that tracked the variable would keep every step's
+            // intermediate tensors alive.
+            let value = parameter.var.as_tensor().detach().to_dtype(DType::F32)?;
             *average =
                 (average.affine(f64::from(d), 0.0)? + value.affine(f64::from(1.0 - d), 0.0)?)?;
         }

@@ -25,6 +25,10 @@ pub struct MetricsLine {
     pub seconds: f64,
     /// Unweighted terms by name.
     pub terms: std::collections::BTreeMap<String, f64>,
+    /// Where the step's time went (absent in runs written before it was logged). On a GPU the
+    /// parts before a value is read back only queue work, so their split is indicative.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub timing: Option<crate::trainer::StepTiming>,
 }
 
 /// Writes the configuration, manifest and statistics.
@@ -42,6 +46,7 @@ pub fn append_metrics(files: &RunFiles, report: &StepReport) -> Result<()> {
         gradient_norm: report.gradient_norm,
         seconds: report.seconds,
         terms: report.terms.iter().map(|(t, v)| (t.name().to_string(), *v)).collect(),
+        timing: Some(report.timing),
     };
     append_line(&files.metrics, &serde_json::to_string(&line).expect("a metrics line serialises"))
 }

@@ -55,7 +55,7 @@ pub struct StepReport {
 }
 
 /// Seconds spent in the parts of a step.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StepTiming {
     /// Drawing the batch, embedding the texts, noising.
     pub batch: f64,
