@@ -65,14 +65,14 @@ timeout 120 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCE
 sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/small.toml"
 
 phase "train small on the GPU"
-timeout -s INT "${GPU_CHECK_TRAIN_SECONDS:-300}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+timeout --foreground -s INT "${GPU_CHECK_TRAIN_SECONDS:-300}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
     --data "$WORK/synth" --out "$WORK/run-gpu" --steps 5000 --device cuda 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -8
 cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
 cp "$WORK/run-gpu/loss.png" "$OUT/loss-gpu.png" 2>/dev/null
 nvidia-smi --query-gpu=memory.used --format=csv,noheader
 
 phase "train small on the CPU ($(nproc) cores), the same run's first steps"
-timeout -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-30}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
+timeout --foreground -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-30}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
     --data "$WORK/synth" --out "$WORK/run-cpu" --steps 5000 --device cpu 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -4
 cp "$WORK/run-cpu/metrics.jsonl" "$OUT/metrics-cpu.jsonl"
 

@@ -191,27 +191,6 @@ fn linked_functions(bindings: &str) -> Vec<String> {
     functions
 }
 
-#[cfg(test)]
-mod tests {
-    use super::linked_functions;
-
-    #[test]
-    fn linked_functions_are_read_from_the_bindings() {
-        let bindings = r#"pub unsafe fn cuInit(flags: u32) -> CUresult {
-            #[cfg(not(feature = "dynamic-loading"))]
-            {
-                extern "C" {
-                    fn cuInit(flags: u32) -> CUresult;
-                }
-            }
-        }
-        type F = unsafe extern "C" fn(u32);
-        extern "C" { fn cuDriverGetVersion(v: *mut i32); }
-        extern "C" { fn cuInit(flags: u32); }"#;
-        assert_eq!(linked_functions(bindings), ["cuInit", "cuDriverGetVersion"]);
-    }
-}
-
 /// A symbolic link `to -> from` (replacing an old one).
 fn link(from: &Path, to: &Path) -> Result<()> {
     if !from.exists() {
@@ -262,4 +241,25 @@ fn run(command: &mut Command) -> Result<()> {
         bail!("{command:?} failed ({status})");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::linked_functions;
+
+    #[test]
+    fn linked_functions_are_read_from_the_bindings() {
+        let bindings = r#"pub unsafe fn cuInit(flags: u32) -> CUresult {
+            #[cfg(not(feature = "dynamic-loading"))]
+            {
+                extern "C" {
+                    fn cuInit(flags: u32) -> CUresult;
+                }
+            }
+        }
+        type F = unsafe extern "C" fn(u32);
+        extern "C" { fn cuDriverGetVersion(v: *mut i32); }
+        extern "C" { fn cuInit(flags: u32); }"#;
+        assert_eq!(linked_functions(bindings), ["cuInit", "cuDriverGetVersion"]);
+    }
 }
