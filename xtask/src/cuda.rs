@@ -50,8 +50,14 @@ const STAND_INS: [(&str, &str); 5] = [
 /// H100 and H200.
 const COMPUTE_CAPABILITY: &str = "90";
 
-/// The test targets built with the `cuda` feature: package and test name.
-const CUDA_TESTS: [(&str, &str); 1] = [("dex2hoi-train", "cuda")];
+/// The packages built, the binary's and the CUDA tests', always selected together so that one
+/// feature resolution serves both builds (another selection changes some dependency's
+/// features, and cargo then builds every dependency a second time).
+const PACKAGES: [&str; 2] = ["dex2hoi-cli", "dex2hoi-train"];
+const FEATURES: &str = "dex2hoi-cli/cuda,dex2hoi-train/cuda";
+
+/// The CUDA test targets (in `dex2hoi-train`), packed as `dex2hoi-train-NAME`.
+const CUDA_TESTS: [&str; 1] = ["cuda"];
 
 /// Runs `cargo xtask build-cuda`.
 pub fn build_cuda(root: &Path) -> Result<()> {
@@ -72,24 +78,20 @@ pub fn build_cuda(root: &Path) -> Result<()> {
             .env("PATH", &path);
         command
     };
-    let build = ["build", "--release", "--locked", "-p", "dex2hoi-cli", "--features", "cuda"];
+    let selection: Vec<&str> =
+        PACKAGES.iter().flat_map(|p| ["-p", *p]).chain(["--features", FEATURES]).collect();
+    let build: Vec<&str> =
+        ["build", "--release", "--locked"].into_iter().chain(selection.clone()).collect();
     eprintln!("\n==> cargo {} (CUDA_HOME={})", build.join(" "), toolkit.display());
     run(&mut cargo_command(&build))?;
     let mut executables = vec![("dex2hoi".to_string(), target_dir.join("release/dex2hoi"))];
-    for (package, test) in CUDA_TESTS {
-        let args = [
-            "test",
-            "--release",
-            "--locked",
-            "-p",
-            package,
-            "--features",
-            "cuda",
-            "--test",
-            test,
-            "--no-run",
-            "--message-format=json",
-        ];
+    for test in CUDA_TESTS {
+        let args: Vec<&str> =
+            ["test", "--release", "--locked", "--no-run", "--message-format=json"]
+                .into_iter()
+                .chain(selection.clone())
+                .chain(["--test", test])
+                .collect();
         eprintln!("\n==> cargo {}", args.join(" "));
         let output = cargo_command(&args)
             .stderr(std::process::Stdio::inherit())
@@ -100,7 +102,7 @@ pub fn build_cuda(root: &Path) -> Result<()> {
         }
         let executable = test_executable(&output.stdout, test)
             .with_context(|| format!("cargo named no executable for the test `{test}`"))?;
-        executables.push((format!("{package}-{test}"), executable));
+        executables.push((format!("dex2hoi-train-{test}"), executable));
     }
     pack(root, &executables)
 }
