@@ -18,10 +18,10 @@
 //! 3. `CUDA_COMPUTE_CAP=90` (H100 and H200; candle makes it sm_90a) since there is no GPU to
 //!    ask.
 //! 4. The `dex2hoi` binary and the `cuda` test executables are built into `target/cuda/`
-//!    (release profile), stripped and gzipped into `target/cuda-pack/` with
-//!    `scripts/gpu-check.sh`'s list of them. That folder is what a GPU session carries; the
-//!    script unpacks it there, finds the CUDA libraries of the machine's PyTorch, and runs the
-//!    tests and the measurements.
+//!    (release profile, one feature resolution for both), stripped and gzipped into
+//!    `target/cuda-pack/` (`dex2hoi.gz`, `dex2hoi-train-cuda.gz`). That folder is what a GPU
+//!    session carries; `scripts/gpu-check.sh` unpacks it there, finds the CUDA libraries of the
+//!    machine's PyTorch, and runs the tests and the measurements.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
