@@ -16,7 +16,7 @@ use std::process::Command;
 use anyhow::{Context, Result, bail};
 use serde_json::Value;
 
-use crate::cargo;
+use crate::{cargo, run};
 
 /// Runs the whole comparison.
 pub fn compare(root: &Path) -> Result<()> {
@@ -71,14 +71,6 @@ fn virtual_environment(root: &Path) -> Result<PathBuf> {
         run(Command::new(&python).args(["-m", "pip", "install", "--quiet", "torch", "numpy"]))?;
     }
     Ok(python)
-}
-
-fn run(command: &mut Command) -> Result<()> {
-    let status = command.status().with_context(|| format!("cannot run {command:?}"))?;
-    if !status.success() {
-        bail!("{command:?} failed ({status})");
-    }
-    Ok(())
 }
 
 fn read_json(path: &Path) -> Result<Value> {

@@ -28,6 +28,8 @@ use std::process::Command;
 
 use anyhow::{Context, Result, bail};
 
+use crate::{cargo_program, run};
+
 /// The pinned wheels of the CUDA 13.0 toolkit pieces the build needs.
 const WHEELS: [&str; 5] = [
     "nvidia-cuda-nvcc==13.0.88",
@@ -66,7 +68,7 @@ pub fn build_cuda(root: &Path) -> Result<()> {
     let path =
         format!("{}:{}", toolkit.join("bin").display(), std::env::var("PATH").unwrap_or_default());
     let cargo_command = |args: &[&str]| {
-        let mut command = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+        let mut command = Command::new(cargo_program());
         command
             .args(args)
             .arg("--target-dir")
@@ -156,7 +158,7 @@ fn toolkit(root: &Path) -> Result<PathBuf> {
 
 /// The source folder of the `cudarc` the lock file names (from `cargo metadata`).
 fn cudarc_source(root: &Path) -> Result<PathBuf> {
-    let output = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+    let output = Command::new(cargo_program())
         .args(["metadata", "--format-version", "1", "--locked", "--all-features"])
         .current_dir(root)
         .output()
@@ -234,14 +236,6 @@ fn pack(root: &Path, executables: &[(String, PathBuf)]) -> Result<()> {
         pack.display(),
         total as f64 / (1 << 20) as f64
     );
-    Ok(())
-}
-
-fn run(command: &mut Command) -> Result<()> {
-    let status = command.status().with_context(|| format!("cannot run {command:?}"))?;
-    if !status.success() {
-        bail!("{command:?} failed ({status})");
-    }
     Ok(())
 }
 
