@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use crate::config::OptimizerConfig;
 use crate::error::Result;
-use crate::parameter::Parameter;
+use crate::parameter::{Parameter, on_cpu};
 
 /// What one update did.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -66,13 +66,8 @@ impl AdamW {
         first: &Tensor,
         second: &Tensor,
     ) -> Result<()> {
-        let on_device = |t: &Tensor| -> Result<Tensor> {
-            Ok(t.to_dtype(DType::F32)?
-                .reshape(parameter.var.shape())?
-                .to_device(parameter.var.device())?)
-        };
-        self.first[k] = on_device(first)?;
-        self.second[k] = on_device(second)?;
+        self.first[k] = parameter.state_from(first)?;
+        self.second[k] = parameter.state_from(second)?;
         Ok(())
     }
 
@@ -89,8 +84,7 @@ impl AdamW {
         gradients: &GradStore,
         learning_rate: f64,
     ) -> Result<UpdateReport> {
-        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
-        self.update_on(parameters, gradients, learning_rate, on_cpu)
+        self.update_on(parameters, gradients, learning_rate, on_cpu(parameters))
     }
 
     /// [`AdamW::update`] with the path chosen: the host loop, or the tensor operations (which
@@ -105,25 +99,22 @@ impl AdamW {
     ) -> Result<UpdateReport> {
         let grads: Vec<Option<&Tensor>> =
             parameters.iter().map(|p| gradients.get(p.var.as_tensor())).collect();
-        let host_grads: Vec<Option<Vec<f32>>> = if on_cpu {
-            grads
+        // On the host path the gradients are copied to the host once, for the norm and the loop.
+        let (host_grads, gradient_norm) = if on_cpu {
+            let host: Vec<Option<Vec<f32>>> = grads
                 .iter()
                 .map(|g| {
                     g.map(|g| Ok(g.flatten_all()?.to_dtype(DType::F32)?.to_vec1()?)).transpose()
                 })
-                .collect::<Result<_>>()?
-        } else {
-            Vec::new()
-        };
-        let gradient_norm = if on_cpu {
-            host_grads
+                .collect::<Result<_>>()?;
+            let squared: f64 = host
                 .iter()
                 .flatten()
                 .map(|g| g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>())
-                .sum::<f64>()
-                .sqrt()
+                .sum();
+            (host, squared.sqrt())
         } else {
-            device_norm(&grads)?
+            (Vec::new(), device_norm(&grads)?)
         };
         let scale = match self.config.gradient_clip {
             Some(clip) if gradient_norm > clip => (clip / (gradient_norm + 1e-6)) as f32,

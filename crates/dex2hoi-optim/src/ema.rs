@@ -4,7 +4,7 @@ use candle_core::{DType, Tensor};
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::parameter::Parameter;
+use crate::parameter::{Parameter, on_cpu};
 
 /// The exponential moving average of the parameters (the weights used for sampling), `f32`
 /// tensors of each parameter's shape on its device.
@@ -31,10 +31,7 @@ impl Ema {
     /// Replaces the average of parameter `k` (restoring a checkpoint), moved to the parameter's
     /// device as `f32`.
     pub fn set_value(&mut self, k: usize, parameter: &Parameter, value: &Tensor) -> Result<()> {
-        self.values[k] = value
-            .to_dtype(DType::F32)?
-            .reshape(parameter.var.shape())?
-            .to_device(parameter.var.device())?;
+        self.values[k] = parameter.state_from(value)?;
         Ok(())
     }
 
@@ -42,8 +39,7 @@ impl Ema {
     /// a parallel host loop (each element as before, independent of the thread count); on
     /// other devices one tensor expression per parameter.
     pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
-        let on_cpu = parameters.first().is_none_or(|p| p.var.device().is_cpu());
-        self.update_on(parameters, decay, step, on_cpu)
+        self.update_on(parameters, decay, step, on_cpu(parameters))
     }
 
     /// [`Ema::update`] with the path chosen: the host loop, or the tensor operations (any

@@ -1,6 +1,6 @@
 //! Trained parameters by checkpoint name.
 
-use candle_core::{DType, Var};
+use candle_core::{DType, Tensor, Var};
 
 use crate::error::Result;
 
@@ -22,6 +22,18 @@ impl Parameter {
     pub(crate) fn values(&self) -> Result<Vec<f32>> {
         Ok(self.var.as_tensor().flatten_all()?.to_dtype(DType::F32)?.to_vec1()?)
     }
+
+    /// Optimiser state for this parameter from a tensor of its size (a checkpoint's): `f32`, the
+    /// parameter's shape, on its device.
+    pub(crate) fn state_from(&self, tensor: &Tensor) -> Result<Tensor> {
+        Ok(tensor.to_dtype(DType::F32)?.reshape(self.var.shape())?.to_device(self.var.device())?)
+    }
+}
+
+/// Whether the parameters live on the CPU, where the optimiser updates them with host loops
+/// rather than tensor operations (an empty list counts as the CPU).
+pub(crate) fn on_cpu(parameters: &[Parameter]) -> bool {
+    parameters.first().is_none_or(|p| p.var.device().is_cpu())
 }
 
 /// The variables of a var map as parameters named `prefix + name`, sorted by name (the order
