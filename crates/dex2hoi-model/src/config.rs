@@ -65,6 +65,11 @@ pub enum Prediction {
     /// themselves on the hand-relative channels (the wrist offsets and the mixture logits), whose
     /// targets are far from the prefix's values whenever a hand reaches for an object.
     PrefixResidualWorld,
+    /// The difference from the last prefix frame only where things are placed in the world:
+    /// the body's root rotation and displacement, each object's rotation and world position.
+    /// The clean values themselves everywhere else: the joint rotations below the root (the
+    /// fingers among them) and the hand-relative channels.
+    PrefixResidualPlacement,
 }
 
 impl Prediction {

@@ -13,7 +13,9 @@ use candle_nn::{VarBuilder, init::Init};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::FeatureLayout;
-use dex2hoi_repr::object_repr::{LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE};
+use dex2hoi_repr::object_repr::{
+    GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
+};
 
 use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, Prediction, StreamLayout};
 use crate::error::{ModelError, Result};
@@ -133,6 +135,31 @@ fn without_hand_relative_channels(
         }
     }
     Ok(Tensor::from_vec(mask, width, device)?.to_dtype(dtype)?)
+}
+
+/// A stream row's mask (one object) that keeps the channels placing the body and the object in
+/// the world: the root joint's rotation, the root displacement, the object's rotation and
+/// world position (`Prediction::PrefixResidualPlacement`).
+///
+/// # Shapes
+/// - returns `[6J + 3 + 18]`
+fn placement_channels(
+    cfg: &ModelConfig,
+    device: &candle_core::Device,
+    dtype: DType,
+) -> Result<Tensor> {
+    let layout = cfg.layout();
+    let mut mask = vec![0.0f32; layout.stream_width()];
+    let placement = [
+        layout.joint_rotation_range(0),
+        layout.root_range(),
+        layout.object_part_range(ROTATION_RANGE),
+        layout.object_part_range(GLOBAL_POSITION_RANGE),
+    ];
+    for range in placement {
+        mask[range].fill(1.0);
+    }
+    Ok(Tensor::from_vec(mask, layout.stream_width(), device)?.to_dtype(dtype)?)
 }
 
 impl Denoiser {
@@ -553,6 +580,9 @@ impl Model {
             // A stream row holds one object.
             Prediction::PrefixResidualWorld => {
                 Some(without_hand_relative_channels(config, 1, &device, dtype)?)
+            }
+            Prediction::PrefixResidualPlacement => {
+                Some(placement_channels(config, &device, dtype)?)
             }
         };
         Ok(Self { config: config.clone(), layout, residual_mask })

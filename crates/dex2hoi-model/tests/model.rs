@@ -122,6 +122,32 @@ fn last_prefix_frame(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
 /// the hand-relative channels of the object zeroed.
 fn prefix_part(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
     let mut last = last_prefix_frame(cfg, prefix);
+    if cfg.prediction == Prediction::PrefixResidualPlacement {
+        // Written out channel by channel: root joint 0..6, root displacement 6J..6J + 3, the
+        // object's rotation (its first six numbers) and world position (numbers 12..15).
+        let joints = cfg.joints;
+        let body = 6 * joints + 3;
+        let keep = |c: usize| {
+            c < 6
+                || (6 * joints..body).contains(&c)
+                || (body..body + 6).contains(&c)
+                || (body + 12..body + 15).contains(&c)
+        };
+        let mut values =
+            last.to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        let width = cfg.stream_features();
+        for row in values.chunks_mut(width) {
+            for (c, v) in row.iter_mut().enumerate() {
+                if !keep(c) {
+                    *v = 0.0;
+                }
+            }
+        }
+        last = Tensor::from_vec(values, last.dims(), last.device())
+            .unwrap()
+            .to_dtype(last.dtype())
+            .unwrap();
+    }
     if cfg.prediction == Prediction::PrefixResidualWorld {
         let layout = cfg.layout();
         let mut values =
@@ -140,8 +166,18 @@ fn prefix_part(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
     last
 }
 
-const PREDICTIONS: [Prediction; 3] =
-    [Prediction::Absolute, Prediction::PrefixResidual, Prediction::PrefixResidualWorld];
+const PREDICTIONS: [Prediction; 4] = [
+    Prediction::Absolute,
+    Prediction::PrefixResidual,
+    Prediction::PrefixResidualWorld,
+    Prediction::PrefixResidualPlacement,
+];
+/// The heads that add (part of) the last prefix frame.
+const RESIDUALS: [Prediction; 3] = [
+    Prediction::PrefixResidual,
+    Prediction::PrefixResidualWorld,
+    Prediction::PrefixResidualPlacement,
+];
 
 #[test]
 fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
@@ -158,6 +194,14 @@ fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
                 Prediction::Absolute => out.zeros_like().unwrap(),
                 _ => prefix_part(&cfg, &inputs.prefix),
             };
+            if prediction == Prediction::PrefixResidualPlacement {
+                // A finger joint's rotation (the last joint) starts at zero, the root's at the
+                // prefix.
+                let channel = |c: usize| start.narrow(3, c, 1).unwrap().abs().unwrap();
+                let max = |t: Tensor| t.max_all().unwrap().to_scalar::<f32>().unwrap();
+                assert_eq!(max(channel(6 * cfg.joints - 1)), 0.0);
+                assert!(max(channel(0)) > 0.0);
+            }
             if prediction == Prediction::PrefixResidualWorld {
                 // The test would pass vacuously if the hand-relative channels were not zero here.
                 let offsets = start
@@ -181,7 +225,7 @@ fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
 #[test]
 fn the_residual_head_adds_the_last_prefix_frame_to_the_same_network() {
     for base in variants() {
-        for prediction in [Prediction::PrefixResidual, Prediction::PrefixResidualWorld] {
+        for prediction in RESIDUALS {
             let absolute = ModelConfig { prediction: Prediction::Absolute, ..base.clone() };
             let residual = ModelConfig { prediction, ..base.clone() };
             let (a, vars_a) = build(&absolute, 0, DType::F64);
@@ -196,7 +240,7 @@ fn the_residual_head_adds_the_last_prefix_frame_to_the_same_network() {
             assert!(diff.to_scalar::<f64>().unwrap() < 1e-12, "{residual:?}");
         }
     }
-    for prediction in [Prediction::PrefixResidual, Prediction::PrefixResidualWorld] {
+    for prediction in RESIDUALS {
         let no_prefix = ModelConfig { prediction, prefix_frames: 0, ..ModelConfig::tiny() };
         let error = no_prefix.validate().unwrap_err().to_string();
         assert!(error.contains("prefix_frames"), "{error}");

@@ -68,6 +68,7 @@ fn variants() -> Vec<ModelConfig> {
         ModelConfig { prediction: Prediction::Absolute, ..tiny.clone() },
         ModelConfig { prediction: Prediction::PrefixResidual, ..tiny.clone() },
         ModelConfig { prediction: Prediction::PrefixResidualWorld, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidualPlacement, ..tiny.clone() },
         ModelConfig { body_fusion: BodyFusion::Average, ..tiny.clone() },
         ModelConfig { stream_layout: StreamLayout::Single, ..tiny.clone() },
         ModelConfig { object_representation: ObjectRepresentation::GlobalOnly, ..tiny.clone() },

@@ -1,0 +1,107 @@
+#!/usr/bin/env bash
+# Trains several runs side by side on one GPU for a fixed time and sends their snapshots back
+# as packed models, for the training studies of docs/results/ (issue 17). Run on a machine
+# with an NVIDIA GPU from the repository root, with `target/cuda-pack/` made by
+# `cargo xtask build-cuda` carried along:
+#
+#   scripts/gpu-train.sh SECONDS NAME=CONFIG[:KEEP] ...
+#
+# Each run trains CONFIG (a training configuration file) on the procedural dataset of
+# docs/results/ (`data synth --sequences 2000 --seed 0`, made here; the same files as
+# /work/runs/synth-2000) with a snapshot every 1000 steps, until SECONDS have passed; then it
+# is stopped with Ctrl-C (its checkpoint is written). The device machine sends back at most 8
+# files of 16 MiB, so each run's snapshots are packed (`model pack --f16`, EMA weights only:
+# what `evaluate --run` and `sample --run` read) and tarred in groups under 16 MiB; KEEP
+# (default: all) keeps only the last KEEP snapshots. Logs and metrics.jsonl go to
+# $OUT/logs.tar.gz. The runs share the GPU and the host's cores. For a dry run elsewhere:
+# GPU_TRAIN_PACK (a folder of gzipped binaries), GPU_TRAIN_DEVICE, GPU_TRAIN_SEQUENCES.
+set -uo pipefail
+
+OUT=${OUT:-/tmp/gpu-train}
+SECONDS_TO_TRAIN=$1
+shift
+mkdir -p "$OUT"
+BIN=/tmp/dex2hoi-gpu
+WORK=/tmp/dex2hoi-train
+mkdir -p "$BIN" "$WORK/logs"
+LIMIT=$((15 * 1024 * 1024))
+
+phase() { echo; echo "=== $* ($(date +%T))"; }
+
+phase unpack
+for f in "${GPU_TRAIN_PACK:-target/cuda-pack}"/*.gz; do
+    gunzip -c "$f" >"$BIN/$(basename "$f" .gz)" && chmod +x "$BIN/$(basename "$f" .gz)"
+done
+CUDA_LIBS=$(python3 -c '
+import glob, os
+try:
+    import nvidia
+except ImportError:
+    raise SystemExit
+print(":".join(sorted({os.path.dirname(f) for base in nvidia.__path__
+    for f in glob.glob(os.path.join(base, "**", "lib", "lib*.so*"), recursive=True)})))')
+export LD_LIBRARY_PATH="$CUDA_LIBS${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
+
+phase "procedural dataset"
+"$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "${GPU_TRAIN_SEQUENCES:-2000}" --seed 0 |
+    tail -1
+
+phase "training for $SECONDS_TO_TRAIN s"
+pids=()
+for spec in "$@"; do
+    name=${spec%%=*}
+    config=${spec#*=}
+    config=${config%%:*}
+    "$BIN/dex2hoi" train --config "$config" --data "$WORK/synth" --out "$WORK/$name" \
+        --steps 100000 --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}" >"$WORK/logs/$name.log" 2>&1 &
+    pids+=($!)
+done
+sleep "$SECONDS_TO_TRAIN"
+for pid in "${pids[@]}"; do kill -INT "$pid" 2>/dev/null; done
+wait
+nvidia-smi --query-gpu=memory.used --format=csv,noheader 2>/dev/null
+
+phase "packing"
+for spec in "$@"; do
+    name=${spec%%=*}
+    keep=all
+    [[ $spec == *:* ]] && keep=${spec##*:}
+    tail -2 "$WORK/logs/$name.log"
+    cp "$WORK/$name/metrics.jsonl" "$WORK/logs/$name-metrics.jsonl" 2>/dev/null
+    snapshots=$(ls -d "$WORK/$name"/snapshots/step-* 2>/dev/null | sort)
+    [[ $keep != all ]] && snapshots=$(echo "$snapshots" | tail -n "$keep")
+    mkdir -p "$WORK/packed/$name"
+    for snapshot in $snapshots; do
+        "$BIN/dex2hoi" model pack --run "$snapshot" --f16 \
+            --out "$WORK/packed/$name/$name-$(basename "$snapshot").safetensors" >/dev/null ||
+            echo "could not pack $snapshot"
+    done
+    # Groups of packed files under the size limit, one tar each.
+    group=0
+    size=0
+    files=()
+    flush() {
+        if ((${#files[@]})); then
+            tar -cf "$OUT/$name-$group.tar" -C "$WORK/packed/$name" "${files[@]}"
+            # One model larger than the limit travels in parts (`cat NAME.tar.part* > NAME.tar`).
+            if (($(stat -c %s "$OUT/$name-$group.tar") > LIMIT)); then
+                split -b "$LIMIT" -d "$OUT/$name-$group.tar" "$OUT/$name-$group.tar.part"
+                rm "$OUT/$name-$group.tar"
+            fi
+            group=$((group + 1))
+        fi
+        files=()
+        size=0
+    }
+    for f in $(ls "$WORK/packed/$name" 2>/dev/null | sort); do
+        bytes=$(stat -c %s "$WORK/packed/$name/$f")
+        ((size + bytes > LIMIT)) && flush
+        files+=("$f")
+        size=$((size + bytes))
+    done
+    flush
+done
+tar -czf "$OUT/logs.tar.gz" -C "$WORK" logs
+ls -la "$OUT"
+phase done
