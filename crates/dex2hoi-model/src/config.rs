@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use dex2hoi_data::FeatureLayout;
+use dex2hoi_repr::SkeletonKind;
 
 use crate::error::{ModelError, Result};
 
@@ -70,6 +71,10 @@ pub enum Prediction {
     /// The clean values themselves everywhere else: the joint rotations below the root (the
     /// fingers among them) and the hand-relative channels.
     PrefixResidualPlacement,
+    /// [`Self::PrefixResidualWorld`] with the finger joints' rotations predicted as clean
+    /// values: the residual on the root, the 22 body joints (so the wrists, and a held object
+    /// with them, continue from the prefix) and each object's rotation and world position.
+    PrefixResidualCleanFingers,
 }
 
 impl Prediction {
@@ -172,6 +177,20 @@ impl ModelConfig {
         self.prefix_frames + self.predicted_frames
     }
 
+    /// The built-in skeleton with `joints` joints (52: SMPL-X, 65: Mixamo), for what needs to
+    /// know which joints are fingers.
+    pub fn skeleton_kind(&self) -> Result<SkeletonKind> {
+        match self.joints {
+            52 => Ok(SkeletonKind::Smplx52),
+            65 => Ok(SkeletonKind::Mixamo65),
+            other => Err(ModelError::config(
+                "joints",
+                "52 (SMPL-X) or 65 (Mixamo) with prediction = \"prefix_residual_clean_fingers\"",
+                other,
+            )),
+        }
+    }
+
     /// Checks that the sizes fit together.
     pub fn validate(&self) -> Result<()> {
         let positive = [
@@ -202,6 +221,9 @@ impl ModelConfig {
                 "at least 1 with a prefix-residual prediction",
                 0,
             ));
+        }
+        if self.prediction == Prediction::PrefixResidualCleanFingers {
+            self.skeleton_kind()?;
         }
         if !(0.0..1.0).contains(&self.dropout) {
             return Err(ModelError::config("dropout", "a probability in [0, 1)", self.dropout));

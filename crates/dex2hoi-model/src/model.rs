@@ -13,6 +13,7 @@ use candle_nn::{VarBuilder, init::Init};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::FeatureLayout;
+use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
 };
@@ -158,6 +159,31 @@ fn placement_channels(
     ];
     for range in placement {
         mask[range].fill(1.0);
+    }
+    Ok(Tensor::from_vec(mask, layout.stream_width(), device)?.to_dtype(dtype)?)
+}
+
+/// A stream row's mask (one object) without the hand-relative channels and without the finger
+/// joints' rotations (the hands' joints but the wrists, of the skeleton with `cfg.joints`
+/// joints) (`Prediction::PrefixResidualCleanFingers`).
+///
+/// # Shapes
+/// - returns `[6J + 3 + 18]`
+fn without_hand_channels(
+    cfg: &ModelConfig,
+    device: &candle_core::Device,
+    dtype: DType,
+) -> Result<Tensor> {
+    let layout = cfg.layout();
+    let mut mask: Vec<f32> =
+        without_hand_relative_channels(cfg, 1, device, DType::F32)?.to_vec1()?;
+    let skeleton = Skeleton::builtin(cfg.skeleton_kind()?);
+    let groups = skeleton.groups();
+    let wrists = [groups.left_wrist, groups.right_wrist];
+    for &joint in groups.left_hand.iter().chain(&groups.right_hand) {
+        if !wrists.contains(&joint) {
+            mask[layout.joint_rotation_range(joint)].fill(0.0);
+        }
     }
     Ok(Tensor::from_vec(mask, layout.stream_width(), device)?.to_dtype(dtype)?)
 }
@@ -583,6 +609,9 @@ impl Model {
             }
             Prediction::PrefixResidualPlacement => {
                 Some(placement_channels(config, &device, dtype)?)
+            }
+            Prediction::PrefixResidualCleanFingers => {
+                Some(without_hand_channels(config, &device, dtype)?)
             }
         };
         Ok(Self { config: config.clone(), layout, residual_mask })

@@ -148,6 +148,21 @@ fn prefix_part(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
             .to_dtype(last.dtype())
             .unwrap();
     }
+    if cfg.prediction == Prediction::PrefixResidualCleanFingers {
+        // The world head's channels without SMPL-X's finger joints 22..52 (`cfg.joints` is 52).
+        assert_eq!(cfg.joints, 52);
+        let world = ModelConfig { prediction: Prediction::PrefixResidualWorld, ..cfg.clone() };
+        let world = prefix_part(&world, prefix);
+        let mut values =
+            world.to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        for row in values.chunks_mut(cfg.stream_features()) {
+            row[6 * 22..6 * 52].fill(0.0);
+        }
+        return Tensor::from_vec(values, world.dims(), world.device())
+            .unwrap()
+            .to_dtype(world.dtype())
+            .unwrap();
+    }
     if cfg.prediction == Prediction::PrefixResidualWorld {
         let layout = cfg.layout();
         let mut values =
@@ -166,17 +181,19 @@ fn prefix_part(cfg: &ModelConfig, prefix: &Tensor) -> Tensor {
     last
 }
 
-const PREDICTIONS: [Prediction; 4] = [
+const PREDICTIONS: [Prediction; 5] = [
     Prediction::Absolute,
     Prediction::PrefixResidual,
     Prediction::PrefixResidualWorld,
     Prediction::PrefixResidualPlacement,
+    Prediction::PrefixResidualCleanFingers,
 ];
 /// The heads that add (part of) the last prefix frame.
-const RESIDUALS: [Prediction; 3] = [
+const RESIDUALS: [Prediction; 4] = [
     Prediction::PrefixResidual,
     Prediction::PrefixResidualWorld,
     Prediction::PrefixResidualPlacement,
+    Prediction::PrefixResidualCleanFingers,
 ];
 
 #[test]
@@ -201,6 +218,14 @@ fn every_variant_runs_and_starts_at_zero_or_at_the_prefix() {
                 let max = |t: Tensor| t.max_all().unwrap().to_scalar::<f32>().unwrap();
                 assert_eq!(max(channel(6 * cfg.joints - 1)), 0.0);
                 assert!(max(channel(0)) > 0.0);
+            }
+            if prediction == Prediction::PrefixResidualCleanFingers {
+                // The first finger joint's rotation starts at zero, the right wrist's at the
+                // prefix.
+                let channel = |c: usize| start.narrow(3, c, 1).unwrap().abs().unwrap();
+                let max = |t: Tensor| t.max_all().unwrap().to_scalar::<f32>().unwrap();
+                assert_eq!(max(channel(6 * 22)), 0.0);
+                assert!(max(channel(6 * 21)) > 0.0);
             }
             if prediction == Prediction::PrefixResidualWorld {
                 // The test would pass vacuously if the hand-relative channels were not zero here.
@@ -245,6 +270,14 @@ fn the_residual_head_adds_the_last_prefix_frame_to_the_same_network() {
         let error = no_prefix.validate().unwrap_err().to_string();
         assert!(error.contains("prefix_frames"), "{error}");
     }
+    // Which joints are fingers comes from the skeleton of `joints` joints.
+    let unknown = ModelConfig {
+        prediction: Prediction::PrefixResidualCleanFingers,
+        joints: 40,
+        ..ModelConfig::tiny()
+    };
+    let error = unknown.validate().unwrap_err().to_string();
+    assert!(error.contains("joints") && error.contains("65"), "{error}");
 }
 
 #[test]

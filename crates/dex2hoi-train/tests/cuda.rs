@@ -69,6 +69,7 @@ fn variants() -> Vec<ModelConfig> {
         ModelConfig { prediction: Prediction::PrefixResidual, ..tiny.clone() },
         ModelConfig { prediction: Prediction::PrefixResidualWorld, ..tiny.clone() },
         ModelConfig { prediction: Prediction::PrefixResidualPlacement, ..tiny.clone() },
+        ModelConfig { prediction: Prediction::PrefixResidualCleanFingers, ..tiny.clone() },
         ModelConfig { body_fusion: BodyFusion::Average, ..tiny.clone() },
         ModelConfig { stream_layout: StreamLayout::Single, ..tiny.clone() },
         ModelConfig { object_representation: ObjectRepresentation::GlobalOnly, ..tiny.clone() },
