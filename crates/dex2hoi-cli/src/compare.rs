@@ -60,7 +60,7 @@ struct Metric {
     value: fn(&ReportRow, Option<&InstructionRow>) -> Option<f64>,
 }
 
-const METRICS: [Metric; 25] = [
+const METRICS: [Metric; 27] = [
     Metric {
         name: "R-prec. top-1",
         digits: 3,
@@ -159,6 +159,18 @@ const METRICS: [Metric; 25] = [
         digits: 1,
         headline: false,
         value: |r, _| r.physical.sinking_frames_percent.map(|e| e.mean),
+    },
+    Metric {
+        name: "Fingertip low (mm)",
+        digits: 1,
+        headline: false,
+        value: |r, _| r.physical.fingertip_low_mm.map(|e| e.mean),
+    },
+    Metric {
+        name: "Fingertip error (mm)",
+        digits: 1,
+        headline: false,
+        value: |r, _| r.physical.fingertip_error_mm.map(|e| e.mean),
     },
     Metric {
         name: "Objects moved (%)",

@@ -13,7 +13,8 @@
 //! displacement), [`mixture_agreement`] (does the mixture of Eq. 4 pick the hand that holds the
 //! object?), [`instruction_following`] (does a clip move the objects its ground truth moves,
 //! with the same hands, to the same place?), [`object_start_jumps`] and
-//! [`untouched_object_speeds`] and [`object_sinking`] (do objects behave like objects?) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
+//! [`untouched_object_speeds`] and [`object_sinking`] (do objects behave like objects?),
+//! [`fingertip_distances`] (how precisely the fingertips sit on a held object) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
 //! pooled ([`Penetration::pooled`], [`ContactCounts::merge`]).
 //!
 //! Conventions: metres, Y up, floor at `y = 0`; object meshes in their own (bounding-box-centred)
@@ -24,13 +25,15 @@
 //! Layout (private submodules, everything public re-exported here): `distribution` (FID,
 //! Diversity, MultiModality) and `matching` (R-precision, MMdist) on embeddings, with the
 //! symmetric eigen-solver FID needs in `linalg`; `sample` (the [`MotionSample`] the physical
-//! metrics read), `penetration`, `contact`, `foot_sliding`, `mixture` and `instruction` on motions;
+//! metrics read), `penetration`, `contact`, `foot_sliding`, `mixture`, `instruction` and `grasp`
+//! on motions;
 //! `statistics` for the intervals over replications and runtime.
 
 mod contact;
 mod distribution;
 mod embedding;
 mod foot_sliding;
+mod grasp;
 mod instruction;
 mod linalg;
 mod matching;
@@ -48,6 +51,7 @@ pub use distribution::{
     fid_from_statistics, multimodality,
 };
 pub use foot_sliding::{ANKLE_HEIGHT_M, TOE_HEIGHT_M, foot_sliding};
+pub use grasp::{fingertip_distances, quantile};
 pub use instruction::{
     Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, SINK_TOLERANCE_M, Side,
     Sinking, UNTOUCHED_DISTANCE_M, instruction_following, median, object_sinking,

@@ -4,10 +4,10 @@ use dex2hoi_eval::metrics::{
     ANKLE_HEIGHT_M, CONTACT_RADIUS_M, ContactCounts, ContactScores, DIVERSITY_PAIRS,
     EmbeddingStatistics, MotionSample, MultimodalityProtocol, PENETRATION_TOLERANCE_M,
     R_PRECISION_BATCH, Retrieval, TOE_HEIGHT_M, contact_counts, contact_flags, contact_scores,
-    diversity, fid, fid_from_statistics, foot_sliding, hand_contact, hand_object_distances,
-    matching_distance, mean_interval, mixture_agreement, mixture_agreement_counts,
-    mixture_weights_from_features, multimodality, penetration, r_precision, r_precision_with,
-    runtime, symmetric_eigen,
+    diversity, fid, fid_from_statistics, fingertip_distances, foot_sliding, hand_contact,
+    hand_object_distances, matching_distance, mean_interval, mixture_agreement,
+    mixture_agreement_counts, mixture_weights_from_features, multimodality, penetration, quantile,
+    r_precision, r_precision_with, runtime, symmetric_eigen,
 };
 use dex2hoi_repr::mesh::box_mesh;
 use dex2hoi_repr::{MeshQuery, Skeleton};
@@ -446,6 +446,56 @@ fn penetration_of_joints_at_known_depths() {
     let result = penetration(&sample_two, PENETRATION_TOLERANCE_M).unwrap();
     assert_eq!(result.penetrating_frames, 1);
     assert!((result.mean_depth_mm - 200.0).abs() < 1e-3, "{}", result.mean_depth_mm);
+}
+
+#[test]
+fn fingertip_distances_on_the_ground_truths_contact_frames() {
+    let skeleton = Skeleton::smplx();
+    let groups = skeleton.groups().clone();
+    // A 1 x 0.4 x 0.6 box turned 45 degrees about Y, as above; a fingertip `d` outside its
+    // x = 0.5 face sits at local x = 0.5 + d.
+    let query = MeshQuery::new(&box_mesh(Vec3::new(0.5, 0.2, 0.3))).unwrap();
+    let rotation = Mat3::from_rotation_y(std::f32::consts::FRAC_PI_4);
+    let position = Vec3::new(1.0, 0.5, -2.0);
+    let at = |d: f32| rotation * Vec3::new(0.5 + d, 0.0, 0.0) + position;
+    let frames = 3;
+    // Left fingertip k at 2k mm outside (k = 0..5), the right ones 4 mm inside; the rest far.
+    let joints = joints_with(&skeleton, frames, |_, j| {
+        if let Some(k) = groups.left_fingertips.iter().position(|&f| f == j) {
+            return Some(at(0.002 * k as f32));
+        }
+        groups.right_fingertips.contains(&j).then(|| at(-0.004))
+    });
+    let (object_rotations, object_positions) =
+        poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
+    let sample = MotionSample {
+        skeleton: &skeleton,
+        joints: &joints,
+        object_rotations: &object_rotations,
+        object_positions: &object_positions,
+        present: [true, false],
+        objects: [Some(&query), None],
+        mixture_weights: None,
+    };
+    // `[T, slot, hand]`: frame 0 the left hand on slot 0, frame 1 nothing, frame 2 both hands
+    // on slot 0; slot 1 (absent) flagged on frame 1 and not measured.
+    let contact = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0];
+    let distances = fingertip_distances(&sample, &contact).unwrap();
+    let left: Vec<f32> = (0..5).map(|k| 0.002 * k as f32).collect();
+    let expected: Vec<f32> = left.iter().chain(&left).chain(&[-0.004; 5]).copied().collect();
+    assert_eq!(distances.len(), expected.len());
+    for (d, e) in distances.iter().zip(&expected) {
+        assert!((d - e).abs() < 1e-5, "{distances:?}");
+    }
+    assert!(fingertip_distances(&sample, &contact[..8]).is_err());
+    assert!(fingertip_distances(&sample, &[f32::NAN; 12]).is_err());
+
+    // Quantiles as numpy's default (linear): [1, 2, 3, 4] -> 5th percentile 1.15, median 2.5.
+    let values = [4.0, 1.0, 3.0, 2.0];
+    assert!((quantile(&values, 0.05).unwrap() - 1.15).abs() < 1e-12);
+    assert!((quantile(&values, 0.5).unwrap() - 2.5).abs() < 1e-12);
+    assert_eq!(quantile(&values, 1.0), Some(4.0));
+    assert_eq!(quantile(&[], 0.5), None);
 }
 
 #[test]

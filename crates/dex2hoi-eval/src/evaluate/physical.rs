@@ -1,7 +1,8 @@
 //! The physical metrics of evaluated clips (paper Sec. 4.2): penetration, contact against the
 //! ground truth, foot sliding and mixture agreement (Eq. 4), how objects behave (start jump,
-//! speed while untouched), and, for generated clips, instruction following against the ground
-//! truth; measured per clip as counts and pooled per replication.
+//! speed while untouched), how precisely fingertips sit on held objects against the ground
+//! truth, and, for generated clips, instruction following against the ground truth; measured
+//! per clip as counts and pooled per replication.
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::dataset::Dataset;
@@ -63,6 +64,11 @@ pub(super) struct Physical {
     untouched_speeds: Vec<f64>,
     /// How far the objects go below their resting heights.
     sinking: metrics::Sinking,
+    /// Fingertip-object signed distances on the ground truth's contact frames, m
+    /// ([`metrics::fingertip_distances`]).
+    fingertips_m: Vec<f32>,
+    /// The same minus the ground truth's, one by one, m (zeros for the ground truth itself).
+    fingertip_errors_m: Vec<f32>,
     /// A generated clip's instruction following against its ground truth (`None` for the
     /// ground truth itself).
     instruction: Option<metrics::InstructionCounts>,
@@ -76,9 +82,11 @@ fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX
     })
 }
 
-/// Measures one clip against its sequence's ground-truth contact over the same frames.
+/// Measures one clip against its sequence's ground-truth contact over the same frames, and its
+/// fingertips against the ground truth's (`truth`, the clip itself for the ground truth).
 fn measure(
     sample: &metrics::MotionSample<'_>,
+    truth: &metrics::MotionSample<'_>,
     sequence: &ProcessedSequence,
     window: Window,
     fps: f32,
@@ -103,6 +111,12 @@ fn measure(
     // Objects rest on the sequence's first frame, before anything moves them (the prefix
     // starts there).
     let sinking = metrics::object_sinking(sample, object_positions_at(sequence, 0))?;
+    let fingertips_m = metrics::fingertip_distances(sample, truth_contact)?;
+    let fingertip_errors_m = fingertips_m
+        .iter()
+        .zip(metrics::fingertip_distances(truth, truth_contact)?)
+        .map(|(generated, truth)| generated - truth)
+        .collect();
     Ok(Physical {
         penetration,
         contact,
@@ -111,6 +125,8 @@ fn measure(
         start_jumps_m,
         untouched_speeds,
         sinking,
+        fingertips_m,
+        fingertip_errors_m,
         instruction: None,
     })
 }
@@ -149,7 +165,7 @@ pub(super) fn measure_ground_truth(
     let objects = &sequence.objects[sequence.layout().object_frames(frames)];
     let weights = metrics::mixture_weights_from_features(objects)?;
     let sample = clip_sample(truth, skeleton, meshes, Some(&weights));
-    measure(&sample, sequence, window, fps)
+    measure(&sample, &sample, sequence, window, fps)
 }
 
 /// Measures a generated clip against its test sequence's ground truth over the same frames
@@ -171,7 +187,10 @@ pub(super) fn measure_generated(
     let sample = clip_sample(generated, skeleton, meshes, Some(mixture_weights));
     let truth_sample = clip_sample(truth, skeleton, meshes, None);
     let instruction = metrics::instruction_following(&sample, &truth_sample)?;
-    Ok(Physical { instruction: Some(instruction), ..measure(&sample, sequence, window, fps)? })
+    Ok(Physical {
+        instruction: Some(instruction),
+        ..measure(&sample, &truth_sample, sequence, window, fps)?
+    })
 }
 
 /// One replication's physical metrics, pooled over its clips.
@@ -184,6 +203,11 @@ struct Pooled {
     untouched_speed: Option<f64>,
     sink_depth_m: Option<f64>,
     sink_frames: (usize, usize),
+    /// 5th percentile and median of the fingertip distances, m.
+    fingertip_low_m: Option<f64>,
+    fingertip_median_m: Option<f64>,
+    /// Mean absolute fingertip error against the ground truth, m.
+    fingertip_error_m: Option<f64>,
 }
 
 impl Pooled {
@@ -193,6 +217,12 @@ impl Pooled {
         let penetrations: Vec<metrics::Penetration> = clips.iter().map(|p| p.penetration).collect();
         let counts =
             clips.iter().fold(metrics::ContactCounts::default(), |a, p| a.merge(p.contact));
+        let fingertips: Vec<f64> =
+            clips.iter().flat_map(|p| p.fingertips_m.iter().map(|&d| f64::from(d))).collect();
+        let errors: Vec<f64> = clips
+            .iter()
+            .flat_map(|p| p.fingertip_errors_m.iter().map(|&e| f64::from(e).abs()))
+            .collect();
         Self {
             penetration: metrics::Penetration::pooled(&penetrations),
             contact: metrics::ContactScores::from_counts(counts),
@@ -211,6 +241,10 @@ impl Pooled {
             sink_frames: clips
                 .iter()
                 .fold((0, 0), |a, p| (a.0 + p.sinking.frames_below, a.1 + p.sinking.frames)),
+            fingertip_low_m: metrics::quantile(&fingertips, 0.05),
+            fingertip_median_m: metrics::median(&fingertips),
+            fingertip_error_m: (!errors.is_empty())
+                .then(|| errors.iter().sum::<f64>() / errors.len() as f64),
         }
     }
 }
@@ -250,6 +284,13 @@ pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> Phys
         sinking_frames_percent: estimate_all(pooled.iter().map(|p| {
             (p.sink_frames.1 > 0).then(|| 100.0 * p.sink_frames.0 as f64 / p.sink_frames.1 as f64)
         })),
+        fingertip_low_mm: estimate_all(pooled.iter().map(|p| p.fingertip_low_m.map(|m| 1e3 * m))),
+        fingertip_median_mm: estimate_all(
+            pooled.iter().map(|p| p.fingertip_median_m.map(|m| 1e3 * m)),
+        ),
+        fingertip_error_mm: estimate_all(
+            pooled.iter().map(|p| p.fingertip_error_m.map(|m| 1e3 * m)),
+        ),
     }
 }
 

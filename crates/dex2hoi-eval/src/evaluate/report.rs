@@ -156,6 +156,16 @@ pub struct PhysicalRow {
     /// Frames with an object more than 1 cm below its resting height, percent.
     #[serde(default)]
     pub sinking_frames_percent: Option<Estimate>,
+    /// 5th percentile of the fingertips' signed distances to the objects the ground truth holds,
+    /// on its contact frames, mm (`None` without contact; absent in older reports).
+    #[serde(default)]
+    pub fingertip_low_mm: Option<Estimate>,
+    /// Median of the same, mm.
+    #[serde(default)]
+    pub fingertip_median_mm: Option<Estimate>,
+    /// Mean absolute difference of the same from the ground truth's, fingertip by fingertip, mm.
+    #[serde(default)]
+    pub fingertip_error_mm: Option<Estimate>,
 }
 
 /// Instruction following of the generated clips against their ground truth after the same
@@ -334,6 +344,26 @@ impl Report {
              below it.\n",
         );
         out.push_str(
+            "\n## Grasp\n\n| Method | Fingertip distance (mm, 5th percentile) | Fingertip distance (mm, median) | Fingertip error (mm, mean) ↓ |\n|---|---|---|---|\n",
+        );
+        for row in &self.rows {
+            let p = &row.physical;
+            out.push_str(&format!(
+                "| {} | {} | {} | {} |\n",
+                row.name,
+                optional_cell(p.fingertip_low_mm.as_ref(), 1),
+                optional_cell(p.fingertip_median_mm.as_ref(), 1),
+                optional_cell(p.fingertip_error_mm.as_ref(), 1),
+            ));
+        }
+        out.push_str(
+            "\nSigned distance (negative inside) of each fingertip joint to the object, on the \
+             frames where the ground truth has that hand in contact with it (a hand joint within \
+             5 cm); error: against the ground truth's fingertip over the same frames. A joint \
+             centre sits about a finger's half thickness outside the surface it touches; the \
+             penetration count starts 5 mm inside.\n",
+        );
+        out.push_str(
             "\n## Instruction following (generated vs ground truth after the same prefix)\n\n| Group | Clips | Objects moved (%) ↑ | Unasked moves (%) ↓ | Holding hand (%) ↑ | Same side (%) ↑ | End distance (cm, median) ↓ |\n|---|---|---|---|---|---|---|\n",
         );
         for row in &self.instruction {
@@ -434,6 +464,9 @@ mod tests {
             untouched_speed_cm_s: None,
             sinking_depth_cm: Some(estimate(0.2)),
             sinking_frames_percent: None,
+            fingertip_low_mm: Some(estimate(-1.0)),
+            fingertip_median_mm: Some(estimate(7.0)),
+            fingertip_error_mm: None,
         };
         let row = ReportRow {
             name: "model".into(),
