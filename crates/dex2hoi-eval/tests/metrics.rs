@@ -383,14 +383,35 @@ fn poses(frames: usize, slots: [(Mat3, Vec3); 2]) -> (Vec<f32>, Vec<f32>) {
     (rotations, positions)
 }
 
+/// A 1 x 0.4 x 0.6 box turned 45 degrees about Y, its rotation and position: a wrong rotation
+/// convention (R instead of R^T) would turn local points by 90 degrees and put them outside.
+fn turned_box() -> (MeshQuery, Mat3, Vec3) {
+    let query = MeshQuery::new(&box_mesh(Vec3::new(0.5, 0.2, 0.3))).unwrap();
+    (query, Mat3::from_rotation_y(std::f32::consts::FRAC_PI_4), Vec3::new(1.0, 0.5, -2.0))
+}
+
+/// A sample whose first slot holds `query` at the poses of `slots`, the second slot empty.
+fn first_slot_sample<'a>(
+    skeleton: &'a Skeleton,
+    joints: &'a [f32],
+    slots: &'a (Vec<f32>, Vec<f32>),
+    query: &'a MeshQuery,
+) -> MotionSample<'a> {
+    MotionSample {
+        skeleton,
+        joints,
+        object_rotations: &slots.0,
+        object_positions: &slots.1,
+        present: [true, false],
+        objects: [Some(query), None],
+        mixture_weights: None,
+    }
+}
+
 #[test]
 fn penetration_of_joints_at_known_depths() {
     let skeleton = Skeleton::smplx();
-    // A 1 x 0.4 x 0.6 box turned 45 degrees about Y: a wrong rotation convention (R instead of
-    // R^T) would turn the local points by 90 degrees and put them outside.
-    let query = MeshQuery::new(&box_mesh(Vec3::new(0.5, 0.2, 0.3))).unwrap();
-    let rotation = Mat3::from_rotation_y(std::f32::consts::FRAC_PI_4);
-    let position = Vec3::new(1.0, 0.5, -2.0);
+    let (query, rotation, position) = turned_box();
     let world = |local: Vec3| rotation * local + position;
     // Depth below the x = 0.5 face: 0.5 - x (the y and z faces are farther).
     let depths = [
@@ -406,17 +427,8 @@ fn penetration_of_joints_at_known_depths() {
             .find(|&&(ft, fj, _)| ft == t && fj == j)
             .map(|&(_, _, depth)| world(Vec3::new(0.5 - depth, 0.0, 0.0)))
     });
-    let (object_rotations, object_positions) =
-        poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
-    let sample = MotionSample {
-        skeleton: &skeleton,
-        joints: &joints,
-        object_rotations: &object_rotations,
-        object_positions: &object_positions,
-        present: [true, false],
-        objects: [Some(&query), None],
-        mixture_weights: None,
-    };
+    let slots = poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
+    let sample = first_slot_sample(&skeleton, &joints, &slots, &query);
     let result = penetration(&sample, PENETRATION_TOLERANCE_M).unwrap();
     assert_eq!(result.penetrating_joint_frames, 3);
     assert_eq!(result.penetrating_frames, 2);
@@ -452,11 +464,8 @@ fn penetration_of_joints_at_known_depths() {
 fn fingertip_distances_on_the_ground_truths_contact_frames() {
     let skeleton = Skeleton::smplx();
     let groups = skeleton.groups().clone();
-    // A 1 x 0.4 x 0.6 box turned 45 degrees about Y, as above; a fingertip `d` outside its
-    // x = 0.5 face sits at local x = 0.5 + d.
-    let query = MeshQuery::new(&box_mesh(Vec3::new(0.5, 0.2, 0.3))).unwrap();
-    let rotation = Mat3::from_rotation_y(std::f32::consts::FRAC_PI_4);
-    let position = Vec3::new(1.0, 0.5, -2.0);
+    // A fingertip `d` outside the turned box's x = 0.5 face sits at local x = 0.5 + d.
+    let (query, rotation, position) = turned_box();
     let at = |d: f32| rotation * Vec3::new(0.5 + d, 0.0, 0.0) + position;
     let frames = 3;
     // Left fingertip k at 2k mm outside (k = 0..5), the right ones 4 mm inside; the rest far.
@@ -466,17 +475,8 @@ fn fingertip_distances_on_the_ground_truths_contact_frames() {
         }
         groups.right_fingertips.contains(&j).then(|| at(-0.004))
     });
-    let (object_rotations, object_positions) =
-        poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
-    let sample = MotionSample {
-        skeleton: &skeleton,
-        joints: &joints,
-        object_rotations: &object_rotations,
-        object_positions: &object_positions,
-        present: [true, false],
-        objects: [Some(&query), None],
-        mixture_weights: None,
-    };
+    let slots = poses(frames, [(rotation, position), (Mat3::IDENTITY, Vec3::ZERO)]);
+    let sample = first_slot_sample(&skeleton, &joints, &slots, &query);
     // `[T, slot, hand]`: frame 0 the left hand on slot 0, frame 1 nothing, frame 2 both hands
     // on slot 0; slot 1 (absent) flagged on frame 1 and not measured.
     let contact = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0];
