@@ -52,9 +52,9 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     ));
     let report = std::fs::read_to_string(dir.join("report/report.md")).unwrap();
     assert_eq!(stdout.lines().next(), report.lines().next());
-    // The main table, then "## Objects" and "## Instruction following" tables.
+    // The main table, then "## Objects", "## Grasp" and "## Instruction following" tables.
     let sections: Vec<&str> = report.split("\n## ").collect();
-    assert_eq!(sections.len(), 3, "{report}");
+    assert_eq!(sections.len(), 4, "{report}");
     let rows: Vec<&str> = sections[0].lines().filter(|l| l.starts_with('|')).collect();
     assert_eq!(rows.len(), 4, "header, separator, ground truth, run:\n{report}");
     assert!(rows[0].contains("FID") && rows[0].contains("Foot sliding (mm/frame)"), "{report}");
@@ -73,8 +73,13 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
             && objects[0].contains("Sinking"),
         "{report}"
     );
-    let instruction: Vec<&str> = sections[2].lines().filter(|l| l.starts_with('|')).collect();
-    assert!(sections[2].starts_with("Instruction following"), "{report}");
+    let grasp: Vec<&str> = sections[2].lines().filter(|l| l.starts_with('|')).collect();
+    assert!(sections[2].starts_with("Grasp") && grasp.len() == 4, "{report}");
+    assert!(grasp[0].contains("Fingertip distance") && grasp[0].contains("Fingertip error"));
+    // The ground truth against itself: no fingertip error.
+    assert!(grasp[2].starts_with("| Ground truth |") && grasp[2].ends_with("| 0.0 ± 0.0 |"));
+    let instruction: Vec<&str> = sections[3].lines().filter(|l| l.starts_with('|')).collect();
+    assert!(sections[3].starts_with("Instruction following"), "{report}");
     assert!(instruction[0].contains("Objects moved") && instruction[0].contains("Holding hand"));
     // All clips first, then each task family of the four test sequences.
     assert!(instruction.len() >= 4 && instruction[2].starts_with("| all | 4 |"), "{report}");
@@ -88,6 +93,8 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(json["rows"][1]["fid"]["mean"].as_f64().unwrap() > 0.0);
     assert_eq!(json["instruction"][0]["group"], "all");
     assert_eq!(json["instruction"].as_array().unwrap().len(), instruction.len() - 2);
+    let physical = &json["rows"][1]["physical"];
+    assert!(physical["fingertip_error_mm"]["mean"].as_f64().unwrap() > 0.0, "{physical}");
     let runtime = &json["rows"][1]["runtime_seconds"];
     assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
     let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();
