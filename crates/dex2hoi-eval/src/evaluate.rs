@@ -186,7 +186,8 @@ pub fn evaluate(
     for replication in 0..options.replications {
         let prompts = replication_prompts(&chosen, replication);
         let generated = generator.test_clips(&chosen, &prompts, replication, &mut progress)?;
-        for ((clip, sequence), truth_clip) in generated.iter().zip(&chosen).zip(&truth.clips) {
+        let truths = truth.clips.iter().zip(&truth.physical);
+        for ((clip, sequence), truth_clip) in generated.iter().zip(&chosen).zip(truths) {
             all.runtimes.push(clip.seconds);
             all.model_physical.push(physical::measure_generated(
                 sequence,

@@ -27,7 +27,7 @@
 //! symmetric eigen-solver FID needs in `linalg`; `sample` (the [`MotionSample`] the physical
 //! metrics read), `penetration`, `contact`, `foot_sliding`, `mixture`, `instruction` and `grasp`
 //! on motions;
-//! `statistics` for the intervals over replications and runtime.
+//! `statistics` for the intervals over replications, runtime and quantiles.
 
 mod contact;
 mod distribution;
@@ -51,7 +51,7 @@ pub use distribution::{
     fid_from_statistics, multimodality,
 };
 pub use foot_sliding::{ANKLE_HEIGHT_M, TOE_HEIGHT_M, foot_sliding};
-pub use grasp::{fingertip_distances, quantile};
+pub use grasp::fingertip_distances;
 pub use instruction::{
     Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, SINK_TOLERANCE_M, Side,
     Sinking, UNTOUCHED_DISTANCE_M, instruction_following, median, object_sinking,
@@ -64,4 +64,4 @@ pub use matching::{
 pub use mixture::{mixture_agreement, mixture_agreement_counts, mixture_weights_from_features};
 pub use penetration::{PENETRATION_TOLERANCE_M, Penetration, penetration};
 pub use sample::MotionSample;
-pub use statistics::{CONFIDENCE_Z, mean_interval, runtime};
+pub use statistics::{CONFIDENCE_Z, mean_interval, quantile, runtime};

@@ -83,13 +83,14 @@ fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX
 }
 
 /// Measures one clip against its sequence's ground-truth contact over the same frames, and its
-/// fingertips against the ground truth's (`truth`, the clip itself for the ground truth).
+/// fingertips against the ground truth's (`truth_fingertips_m`, measured by this function for
+/// the ground truth's clip; `None` when the clip is the ground truth).
 fn measure(
     sample: &metrics::MotionSample<'_>,
-    truth: &metrics::MotionSample<'_>,
     sequence: &ProcessedSequence,
     window: Window,
     fps: f32,
+    truth_fingertips_m: Option<&[f32]>,
 ) -> Result<Physical> {
     let per_frame = MAX_OBJECTS * 2;
     let truth_contact = &sequence.hand_contact
@@ -112,11 +113,11 @@ fn measure(
     // starts there).
     let sinking = metrics::object_sinking(sample, object_positions_at(sequence, 0))?;
     let fingertips_m = metrics::fingertip_distances(sample, truth_contact)?;
-    let fingertip_errors_m = fingertips_m
-        .iter()
-        .zip(metrics::fingertip_distances(truth, truth_contact)?)
-        .map(|(generated, truth)| generated - truth)
-        .collect();
+    // The same flags and slots give both clips' distances in the same order.
+    let fingertip_errors_m = match truth_fingertips_m {
+        Some(truth) => fingertips_m.iter().zip(truth).map(|(clip, truth)| clip - truth).collect(),
+        None => vec![0.0; fingertips_m.len()],
+    };
     Ok(Physical {
         penetration,
         contact,
@@ -165,11 +166,12 @@ pub(super) fn measure_ground_truth(
     let objects = &sequence.objects[sequence.layout().object_frames(frames)];
     let weights = metrics::mixture_weights_from_features(objects)?;
     let sample = clip_sample(truth, skeleton, meshes, Some(&weights));
-    measure(&sample, &sample, sequence, window, fps)
+    measure(&sample, sequence, window, fps, None)
 }
 
 /// Measures a generated clip against its test sequence's ground truth over the same frames
-/// (`truth`): contact, and instruction following.
+/// (`truth`: that clip and what [`measure_ground_truth`] measured of it): contact, fingertips,
+/// and instruction following.
 ///
 /// # Shapes
 /// - `mixture_weights`: `[frames, 2, 3]`; `truth`: the window's frames
@@ -177,7 +179,7 @@ pub(super) fn measure_ground_truth(
 pub(super) fn measure_generated(
     sequence: &ProcessedSequence,
     generated: &MotionClip,
-    truth: &MotionClip,
+    truth: (&MotionClip, &Physical),
     mixture_weights: &[f32],
     skeleton: &Skeleton,
     meshes: [Option<&MeshQuery>; MAX_OBJECTS],
@@ -185,11 +187,12 @@ pub(super) fn measure_generated(
     fps: f32,
 ) -> Result<Physical> {
     let sample = clip_sample(generated, skeleton, meshes, Some(mixture_weights));
+    let (truth, truth_measured) = truth;
     let truth_sample = clip_sample(truth, skeleton, meshes, None);
     let instruction = metrics::instruction_following(&sample, &truth_sample)?;
     Ok(Physical {
         instruction: Some(instruction),
-        ..measure(&sample, &truth_sample, sequence, window, fps)?
+        ..measure(&sample, sequence, window, fps, Some(&truth_measured.fingertips_m))?
     })
 }
 

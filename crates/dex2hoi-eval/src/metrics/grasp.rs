@@ -51,16 +51,3 @@ pub fn fingertip_distances(sample: &MotionSample<'_>, truth_contact: &[f32]) -> 
     }
     Ok(distances)
 }
-
-/// The `q`-quantile of some values (`0 <= q <= 1`, linear between the nearest ranks, numpy's
-/// default); `None` for none.
-pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    let mut sorted = values.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    let rank = q.clamp(0.0, 1.0) * (sorted.len() - 1) as f64;
-    let (below, above) = (rank.floor() as usize, rank.ceil() as usize);
-    Some(sorted[below] + (sorted[above] - sorted[below]) * (rank - below as f64))
-}

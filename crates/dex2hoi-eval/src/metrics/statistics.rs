@@ -1,4 +1,5 @@
-//! Summaries over replications and samples: the mean with its 95% interval, and runtime.
+//! Summaries over replications and samples: the mean with its 95% interval, runtime, and
+//! quantiles.
 
 /// The normal quantile of a two-sided 95% interval, as in T2M's `get_metric_statistics`.
 pub const CONFIDENCE_Z: f64 = 1.96;
@@ -27,4 +28,17 @@ pub fn mean_interval(values: &[f64]) -> (f64, f64) {
 /// seconds each sample took (the paper times a 60-frame sample). `(NaN, NaN)` for no values.
 pub fn runtime(seconds: &[f64]) -> (f64, f64) {
     mean_std(seconds)
+}
+
+/// The `q`-quantile of some values (`0 <= q <= 1`, linear between the nearest ranks, numpy's
+/// default); `None` for none.
+pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let rank = q.clamp(0.0, 1.0) * (sorted.len() - 1) as f64;
+    let (below, above) = (rank.floor() as usize, rank.ceil() as usize);
+    Some(sorted[below] + (sorted[above] - sorted[below]) * (rank - below as f64))
 }
