@@ -118,15 +118,9 @@ struct Denoiser {
 ///
 /// # Shapes
 /// - returns `[6J + 3 + 18 objects]`
-fn without_hand_relative_channels(
-    cfg: &ModelConfig,
-    objects: usize,
-    device: &candle_core::Device,
-    dtype: DType,
-) -> Result<Tensor> {
+fn without_hand_relative_channels(cfg: &ModelConfig, objects: usize) -> Vec<f32> {
     let layout = cfg.layout();
-    let width = layout.body_width() + objects * layout.object_width();
-    let mut mask = vec![1.0f32; width];
+    let mut mask = vec![1.0f32; layout.body_width() + objects * layout.object_width()];
     for k in 0..objects {
         // Object `k` of a frame sits `k` object widths after the first one.
         let shift = k * layout.object_width();
@@ -135,7 +129,7 @@ fn without_hand_relative_channels(
             mask[range.start + shift..range.end + shift].fill(0.0);
         }
     }
-    Ok(Tensor::from_vec(mask, width, device)?.to_dtype(dtype)?)
+    mask
 }
 
 /// A stream row's mask (one object) that keeps the channels placing the body and the object in
@@ -144,11 +138,7 @@ fn without_hand_relative_channels(
 ///
 /// # Shapes
 /// - returns `[6J + 3 + 18]`
-fn placement_channels(
-    cfg: &ModelConfig,
-    device: &candle_core::Device,
-    dtype: DType,
-) -> Result<Tensor> {
+fn placement_channels(cfg: &ModelConfig) -> Vec<f32> {
     let layout = cfg.layout();
     let mut mask = vec![0.0f32; layout.stream_width()];
     let placement = [
@@ -160,7 +150,7 @@ fn placement_channels(
     for range in placement {
         mask[range].fill(1.0);
     }
-    Ok(Tensor::from_vec(mask, layout.stream_width(), device)?.to_dtype(dtype)?)
+    mask
 }
 
 /// A stream row's mask (one object) without the hand-relative channels and without the finger
@@ -169,14 +159,9 @@ fn placement_channels(
 ///
 /// # Shapes
 /// - returns `[6J + 3 + 18]`
-fn without_hand_channels(
-    cfg: &ModelConfig,
-    device: &candle_core::Device,
-    dtype: DType,
-) -> Result<Tensor> {
+fn without_hand_channels(cfg: &ModelConfig) -> Result<Vec<f32>> {
     let layout = cfg.layout();
-    let mut mask: Vec<f32> =
-        without_hand_relative_channels(cfg, 1, device, DType::F32)?.to_vec1()?;
+    let mut mask = without_hand_relative_channels(cfg, 1);
     let skeleton = Skeleton::builtin(cfg.skeleton_kind()?);
     let groups = skeleton.groups();
     let wrists = [groups.left_wrist, groups.right_wrist];
@@ -185,7 +170,13 @@ fn without_hand_channels(
             mask[layout.joint_rotation_range(joint)].fill(0.0);
         }
     }
-    Ok(Tensor::from_vec(mask, layout.stream_width(), device)?.to_dtype(dtype)?)
+    Ok(mask)
+}
+
+/// A channel mask as a tensor of the parameters' device and type.
+fn mask_tensor(mask: Vec<f32>, device: &candle_core::Device, dtype: DType) -> Result<Tensor> {
+    let width = mask.len();
+    Ok(Tensor::from_vec(mask, width, device)?.to_dtype(dtype)?)
 }
 
 impl Denoiser {
@@ -208,9 +199,11 @@ impl Denoiser {
             .collect::<Result<_>>()?;
         let channel_mask = match cfg.object_representation {
             ObjectRepresentation::HandRelative => None,
-            ObjectRepresentation::GlobalOnly => {
-                Some(without_hand_relative_channels(cfg, objects, vb.device(), vb.dtype())?)
-            }
+            ObjectRepresentation::GlobalOnly => Some(mask_tensor(
+                without_hand_relative_channels(cfg, objects),
+                vb.device(),
+                vb.dtype(),
+            )?),
         };
         let small_normal = Init::Randn { mean: 0.0, stdev: 0.02 };
         Ok(Self {
@@ -604,16 +597,12 @@ impl Model {
         let residual_mask = match config.prediction {
             Prediction::Absolute | Prediction::PrefixResidual => None,
             // A stream row holds one object.
-            Prediction::PrefixResidualWorld => {
-                Some(without_hand_relative_channels(config, 1, &device, dtype)?)
-            }
-            Prediction::PrefixResidualPlacement => {
-                Some(placement_channels(config, &device, dtype)?)
-            }
-            Prediction::PrefixResidualCleanFingers => {
-                Some(without_hand_channels(config, &device, dtype)?)
-            }
+            Prediction::PrefixResidualWorld => Some(without_hand_relative_channels(config, 1)),
+            Prediction::PrefixResidualPlacement => Some(placement_channels(config)),
+            Prediction::PrefixResidualCleanFingers => Some(without_hand_channels(config)?),
         };
+        let residual_mask =
+            residual_mask.map(|mask| mask_tensor(mask, &device, dtype)).transpose()?;
         Ok(Self { config: config.clone(), layout, residual_mask })
     }
 
