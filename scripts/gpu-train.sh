@@ -13,8 +13,20 @@
 # files of 16 MiB, so each run's snapshots are packed (`model pack --f16`, EMA weights only:
 # what `evaluate --run` and `sample --run` read) and tarred in groups under 16 MiB; KEEP
 # (default: all) keeps only the last KEEP snapshots. Logs and metrics.jsonl go to
-# $OUT/logs.tar.gz. The runs share the GPU and the host's cores. For a dry run elsewhere:
-# GPU_TRAIN_PACK (a folder of gzipped binaries), GPU_TRAIN_DEVICE, GPU_TRAIN_SEQUENCES.
+# $OUT/logs.tar.gz. The runs share the GPU and the host's cores.
+#
+# Continuing a run: GPU_TRAIN_RESUME=DIR (a run folder carried along: checkpoint.safetensors,
+# config.toml, dataset.json, stats.json, metrics.jsonl) starts every run from a copy of it with
+# `train --resume` and the run's own step count (GPU_TRAIN_STEPS sets another). A CONFIG that
+# differs from DIR/config.toml in some settings (a loss weight, the batch size; comments and
+# blank lines aside, the same lines in the same order) has those lines
+# changed in its copy's checkpoint too (scripts/retarget-checkpoint.py): a continuation under
+# another setting, no longer a bit-exact resume. GPU_TRAIN_CHECKPOINTS="NAME ..." sends those
+# runs' checkpoints back in parts under 16 MiB (`cat NAME-checkpoint.part* >
+# checkpoint.safetensors`), so that they can be continued elsewhere.
+#
+# For a dry run elsewhere: GPU_TRAIN_PACK (a folder of gzipped binaries), GPU_TRAIN_DEVICE,
+# GPU_TRAIN_SEQUENCES, GPU_TRAIN_DATA (an existing dataset instead of making one).
 set -uo pipefail
 
 OUT=${OUT:-/tmp/gpu-train}
@@ -43,9 +55,29 @@ print(":".join(sorted({os.path.dirname(f) for base in nvidia.__path__
 export LD_LIBRARY_PATH="$CUDA_LIBS${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
 
-phase "procedural dataset"
-"$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "${GPU_TRAIN_SEQUENCES:-2000}" --seed 0 |
-    tail -1
+DATA=${GPU_TRAIN_DATA:-$WORK/synth}
+if [[ -z ${GPU_TRAIN_DATA:-} ]]; then
+    phase "procedural dataset"
+    "$BIN/dex2hoi" data synth --out "$DATA" --sequences "${GPU_TRAIN_SEQUENCES:-2000}" --seed 0 |
+        tail -1
+fi
+
+# Copies the run folder $GPU_TRAIN_RESUME to $1 and makes its checkpoint's stored configuration
+# agree with the configuration file $2, line by line.
+continue_from() {
+    local from=$GPU_TRAIN_RESUME run=$1 config=$2
+    mkdir -p "$run"
+    cp "$from"/{checkpoint.safetensors,config.toml,dataset.json,stats.json,metrics.jsonl} "$run"/ || return 1
+    settings() { grep -Ev '^[[:space:]]*(#|$)' "$1"; }
+    if (($(settings "$config" | wc -l) != $(settings "$from/config.toml" | wc -l))); then
+        echo "$config: expected the settings of $from/config.toml, some with other values" >&2
+        return 1
+    fi
+    while IFS=$'\t' read -r old new; do
+        [[ $old == "$new" || $old == steps\ =* ]] && continue
+        python3 scripts/retarget-checkpoint.py "$run/checkpoint.safetensors" "$old" "$new" || return 1
+    done < <(paste <(settings "$from/config.toml") <(settings "$config"))
+}
 
 phase "training for $SECONDS_TO_TRAIN s"
 pids=()
@@ -53,8 +85,19 @@ for spec in "$@"; do
     name=${spec%%=*}
     config=${spec#*=}
     config=${config%%:*}
-    "$BIN/dex2hoi" train --config "$config" --data "$WORK/synth" --out "$WORK/$name" \
-        --steps 100000 --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}" >"$WORK/logs/$name.log" 2>&1 &
+    args=(--config "$config" --data "$DATA" --out "$WORK/$name"
+        --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}")
+    if [[ -n ${GPU_TRAIN_RESUME:-} ]]; then
+        continue_from "$WORK/$name" "$config" >"$WORK/logs/$name.log" 2>&1 || {
+            cat "$WORK/logs/$name.log"
+            continue
+        }
+        args+=(--resume)
+        [[ -n ${GPU_TRAIN_STEPS:-} ]] && args+=(--steps "$GPU_TRAIN_STEPS")
+    else
+        args+=(--steps "${GPU_TRAIN_STEPS:-100000}")
+    fi
+    "$BIN/dex2hoi" train "${args[@]}" >>"$WORK/logs/$name.log" 2>&1 &
     pids+=($!)
 done
 sleep "$SECONDS_TO_TRAIN"
@@ -101,6 +144,10 @@ for spec in "$@"; do
         size=$((size + bytes))
     done
     flush
+done
+for name in ${GPU_TRAIN_CHECKPOINTS:-}; do
+    split -b "$LIMIT" -d "$WORK/$name/checkpoint.safetensors" "$OUT/$name-checkpoint.part" ||
+        echo "could not send back the checkpoint of $name"
 done
 tar -czf "$OUT/logs.tar.gz" -C "$WORK" logs
 ls -la "$OUT"

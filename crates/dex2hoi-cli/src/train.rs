@@ -92,6 +92,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         snapshot_every: args.snapshot_every,
         device: &device,
     };
+    let total_steps = config.training.steps;
     let summary = train(&args.out, config, &dataset, &args.data, options, &mut |report, total| {
         bar.set_length(total as u64);
         bar.set_position(report.step as u64);
@@ -104,7 +105,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         bail!(
             "stopped at step {} of {} (checkpoint written to {}); continue with --resume",
             summary.steps,
-            summary.steps.max(summary.last.as_ref().map_or(0, |l| l.step)),
+            total_steps,
             files.checkpoint.display()
         );
     }
