@@ -87,9 +87,11 @@ for spec in "$@"; do
     config=${config%%:*}
     args=(--config "$config" --data "$DATA" --out "$WORK/$name"
         --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}")
+    log=$WORK/logs/$name.log
+    : >"$log"
     if [[ -n ${GPU_TRAIN_RESUME:-} ]]; then
-        continue_from "$WORK/$name" "$config" >"$WORK/logs/$name.log" 2>&1 || {
-            cat "$WORK/logs/$name.log"
+        continue_from "$WORK/$name" "$config" >>"$log" 2>&1 || {
+            cat "$log"
             continue
         }
         args+=(--resume)
@@ -97,7 +99,7 @@ for spec in "$@"; do
     else
         args+=(--steps "${GPU_TRAIN_STEPS:-100000}")
     fi
-    "$BIN/dex2hoi" train "${args[@]}" >>"$WORK/logs/$name.log" 2>&1 &
+    "$BIN/dex2hoi" train "${args[@]}" >>"$log" 2>&1 &
     pids+=($!)
 done
 sleep "$SECONDS_TO_TRAIN"
