@@ -34,6 +34,9 @@ pub struct SampleArgs {
     timeline: Option<PathBuf>,
     /// An object: a catalogue name (mug, bottle, box, ball, bowl, book, can, plate) or an
     /// OBJ/PLY file, optionally `@x,y,z` (metres; +Z ahead, +X left, +Y up). Once or twice.
+    /// Unplaced, it stands on the table in front: one object on the side of the hand the
+    /// (first) prompt names, else in the middle; two objects side by side, the first on the
+    /// left.
     #[arg(long = "object", required = true)]
     objects: Vec<String>,
     /// Frames to generate (at the run's frame rate).

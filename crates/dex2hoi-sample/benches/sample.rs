@@ -10,12 +10,17 @@ mod memory;
 use memory::{peak_memory_mib, reset_peak_memory};
 
 use candle_core::{DType, Device, Tensor};
+use glam::Vec3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use dex2hoi_data::synth::PELVIS_HEIGHT;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::{BodyFusion, InferenceModel, Model, ModelConfig, SeededVarMap, StreamLayout};
-use dex2hoi_sample::{Generation, Normaliser, TimedText, WindowCondition, generate, sample_window};
+use dex2hoi_repr::{Skeleton, SkeletonKind};
+use dex2hoi_sample::{
+    Generation, Normaliser, PrefixEncoding, TimedText, WindowCondition, generate, sample_window,
+};
 
 fn median(runs: usize, mut f: impl FnMut()) -> Duration {
     f();
@@ -66,6 +71,7 @@ fn main() {
     println!("{:<44} {matmul_gflops:>8.1} GFLOP/s", "matmul 1024 x 1024 x 1024 (f32)");
     let schedule = CosineSchedule::new(1000).unwrap();
     let sampler = SamplerConfig::default();
+    let skeleton = Skeleton::builtin(SkeletonKind::Smplx52);
     let mut json = format!("{{\"matmul_gflops\": {matmul_gflops:.3}");
     // `DEX2HOI_BENCH_PRESETS=small` (comma-separated) measures a subset, e.g. for profiling.
     let only = std::env::var("DEX2HOI_BENCH_PRESETS").ok();
@@ -123,6 +129,12 @@ fn main() {
             presence: condition.presence.clone(),
             frames: 300,
             sampler,
+            // As `dex2hoi sample` does with the hand-relative objects of these presets.
+            prefix_encoding: Some(PrefixEncoding {
+                skeleton: &skeleton,
+                root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+                present: [true, true],
+            }),
         };
         let realtime_at = |steps: usize, rng: &mut ChaCha8Rng| {
             let request =

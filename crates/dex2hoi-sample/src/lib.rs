@@ -47,14 +47,15 @@ pub use denoiser::{ModelDenoiser, WindowCondition, sample_window};
 pub use error::{Result, SampleError};
 pub use files::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
 pub use generate::{
-    Conditioning, GeneratedMotion, Generation, Normaliser, TimedText, generate, generate_motion,
+    Conditioning, GeneratedMotion, Generation, Normaliser, PrefixEncoding, TimedText, generate,
+    generate_motion,
 };
 pub use model_file::{PackSummary, PackedPrecision, pack_run};
 pub use request::{SampleRequest, SampledMotion, sample};
 pub use run::{TrainedRun, Weights};
 pub use scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE,
-    SceneObject,
+    SceneObject, default_lone_object_side,
 };
 pub use text::TextModule;
 pub use timeline::{Prompt, parse_timeline};

@@ -16,7 +16,9 @@ use dex2hoi_repr::{BpsBasis, MeshQuery};
 use crate::error::{Result, SampleError};
 use crate::generate::{Conditioning, generate_motion};
 use crate::run::TrainedRun;
-use crate::scene::{DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, SceneObject};
+use crate::scene::{
+    DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, SceneObject, default_lone_object_side,
+};
 use crate::timeline::Prompt;
 
 /// What to generate.
@@ -67,7 +69,8 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
     reject_empty(&texts)?;
     let config = &run.config.model;
     let places: Vec<(f32, f32)> = if request.objects.len() == 1 {
-        vec![(0.0, DEFAULT_OBJECT_DEPTH)]
+        let first_prompt = request.prompts.first().map_or("", |p| p.text.as_str());
+        vec![(default_lone_object_side(first_prompt), DEFAULT_OBJECT_DEPTH)]
     } else {
         vec![
             (DEFAULT_OBJECT_SIDE, DEFAULT_OBJECT_DEPTH),

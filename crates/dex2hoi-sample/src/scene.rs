@@ -6,6 +6,7 @@ use std::path::Path;
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::synth::catalogue::{CATALOGUE, catalogue_object};
+use dex2hoi_data::synth::pose::Hand;
 use dex2hoi_repr::{Mesh, ObjectPose};
 
 use crate::error::{Result, SampleError};
@@ -14,10 +15,35 @@ use crate::error::{Result, SampleError};
 pub const DEFAULT_TABLE_HEIGHT: f32 = 0.90;
 /// Distance of the default object places in front of the character (metres along +Z).
 pub const DEFAULT_OBJECT_DEPTH: f32 = 0.39;
-/// Sideways distance of each object when there are two (metres along X; the left hand is +X).
+/// Sideways distance of a default place from the middle (metres along X; the left hand is
+/// +X): each of two objects, or one object whose prompt names the hand that takes it (the
+/// middle of the procedural dataset's 0.10-0.22 m, `synth::plan`'s `side_x`).
 pub const DEFAULT_OBJECT_SIDE: f32 = 0.16;
 /// The default table's near edge (metres along +Z), for previews.
 pub const DEFAULT_TABLE_NEAR_EDGE: f32 = 0.25;
+
+/// Where a lone object stands by default, sideways (metres along X): on the side of the hand
+/// the prompt names first ("... with the right hand ..."), where the procedural dataset puts
+/// the object of every one-handed task (pick and place, inspect, hand-over), so the model
+/// reaches for it with that hand; in the middle, like the two-handed lift's object, when the
+/// prompt names no single hand ("with both hands", or no hand at all).
+///
+/// The model learns the hand from the layout as much as from the words: with the object in
+/// the middle, the shipped model took the mug of "... with the right hand ..." with the left
+/// hand in four of six seeds, and with the right hand in six of six on the right side.
+pub fn default_lone_object_side(prompt: &str) -> f32 {
+    let words: Vec<String> = prompt
+        .split(|c: char| !c.is_alphanumeric())
+        .filter(|w| !w.is_empty())
+        .map(str::to_lowercase)
+        .collect();
+    let named = words.windows(2).find_map(|pair| match (pair[0].as_str(), pair[1].as_str()) {
+        ("left", "hand") => Some(Hand::Left),
+        ("right", "hand") => Some(Hand::Right),
+        _ => None,
+    });
+    named.map_or(0.0, |hand| hand.side() * DEFAULT_OBJECT_SIDE)
+}
 
 /// An object of the scene: a name, a mesh centred on its bounding box, and where it stands.
 #[derive(Debug, Clone)]
@@ -84,5 +110,33 @@ impl SceneObject {
             Vec3::new(default_place.0, table_height + (high.y - low.y) / 2.0, default_place.1)
         });
         ObjectPose { rotation: Mat3::IDENTITY, position }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_lone_object_stands_on_the_side_of_the_hand_the_prompt_names_first() {
+        let right = -DEFAULT_OBJECT_SIDE;
+        let left = DEFAULT_OBJECT_SIDE;
+        let cases = [
+            (
+                "The person picks up the mug with the right hand and puts it down to the left.",
+                right,
+            ),
+            ("The person picks up the bowl with the LEFT hand, turns it around.", left),
+            // The hand that takes it first; the other one only receives it.
+            ("The person picks up the ball with the left hand, passes it to the right hand", left),
+            ("The person lifts the book with both hands and puts it back down.", 0.0),
+            ("The person picks up the mug.", 0.0),
+            // "left" alone is a direction, not a hand.
+            ("The person moves the mug to the left.", 0.0),
+            ("", 0.0),
+        ];
+        for (prompt, expected) in cases {
+            assert_eq!(default_lone_object_side(prompt), expected, "{prompt}");
+        }
     }
 }

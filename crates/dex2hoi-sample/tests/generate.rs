@@ -1,13 +1,18 @@
 //! Autoregressive generation with a (tiny, random) model: window bookkeeping, the prompt
-//! timeline, seeding and bad requests.
+//! timeline, seeding, bad requests, and the prefix rebuilt from its motion.
 
 use candle_core::{DType, Device, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use glam::{Mat3, Vec3};
+
+use dex2hoi_data::FeatureLayout;
+use dex2hoi_data::synth::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
-use dex2hoi_sample::{Generation, Normaliser, TimedText, generate};
+use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};
+use dex2hoi_sample::{Generation, Normaliser, PrefixEncoding, TimedText, generate};
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
     let n: usize = shape.iter().product();
@@ -63,6 +68,7 @@ fn generation_runs_window_by_window_with_a_timeline() {
             steps: 5,
             guidance: Some(2.0),
         },
+        prefix_encoding: None,
     };
     let run = |request: &Generation<'_>, seed| {
         generate(request, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
@@ -88,6 +94,15 @@ fn generation_runs_window_by_window_with_a_timeline() {
     };
     assert_eq!(slice(&one, 0, 16), slice(&two, 0, 16));
     assert_ne!(slice(&one, 16, 9), slice(&two, 16, 9));
+    // Each later prefix rebuilt from its motion: the first window (made from the initial
+    // prefix) is unchanged, the windows after it see another prefix.
+    let skeleton = Skeleton::builtin(SkeletonKind::Smplx52);
+    let encoding =
+        PrefixEncoding { skeleton: &skeleton, root_start: Vec3::Y, present: [true, true] };
+    let rebuilt = run(&Generation { prefix_encoding: Some(encoding), ..base.clone() }, 3);
+    assert_eq!(rebuilt.dims(), one.dims());
+    assert_eq!(slice(&one, 0, 8), slice(&rebuilt, 0, 8));
+    assert_ne!(slice(&one, 8, 17), slice(&rebuilt, 8, 17));
     // Bad requests.
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     assert!(generate(&Generation { frames: 0, ..base.clone() }, &mut rng).is_err());
@@ -96,4 +111,60 @@ fn generation_runs_window_by_window_with_a_timeline() {
     assert!(generate(&Generation { timeline: late, ..base.clone() }, &mut rng).is_err());
     let short_prefix = base.initial_prefix.narrow(2, 0, 2).unwrap();
     assert!(generate(&Generation { initial_prefix: short_prefix, ..base }, &mut rng).is_err());
+}
+
+/// Frames of the standing start with a mug on the table, `[1, 2, frames, D]`, and the layout.
+fn standing_frames(frames: usize) -> (Vec<f32>, Vec<f32>, FeatureLayout) {
+    let mug =
+        ObjectPose { rotation: Mat3::from_rotation_y(0.3), position: Vec3::new(-0.16, 0.95, 0.39) };
+    let (body, objects) = standing_features([Some(mug), None]).unwrap();
+    let layout = FeatureLayout::new(52);
+    (body.repeat(frames), objects.repeat(frames), layout)
+}
+
+fn as_tensor(layout: FeatureLayout, body: &[f32], objects: &[f32], frames: usize) -> Tensor {
+    let streams = layout.frames_to_streams(body, objects).unwrap();
+    Tensor::from_vec(streams, (1, 2, frames, layout.stream_width()), &Device::Cpu).unwrap()
+}
+
+#[test]
+fn a_rebuilt_prefix_agrees_with_its_motion_in_every_branch() {
+    let skeleton = Skeleton::builtin(SkeletonKind::Smplx52);
+    let encoding = PrefixEncoding {
+        skeleton: &skeleton,
+        root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+        present: [true, false],
+    };
+    let frames = 5;
+    let (body, objects, layout) = standing_frames(frames);
+    // The data's own features already agree: rebuilding them changes nothing that shows.
+    let consistent = as_tensor(layout, &body, &objects, frames);
+    let again = encoding.rebuild(&consistent, layout).unwrap();
+    let difference = (again - &consistent).unwrap().abs().unwrap().max_all().unwrap();
+    assert!(difference.to_scalar::<f32>().unwrap() < 1e-5);
+
+    // The right hand holds the mug (its mixture weight near one) while the global branch has
+    // sunk 4 cm: the rebuilt global position is where the right hand holds it, and the
+    // right-hand offset is kept.
+    let mut drifted = objects.clone();
+    for t in 0..frames {
+        let row = layout.object_row(t, 0);
+        let mut o = HandRelativeObject::from_slice(&drifted[row.clone()]).unwrap();
+        o.mixture_logits = [-7.0, 7.0, -7.0];
+        o.global_position.y -= 0.04;
+        drifted[row].copy_from_slice(&o.to_array());
+    }
+    let rebuilt = encoding.rebuild(&as_tensor(layout, &body, &drifted, frames), layout).unwrap();
+    let streams: Vec<f32> = rebuilt.flatten_all().unwrap().to_vec1().unwrap();
+    let (rebuilt_body, rebuilt_objects) = layout.streams_to_frames(&streams).unwrap();
+    assert_eq!(rebuilt_body, body);
+    for t in 0..frames {
+        let row = layout.object_row(t, 0);
+        let before = HandRelativeObject::from_slice(&objects[row.clone()]).unwrap();
+        let held = HandRelativeObject::from_slice(&drifted[row.clone()]).unwrap();
+        let after = HandRelativeObject::from_slice(&rebuilt_objects[row]).unwrap();
+        assert!((after.global_position - before.global_position).length() < 1e-4, "frame {t}");
+        assert!((after.right_offset - held.right_offset).length() < 1e-5, "frame {t}");
+        assert_eq!(after.mixture_logits, held.mixture_logits);
+    }
 }
