@@ -57,6 +57,13 @@ pub struct LossConfig {
     pub translation: f64,
     /// `lambda_o` of `L_off` (Eq. 10, cm², default 0.01, likewise).
     pub offset: f64,
+    /// Beyond the paper: the weight of the global branch `p^G` against the object's position
+    /// on every frame (cm²), `L_off`'s counterpart for the third branch. Default 0, the
+    /// paper's objective, where `p^G` is supervised only by `L_diff` while a hand holds the
+    /// object (`L_trans` reaches it through a mixture weight near zero then), so it drifts
+    /// and the object drops to the drifted height when the hand lets go
+    /// (`docs/results/shipped-model.md`, "Long generations").
+    pub global: f64,
     /// `lambda_p` of `L_dist` (Eq. 11, default 1).
     pub distance: f64,
     /// Huber threshold `delta` of `L_dist` in cm (default 1).
@@ -66,7 +73,8 @@ pub struct LossConfig {
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
     pub geometric_max_timestep: Option<usize>,
-    /// Table 3 "w/o mixture supervision" when false: no `L_mix`, `L_trans`, `L_off`.
+    /// Table 3 "w/o mixture supervision" when false: no `L_mix`, `L_trans`, `L_off` (nor the
+    /// global branch's term).
     pub mixture_supervision: bool,
     /// Table 3 "w/o `L_dist`" when false.
     pub distance_loss: bool,
@@ -85,6 +93,7 @@ impl Default for LossConfig {
             mixture: 1.0,
             translation: 0.01,
             offset: 0.01,
+            global: 0.0,
             distance: 1.0,
             huber_delta_cm: 1.0,
             approach_radius: 0.10,
@@ -264,6 +273,7 @@ impl TrainConfig {
             ("loss.mixture", l.mixture),
             ("loss.translation", l.translation),
             ("loss.offset", l.offset),
+            ("loss.global", l.global),
             ("loss.distance", l.distance),
         ] {
             if !(w >= 0.0 && w.is_finite()) {

@@ -2,7 +2,9 @@
 //!
 //! `L = w_diff L_diff + L_vel + foot + penetration + lambda_w L_mix + lambda_t L_trans +
 //! lambda_o L_off + lambda_p L_dist` (Eq. 12; the velocity, foot and penetration terms are the
-//! "geometry regularization losses" the paper takes from InterGen, CoDA and HOIDiNi). Every term
+//! "geometry regularization losses" the paper takes from InterGen, CoDA and HOIDiNi), plus,
+//! beyond the paper and off by default, `lambda_g` times the global branch's error (the
+//! `global` term, [`LossConfig::global`]). Every term
 //! is a masked mean over what exists: predicted frames that are real (not padding, not the
 //! prefix), object slots that hold an object, and for the geometric terms, samples whose
 //! diffusion step is at most `geometric_max_timestep`. Lengths are in centimetres.
@@ -58,13 +60,16 @@ pub enum Term {
     Translation,
     /// `L_off` (Eq. 10).
     Offset,
+    /// The global branch against the object's position (beyond the paper, see
+    /// [`LossConfig::global`]).
+    Global,
     /// `L_dist` (Eq. 11).
     Distance,
 }
 
 impl Term {
     /// Every term, in reporting order.
-    pub const ALL: [Term; 9] = [
+    pub const ALL: [Term; 10] = [
         Term::Diffusion,
         Term::FeatureVelocity,
         Term::JointVelocity,
@@ -73,6 +78,7 @@ impl Term {
         Term::Mixture,
         Term::Translation,
         Term::Offset,
+        Term::Global,
         Term::Distance,
     ];
 
@@ -87,6 +93,7 @@ impl Term {
             Term::Mixture => "mixture",
             Term::Translation => "translation",
             Term::Offset => "offset",
+            Term::Global => "global",
             Term::Distance => "distance",
         }
     }
@@ -108,6 +115,7 @@ impl Term {
             Term::Mixture => config.mixture,
             Term::Translation => config.translation,
             Term::Offset => config.offset,
+            Term::Global => config.global,
             Term::Distance => config.distance,
         }
     }
@@ -160,7 +168,7 @@ impl LossContext {
         }
         let hand_relative = self.representation == ObjectRepresentation::HandRelative;
         match term {
-            Term::Mixture | Term::Offset => c.mixture_supervision && hand_relative,
+            Term::Mixture | Term::Offset | Term::Global => c.mixture_supervision && hand_relative,
             Term::Translation => c.mixture_supervision,
             Term::Distance => c.distance_loss,
             _ => true,
@@ -301,6 +309,12 @@ impl LossContext {
                 (part(&objects, RIGHT_OFFSET_RANGE)? - part(&target_objects, RIGHT_OFFSET_RANGE)?)?;
             let cm2 = CENTIMETRES * CENTIMETRES;
             terms.push((Term::Offset, slots.mean(&(left.sqr()? + right.sqr()?)?, 0.5 * cm2)?));
+        }
+        if self.active(Term::Global) {
+            let global = |t: &Tensor| t.narrow(3, GLOBAL_POSITION_RANGE.start, 3);
+            let error = (global(&objects)? - global(&target_objects)?)?;
+            let cm2 = CENTIMETRES * CENTIMETRES;
+            terms.push((Term::Global, slots.mean(&error.sqr()?, cm2)?));
         }
         let needs_position = self.active(Term::Translation)
             || self.active(Term::Penetration)
