@@ -287,6 +287,10 @@ pub fn generate_motion(
     let presence: Vec<f32> = conditioning.present.iter().map(|&p| f32::from(u8::from(p))).collect();
     let schedule = CosineSchedule::new(run.config.diffusion_steps)?;
     let normaliser = run.normaliser()?;
+    let decoding = match config.object_representation {
+        ObjectRepresentation::HandRelative => ObjectDecoding::Mixture,
+        ObjectRepresentation::GlobalOnly => ObjectDecoding::GlobalOnly,
+    };
     let generation = Generation {
         model: &run.inference,
         schedule: &schedule,
@@ -297,22 +301,16 @@ pub fn generate_motion(
         presence: Tensor::from_vec(presence, (1, MAX_OBJECTS), device)?,
         frames,
         sampler,
-        prefix_encoding: match config.object_representation {
-            ObjectRepresentation::HandRelative => Some(PrefixEncoding {
-                skeleton: conditioning.skeleton,
-                root_start: conditioning.root_start,
-                present: conditioning.present,
-            }),
-            ObjectRepresentation::GlobalOnly => None,
-        },
+        // Only the mixture has branches that can disagree.
+        prefix_encoding: (decoding == ObjectDecoding::Mixture).then_some(PrefixEncoding {
+            skeleton: conditioning.skeleton,
+            root_start: conditioning.root_start,
+            present: conditioning.present,
+        }),
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;
     let (body_features, object_features) = config.layout().streams_to_frames(&features)?;
-    let decoding = match config.object_representation {
-        ObjectRepresentation::HandRelative => ObjectDecoding::Mixture,
-        ObjectRepresentation::GlobalOnly => ObjectDecoding::GlobalOnly,
-    };
     let motion = decode_features(
         conditioning.skeleton,
         &body_features,

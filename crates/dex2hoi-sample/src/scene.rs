@@ -7,6 +7,7 @@ use glam::{Mat3, Vec3};
 
 use dex2hoi_data::synth::catalogue::{CATALOGUE, catalogue_object};
 use dex2hoi_data::synth::pose::Hand;
+use dex2hoi_model::text::words;
 use dex2hoi_repr::{Mesh, ObjectPose};
 
 use crate::error::{Result, SampleError};
@@ -32,16 +33,12 @@ pub const DEFAULT_TABLE_NEAR_EDGE: f32 = 0.25;
 /// the middle, the shipped model took the mug of "... with the right hand ..." with the left
 /// hand in four of six seeds, and with the right hand in six of six on the right side.
 pub fn default_lone_object_side(prompt: &str) -> f32 {
-    let words: Vec<String> = prompt
-        .split(|c: char| !c.is_alphanumeric())
-        .filter(|w| !w.is_empty())
-        .map(str::to_lowercase)
-        .collect();
-    let named = words.windows(2).find_map(|pair| match (pair[0].as_str(), pair[1].as_str()) {
-        ("left", "hand") => Some(Hand::Left),
-        ("right", "hand") => Some(Hand::Right),
-        _ => None,
-    });
+    let named =
+        words(prompt).windows(2).find_map(|pair| match (pair[0].as_str(), pair[1].as_str()) {
+            ("left", "hand") => Some(Hand::Left),
+            ("right", "hand") => Some(Hand::Right),
+            _ => None,
+        });
     named.map_or(0.0, |hand| hand.side() * DEFAULT_OBJECT_SIDE)
 }
 
