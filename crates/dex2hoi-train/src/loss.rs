@@ -301,19 +301,18 @@ impl LossContext {
             let wanted = tensor_softmax(&target_objects.narrow(3, MIXTURE_RANGE.start, 3)?)?;
             terms.push((Term::Mixture, slots.mean(&(predicted - wanted)?.sqr()?, 1.0)?));
         }
+        // The predicted branch minus the data's, for `L_off` and the global branch's term.
+        let branch_error = |r: std::ops::Range<usize>| {
+            objects.narrow(3, r.start, r.len())? - target_objects.narrow(3, r.start, r.len())?
+        };
+        let cm2 = CENTIMETRES * CENTIMETRES;
         if self.active(Term::Offset) {
-            let part = |t: &Tensor, r: std::ops::Range<usize>| t.narrow(3, r.start, r.len());
-            let left =
-                (part(&objects, LEFT_OFFSET_RANGE)? - part(&target_objects, LEFT_OFFSET_RANGE)?)?;
-            let right =
-                (part(&objects, RIGHT_OFFSET_RANGE)? - part(&target_objects, RIGHT_OFFSET_RANGE)?)?;
-            let cm2 = CENTIMETRES * CENTIMETRES;
+            let left = branch_error(LEFT_OFFSET_RANGE)?;
+            let right = branch_error(RIGHT_OFFSET_RANGE)?;
             terms.push((Term::Offset, slots.mean(&(left.sqr()? + right.sqr()?)?, 0.5 * cm2)?));
         }
         if self.active(Term::Global) {
-            let global = |t: &Tensor| t.narrow(3, GLOBAL_POSITION_RANGE.start, 3);
-            let error = (global(&objects)? - global(&target_objects)?)?;
-            let cm2 = CENTIMETRES * CENTIMETRES;
+            let error = branch_error(GLOBAL_POSITION_RANGE)?;
             terms.push((Term::Global, slots.mean(&error.sqr()?, cm2)?));
         }
         let needs_position = self.active(Term::Translation)
@@ -326,7 +325,6 @@ impl LossContext {
         if self.active(Term::Translation) {
             let error =
                 (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
-            let cm2 = CENTIMETRES * CENTIMETRES;
             terms.push((Term::Translation, gated_slots.mean(&error.sqr()?, cm2)?));
         }
         if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
