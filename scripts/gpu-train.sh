@@ -25,6 +25,11 @@
 # runs' checkpoints back in parts under 16 MiB (`cat NAME-checkpoint.part* >
 # checkpoint.safetensors`), so that they can be continued elsewhere.
 #
+# GPU_TRAIN_SEED (default 0) is the procedural dataset's seed (the shipped model's last
+# training phase used `--sequences 8000 --seed 1`). GPU_TRAIN_LAST_F32=1 packs each run's last
+# kept snapshot in f32 (the EMA weights exactly, as shipped) and the others in f16. The
+# training ends early when every run has finished its steps.
+#
 # For a dry run elsewhere: GPU_TRAIN_PACK (a folder of gzipped binaries), GPU_TRAIN_DEVICE,
 # GPU_TRAIN_SEQUENCES, GPU_TRAIN_DATA (an existing dataset instead of making one).
 set -uo pipefail
@@ -58,7 +63,8 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>
 DATA=${GPU_TRAIN_DATA:-$WORK/synth}
 if [[ -z ${GPU_TRAIN_DATA:-} ]]; then
     phase "procedural dataset"
-    "$BIN/dex2hoi" data synth --out "$DATA" --sequences "${GPU_TRAIN_SEQUENCES:-2000}" --seed 0 |
+    "$BIN/dex2hoi" data synth --out "$DATA" --sequences "${GPU_TRAIN_SEQUENCES:-2000}" \
+        --seed "${GPU_TRAIN_SEED:-0}" |
         tail -1
 fi
 
@@ -102,7 +108,13 @@ for spec in "$@"; do
     "$BIN/dex2hoi" train "${args[@]}" >>"$log" 2>&1 &
     pids+=($!)
 done
-sleep "$SECONDS_TO_TRAIN"
+# Until the time is up or every run has finished.
+for ((waited = 0; waited < SECONDS_TO_TRAIN; waited += 5)); do
+    running=0
+    for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && running=1; done
+    ((running)) || break
+    sleep 5
+done
 for pid in "${pids[@]}"; do kill -INT "$pid" 2>/dev/null; done
 wait
 nvidia-smi --query-gpu=memory.used --format=csv,noheader 2>/dev/null
@@ -117,8 +129,11 @@ for spec in "$@"; do
     snapshots=$(ls -d "$WORK/$name"/snapshots/step-* 2>/dev/null | sort)
     [[ $keep != all ]] && snapshots=$(echo "$snapshots" | tail -n "$keep")
     mkdir -p "$WORK/packed/$name"
+    last=$(echo "$snapshots" | tail -n 1)
     for snapshot in $snapshots; do
-        "$BIN/dex2hoi" model pack --run "$snapshot" --f16 \
+        precision=--f16
+        [[ ${GPU_TRAIN_LAST_F32:-} == 1 && $snapshot == "$last" ]] && precision=
+        "$BIN/dex2hoi" model pack --run "$snapshot" $precision \
             --out "$WORK/packed/$name/$name-$(basename "$snapshot").safetensors" >/dev/null ||
             echo "could not pack $snapshot"
     done
