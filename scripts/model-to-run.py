@@ -67,7 +67,6 @@ checkpoint_metadata = {
 }
 checkpoint_metadata['dex2hoi.step'] = '0'
 checkpoint_metadata['dex2hoi.optimizer_updates'] = '0'
-checkpoint_metadata['dex2hoi.initialised_from'] = f'{os.path.basename(model)} (EMA weights, step {metadata.get("dex2hoi.step")})'
 tensors['__metadata__'] = checkpoint_metadata
 raw = json.dumps(tensors, separators=(',', ':')).encode()
 raw += b' ' * ((8 - len(raw) % 8) % 8)
