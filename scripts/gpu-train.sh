@@ -25,6 +25,10 @@
 # runs' checkpoints back in parts under 16 MiB (`cat NAME-checkpoint.part* >
 # checkpoint.safetensors`), so that they can be continued elsewhere.
 #
+# Fine-tuning a trained model: GPU_TRAIN_INIT_FROM=MODEL (a packed model carried along, such as
+# the shipped one) starts every run from its EMA weights (`train --init-from`) under its CONFIG,
+# with GPU_TRAIN_STEPS steps (default 100000).
+#
 # GPU_TRAIN_SEED (default 0) is the procedural dataset's seed (the shipped model's last
 # training phase used `--sequences 8000 --seed 1`). GPU_TRAIN_LAST_F32=1 packs each run's last
 # kept snapshot in f32 (the EMA weights exactly, as shipped) and the others in f16. The
@@ -95,6 +99,11 @@ for spec in "$@"; do
         --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}")
     log=$WORK/logs/$name.log
     : >"$log"
+    if [[ -n ${GPU_TRAIN_RESUME:-} && -n ${GPU_TRAIN_INIT_FROM:-} ]]; then
+        echo "GPU_TRAIN_RESUME and GPU_TRAIN_INIT_FROM: one or the other" >&2
+        exit 2
+    fi
+    [[ -n ${GPU_TRAIN_INIT_FROM:-} ]] && args+=(--init-from "$GPU_TRAIN_INIT_FROM")
     if [[ -n ${GPU_TRAIN_RESUME:-} ]]; then
         continue_from "$WORK/$name" "$config" >>"$log" 2>&1 || {
             cat "$log"

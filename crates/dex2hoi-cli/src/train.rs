@@ -9,7 +9,7 @@ use clap::Args;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_sample::RunFiles;
-use dex2hoi_train::{TrainConfig, TrainOptions, train};
+use dex2hoi_train::{RunStart, TrainConfig, TrainOptions, train};
 
 use crate::device::DeviceArgs;
 
@@ -17,7 +17,7 @@ use crate::device::DeviceArgs;
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Training configuration (TOML; presets in `configs/`). With `--resume` the run's own
-    /// `config.toml` is used when this is left out.
+    /// `config.toml` is used when this is left out, with `--init-from` the model's.
     #[arg(long)]
     config: Option<PathBuf>,
     /// The dataset directory (`dex2hoi data synth` or `dex2hoi data prepare`).
@@ -30,8 +30,14 @@ pub struct TrainArgs {
     #[arg(long)]
     steps: Option<usize>,
     /// Continue the run in `--out` from its checkpoint, bit for bit.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "init_from")]
     resume: bool,
+    /// Start a new run from the EMA weights of a trained model (a packed model such as the
+    /// shipped one, or a run's `checkpoint.safetensors`) instead of the seed: fine-tuning. The
+    /// optimiser and step count start afresh; the model's network, text encoder and vocabulary
+    /// must be those of the configuration and dataset.
+    #[arg(long, value_name = "MODEL")]
+    init_from: Option<PathBuf>,
     /// Keep a snapshot every N steps in `--out/snapshots/step-NNNNNN/` (each a run directory
     /// that `sample` and `evaluate` take as `--run`), for metrics against training steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(usize))]
@@ -43,11 +49,13 @@ pub struct TrainArgs {
 /// Runs `dex2hoi train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let device = args.device.open()?;
-    let mut config = match (&args.config, args.resume) {
-        (Some(path), _) => TrainConfig::load(path)?,
-        (None, true) => TrainConfig::load(&RunFiles::new(&args.out).config)
+    let mut config = match (&args.config, args.resume, &args.init_from) {
+        (Some(path), _, _) => TrainConfig::load(path)?,
+        (None, true, _) => TrainConfig::load(&RunFiles::new(&args.out).config)
             .context("reading the configuration of the run to resume")?,
-        (None, false) => bail!("--config FILE is required (presets are in configs/)"),
+        (None, false, Some(model)) => TrainConfig::from_model_file(model)
+            .context("reading the training configuration stored in the model to start from")?,
+        (None, false, None) => bail!("--config FILE is required (presets are in configs/)"),
     };
     if let Some(steps) = args.steps {
         if steps == 0 {
@@ -86,12 +94,16 @@ pub fn run(args: TrainArgs) -> Result<()> {
         args.device.device,
         args.out.display()
     );
-    let options = TrainOptions {
-        resume: args.resume,
-        stop: &stop,
-        snapshot_every: args.snapshot_every,
-        device: &device,
+    if let Some(model) = &args.init_from {
+        println!("starting from the EMA weights of {}", model.display());
+    }
+    let start = match (&args.init_from, args.resume) {
+        (Some(model), _) => RunStart::InitialisedFrom(model),
+        (None, true) => RunStart::Resume,
+        (None, false) => RunStart::Fresh,
     };
+    let options =
+        TrainOptions { start, stop: &stop, snapshot_every: args.snapshot_every, device: &device };
     let total_steps = config.training.steps;
     let summary = train(&args.out, config, &dataset, &args.data, options, &mut |report, total| {
         bar.set_length(total as u64);
@@ -109,7 +121,15 @@ pub fn run(args: TrainArgs) -> Result<()> {
             files.checkpoint.display()
         );
     }
-    println!("trained {} steps", summary.steps);
+    if summary.steps_before > 0 {
+        println!(
+            "trained {} steps ({} in all with those of the model it started from)",
+            summary.steps,
+            summary.steps + summary.steps_before
+        );
+    } else {
+        println!("trained {} steps", summary.steps);
+    }
     if let Some(last) = &summary.last {
         let terms: Vec<String> =
             last.terms.iter().map(|(t, v)| format!("{} {v:.4}", t.name())).collect();

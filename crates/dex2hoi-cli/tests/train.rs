@@ -133,3 +133,110 @@ fn train_then_resume() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("broken.toml"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn fine_tune_a_packed_model() {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-init-from-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let path = |name: &str| dir.join(name).display().to_string();
+    let made =
+        dex2hoi(&["data", "synth", "--out", &path("data"), "--sequences", "8", "--seed", "2"]);
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let trained = dex2hoi(&[
+        "train",
+        "--config",
+        &config(),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("base"),
+        "--steps",
+        "5",
+    ]);
+    assert!(trained.status.success(), "{}", String::from_utf8_lossy(&trained.stderr));
+    let packed = dex2hoi(&["model", "pack", "--run", &path("base"), "--out", &path("base.st")]);
+    assert!(packed.status.success(), "{}", String::from_utf8_lossy(&packed.stderr));
+
+    // No --config: the model's own training configuration; its steps count on.
+    let tuned = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("tuned"),
+        "--steps",
+        "3",
+    ]);
+    let stdout = String::from_utf8_lossy(&tuned.stdout);
+    assert!(tuned.status.success(), "{}", String::from_utf8_lossy(&tuned.stderr));
+    assert!(stdout.contains("starting from the EMA weights of"), "{stdout}");
+    assert!(stdout.contains("trained 3 steps (8 in all"), "{stdout}");
+    let info = dex2hoi(&["model", "info", "--run", &path("tuned")]);
+    assert!(String::from_utf8_lossy(&info.stdout).contains("trained for 8 steps"));
+    let repacked = dex2hoi(&["model", "pack", "--run", &path("tuned"), "--out", &path("t.st")]);
+    assert!(String::from_utf8_lossy(&repacked.stdout).contains("(8 steps"));
+    let resumed = dex2hoi(&[
+        "train",
+        "--data",
+        &path("data"),
+        "--out",
+        &path("tuned"),
+        "--resume",
+        "--steps",
+        "4",
+    ]);
+    assert!(String::from_utf8_lossy(&resumed.stdout).contains("trained 4 steps (9 in all"));
+
+    // Bad input: with --resume, into a run that exists, a model of another network, no model.
+    let both = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--resume",
+        "--data",
+        &path("data"),
+        "--out",
+        &path("tuned"),
+    ]);
+    assert!(String::from_utf8_lossy(&both.stderr).contains("cannot be used with"));
+    let exists = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("tuned"),
+    ]);
+    assert!(String::from_utf8_lossy(&exists.stderr).contains("--resume"));
+    let bigger = dir.join("bigger.toml");
+    let text = std::fs::read_to_string(config()).unwrap();
+    std::fs::write(&bigger, text.replace("latent = 32", "latent = 48")).unwrap();
+    assert_ne!(std::fs::read_to_string(&bigger).unwrap(), text, "tiny.toml has latent = 32");
+    let other = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--config",
+        bigger.to_str().unwrap(),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("other"),
+    ]);
+    let stderr = String::from_utf8_lossy(&other.stderr);
+    assert!(stderr.contains("base.st") && stderr.contains("[model]"), "{stderr}");
+    let missing = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("none.st"),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("x"),
+    ]);
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("none.st"));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -19,10 +19,21 @@ use crate::error::{Result, SampleError};
 
 /// Checkpoint metadata key of the training configuration (TOML).
 pub const TRAIN_CONFIG_KEY: &str = "dex2hoi.train_config";
-/// Checkpoint metadata key of the step count.
+/// Checkpoint metadata key of the step count: the run's own steps in a checkpoint, every
+/// training step of the weights in a packed model.
 pub const STEP_KEY: &str = "dex2hoi.step";
+/// Checkpoint metadata key of the steps the initial weights of a run started from a packed model
+/// (`dex2hoi train --init-from`) had been trained; absent for a run started from the seed.
+pub const STEPS_BEFORE_KEY: &str = "dex2hoi.steps_before";
 /// Checkpoint metadata key of the built-in encoder's vocabulary (JSON list of words).
 pub const VOCABULARY_KEY: &str = "dex2hoi.vocabulary";
+
+/// The training steps behind a checkpoint's or packed model's weights: its step count plus the
+/// steps of the model its run started from, if any (0 where the metadata says nothing).
+pub fn trained_steps(metadata: &std::collections::BTreeMap<String, String>) -> usize {
+    let number = |key: &str| metadata.get(key).and_then(|s| s.parse::<usize>().ok()).unwrap_or(0);
+    number(STEP_KEY) + number(STEPS_BEFORE_KEY)
+}
 
 /// The files of a run directory.
 #[derive(Debug, Clone)]

@@ -45,7 +45,9 @@ pub mod timeline;
 pub use config::{RunConfig, TextConfig, default_diffusion_steps};
 pub use denoiser::{ModelDenoiser, WindowCondition, sample_window};
 pub use error::{Result, SampleError};
-pub use files::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY};
+pub use files::{
+    RunFiles, STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY, trained_steps,
+};
 pub use generate::{
     Conditioning, GeneratedMotion, Generation, Normaliser, PrefixEncoding, TimedText, generate,
     generate_motion,

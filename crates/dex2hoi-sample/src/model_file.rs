@@ -20,6 +20,7 @@ use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
 use crate::files::{
     RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY, parse_manifest, parse_stats, stats_json,
+    trained_steps,
 };
 
 /// Metadata key that marks a packed model, with its format as the value.
@@ -58,7 +59,7 @@ impl PackedPrecision {
 pub struct PackSummary {
     /// Numbers in the kept weights.
     pub parameters: usize,
-    /// Training steps of the run.
+    /// Training steps of the weights: the run's, plus those of the model it started from.
     pub step: usize,
     /// Size of the file.
     pub bytes: u64,
@@ -103,7 +104,7 @@ pub fn pack_run(run: &Path, out: &Path, precision: PackedPrecision) -> Result<Pa
             "none",
         ));
     }
-    let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let step = trained_steps(&metadata);
     let mut packed = BTreeMap::from([
         (MODEL_FORMAT_KEY.to_string(), MODEL_FORMAT.to_string()),
         (TRAIN_CONFIG_KEY.to_string(), config_text),

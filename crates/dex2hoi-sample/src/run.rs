@@ -14,7 +14,7 @@ use dex2hoi_repr::Skeleton;
 
 use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
-use crate::files::{RunFiles, STEP_KEY, VOCABULARY_KEY};
+use crate::files::{RunFiles, VOCABULARY_KEY, trained_steps};
 use crate::generate::Normaliser;
 use crate::model_file;
 use crate::text::TextModule;
@@ -56,7 +56,7 @@ pub struct TrainedRun {
     pub model_vars: SeededVarMap,
     /// The text encoder (trained built-in one, or frozen).
     pub text: Box<dyn TextEncoder>,
-    /// Steps the checkpoint was trained for.
+    /// Training steps of the weights (with those of the model the run started from, if any).
     pub step: usize,
     /// The device the model lives on.
     pub device: Device,
@@ -163,7 +163,7 @@ impl TrainedRun {
         if let TextModule::Builtin { vars, .. } = &text {
             assign_parameters(vars, &tensors, &format!("{prefix}text_encoder."), &origin)?;
         }
-        let step = metadata.get(STEP_KEY).and_then(|s| s.parse().ok()).unwrap_or(0);
+        let step = trained_steps(&metadata);
         let skeleton = manifest.builtin_skeleton()?;
         let inference = InferenceModel::new(&model)?;
         Ok(Self {

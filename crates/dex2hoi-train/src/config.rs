@@ -179,6 +179,22 @@ impl TrainConfig {
         Self::from_toml(&text, &path.display().to_string())
     }
 
+    /// The training configuration stored in a packed model or a checkpoint (the configuration
+    /// it was trained with).
+    pub fn from_model_file(path: &Path) -> Result<Self> {
+        let (_, metadata) =
+            dex2hoi_model::checkpoint::read_tensors(path, &candle_core::Device::Cpu)?;
+        let text = metadata.get(dex2hoi_sample::TRAIN_CONFIG_KEY).ok_or_else(|| {
+            TrainError::checkpoint(
+                path,
+                dex2hoi_sample::TRAIN_CONFIG_KEY,
+                "a packed model or a checkpoint (with its training configuration)",
+                "nothing",
+            )
+        })?;
+        Self::from_toml(text, &path.display().to_string())
+    }
+
     /// A preset of `configs/` by name.
     pub fn preset(name: &str) -> Result<Self> {
         let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {

@@ -17,5 +17,6 @@ pub use error::{Result, TrainError};
 pub use loss::{LossContext, Objective, Term};
 pub use run::{MetricsLine, read_metrics};
 pub use trainer::{
-    SNAPSHOTS_DIR, StepReport, StepTiming, TrainOptions, TrainSummary, Trainer, snapshot_dir, train,
+    RunStart, SNAPSHOTS_DIR, StepReport, StepTiming, TrainOptions, TrainSummary, Trainer,
+    snapshot_dir, train,
 };

@@ -23,7 +23,10 @@ use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT, FORMAT_KEY, read_tensors, wr
 use dex2hoi_model::text::{UNKNOWN, Vocabulary};
 use dex2hoi_model::{Model, ModelInput, SeededVarMap};
 use dex2hoi_optim::{AdamW, Ema, Parameter, learning_rate, parameters_of, step_rng};
-use dex2hoi_sample::{RunFiles, STEP_KEY, TRAIN_CONFIG_KEY, TextModule, VOCABULARY_KEY};
+use dex2hoi_sample::{
+    RunFiles, STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, TextModule, VOCABULARY_KEY,
+    trained_steps,
+};
 
 use crate::batch::{BatchOptions, TrainingSet};
 use crate::config::TrainConfig;
@@ -91,6 +94,8 @@ pub struct Trainer {
     ema: Ema,
     loss: LossContext,
     step: usize,
+    /// Training steps of the model the run started from ([`Trainer::initialise_from`]).
+    steps_before: usize,
     device: Device,
 }
 
@@ -148,6 +153,7 @@ impl Trainer {
             ema,
             loss,
             step: 0,
+            steps_before: 0,
             device,
         })
     }
@@ -170,6 +176,11 @@ impl Trainer {
     /// Steps done.
     pub fn steps_done(&self) -> usize {
         self.step
+    }
+
+    /// Training steps of the model the run started from (0 for a run from the seed).
+    pub fn steps_before(&self) -> usize {
+        self.steps_before
     }
 
     /// The configuration.
@@ -345,6 +356,9 @@ impl Trainer {
                 format!("chacha8 seeded by {} with the step as stream", self.config.training.seed),
             ),
         ]);
+        if self.steps_before > 0 {
+            metadata.insert(STEPS_BEFORE_KEY.to_string(), self.steps_before.to_string());
+        }
         if let TextModule::Builtin { encoder, .. } = &self.text {
             metadata.insert(
                 VOCABULARY_KEY.to_string(),
@@ -373,22 +387,7 @@ impl Trainer {
                 "a different one",
             ));
         }
-        if let TextModule::Builtin { encoder, .. } = &self.text {
-            let words: Vec<String> = metadata
-                .get(VOCABULARY_KEY)
-                .map(|w| serde_json::from_str(w))
-                .transpose()
-                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
-                .unwrap_or_default();
-            if words != encoder.vocabulary().words() {
-                return Err(TrainError::checkpoint(
-                    path,
-                    VOCABULARY_KEY,
-                    "the vocabulary of this dataset",
-                    "another vocabulary",
-                ));
-            }
-        }
+        self.check_vocabulary(&metadata, path)?;
         let read = |name: &str, p: &Parameter| -> Result<&Tensor> {
             let t = tensors
                 .get(name)
@@ -423,15 +422,115 @@ impl Trainer {
         };
         self.step = number(STEP_KEY)?;
         self.optimizer.updates = number("dex2hoi.optimizer_updates")?;
+        self.steps_before =
+            if metadata.contains_key(STEPS_BEFORE_KEY) { number(STEPS_BEFORE_KEY)? } else { 0 };
         Ok(())
     }
+
+    /// Starts this fresh trainer from the EMA weights of a trained model: a packed model
+    /// (`dex2hoi model pack`) or a run's checkpoint. The weights become both the parameters and
+    /// their EMA; AdamW starts afresh (zero moments, its warm-up included) and the step count at
+    /// 0, so the learning-rate schedule and the batches are this run's own, while the steps the
+    /// weights had behind them are kept ([`STEPS_BEFORE_KEY`]) and counted in a packed model.
+    /// The model must have this configuration's network and text encoder and the dataset's
+    /// vocabulary; the training settings (losses, optimiser, batch) are this run's. The
+    /// normalisation statistics are the dataset's, as for every run: fine-tuning on the model's
+    /// own dataset keeps them as they were.
+    pub fn initialise_from(&mut self, path: &Path) -> Result<()> {
+        if self.step > 0 {
+            return Err(TrainError::checkpoint(
+                path,
+                "initial weights",
+                "a trainer that has not stepped",
+                format!("{} steps done", self.step),
+            ));
+        }
+        let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
+        let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
+            TrainError::checkpoint(
+                path,
+                TRAIN_CONFIG_KEY,
+                "a packed model or a checkpoint (with its training configuration)",
+                "nothing",
+            )
+        })?;
+        let stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
+        if stored.model != self.config.model {
+            return Err(TrainError::checkpoint(
+                path,
+                "[model]",
+                "the [model] settings of this run's configuration",
+                "other ones",
+            ));
+        }
+        if stored.text != self.config.text {
+            return Err(TrainError::checkpoint(
+                path,
+                "[text]",
+                "the [text] settings of this run's configuration",
+                "other ones",
+            ));
+        }
+        self.check_vocabulary(&metadata, path)?;
+        for (k, p) in self.parameters.iter().enumerate() {
+            let name = format!("ema.{}", p.name);
+            let t = tensors
+                .get(&name)
+                .ok_or_else(|| TrainError::checkpoint(path, &name, "a tensor", "nothing"))?;
+            if t.dims() != p.var.dims() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    &name,
+                    format!("shape {:?}", p.var.dims()),
+                    format!("{:?}", t.dims()),
+                ));
+            }
+            p.var.set(&t.to_dtype(p.var.dtype())?.to_device(p.var.device())?)?;
+            self.ema.set_value(k, p, t)?;
+        }
+        self.steps_before = trained_steps(&metadata);
+        Ok(())
+    }
+
+    /// Checks that the built-in encoder's vocabulary in a file's metadata is this dataset's.
+    fn check_vocabulary(&self, metadata: &BTreeMap<String, String>, path: &Path) -> Result<()> {
+        if let TextModule::Builtin { encoder, .. } = &self.text {
+            let words: Vec<String> = metadata
+                .get(VOCABULARY_KEY)
+                .map(|w| serde_json::from_str(w))
+                .transpose()
+                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
+                .unwrap_or_default();
+            if words != encoder.vocabulary().words() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    VOCABULARY_KEY,
+                    "the vocabulary of this dataset",
+                    "another vocabulary",
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where a run's weights start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RunStart<'a> {
+    /// A new run, its parameters from the configuration's seed.
+    Fresh,
+    /// Continue the run in the output directory from its checkpoint, bit for bit.
+    Resume,
+    /// A new run from the EMA weights of this packed model or checkpoint
+    /// ([`Trainer::initialise_from`]).
+    InitialisedFrom(&'a Path),
 }
 
 /// How [`train`] runs.
 #[derive(Debug, Clone, Copy)]
 pub struct TrainOptions<'a> {
-    /// Continue the run in the output directory from its checkpoint.
-    pub resume: bool,
+    /// Where the weights start.
+    pub start: RunStart<'a>,
     /// Set (for example by Ctrl-C) to stop after the current step with a checkpoint.
     pub stop: &'a AtomicBool,
     /// Keep a numbered snapshot every this many steps ([`SNAPSHOTS_DIR`]); a run-time choice,
@@ -480,6 +579,8 @@ fn write_snapshot(files: &RunFiles, run_dir: &Path, step: usize) -> Result<()> {
 pub struct TrainSummary {
     /// Steps done in all.
     pub steps: usize,
+    /// Training steps of the model the run started from (0 for a run from the seed).
+    pub steps_before: usize,
     /// Whether it stopped early on request.
     pub interrupted: bool,
     /// The last step's report, if a step ran.
@@ -491,9 +592,10 @@ pub struct TrainSummary {
 /// Trains into a run directory: writes the resolved `config.toml`, the dataset manifest and
 /// statistics, then steps, logging to `metrics.jsonl`, checkpointing every
 /// `checkpoint_every` steps, on a stop request and at the end (each time with the loss-curve
-/// PNG), and with `snapshot_every`, keeping a numbered snapshot of those steps. A fresh run
-/// refuses a directory that already holds a checkpoint; `resume` continues one and refuses a
-/// different configuration (apart from `training.steps`).
+/// PNG), and with `snapshot_every`, keeping a numbered snapshot of those steps. A new run
+/// (fresh or initialised from a model) refuses a directory that already holds a checkpoint;
+/// [`RunStart::Resume`] continues one and refuses a different configuration (apart from
+/// `training.steps`).
 pub fn train(
     run_dir: &Path,
     config: TrainConfig,
@@ -514,7 +616,8 @@ pub fn train(
     std::fs::create_dir_all(run_dir)
         .map_err(TrainError::io(run_dir, "creating the run directory"))?;
     let exists = files.checkpoint.exists();
-    if exists && !options.resume {
+    let resume = options.start == RunStart::Resume;
+    if exists && !resume {
         return Err(TrainError::checkpoint(
             &files.checkpoint,
             "run directory",
@@ -522,7 +625,7 @@ pub fn train(
             "an existing checkpoint",
         ));
     }
-    if options.resume && !exists {
+    if resume && !exists {
         return Err(TrainError::checkpoint(
             &files.checkpoint,
             "resume",
@@ -532,12 +635,19 @@ pub fn train(
     }
     let mut trainer = Trainer::new(config, dataset, dataset_path, options.device)?;
     let mut last_checkpoint = 0;
-    if options.resume {
-        trainer.restore(&files.checkpoint)?;
-        last_checkpoint = trainer.steps_done();
-        truncate_metrics(&files, last_checkpoint)?;
-    } else {
-        let _ = std::fs::remove_file(&files.metrics);
+    match options.start {
+        RunStart::Resume => {
+            trainer.restore(&files.checkpoint)?;
+            last_checkpoint = trainer.steps_done();
+            truncate_metrics(&files, last_checkpoint)?;
+        }
+        RunStart::Fresh => {
+            let _ = std::fs::remove_file(&files.metrics);
+        }
+        RunStart::InitialisedFrom(model) => {
+            trainer.initialise_from(model)?;
+            let _ = std::fs::remove_file(&files.metrics);
+        }
     }
     write_static(&files, trainer.config(), dataset)?;
     let total = trainer.config().training.steps;
@@ -574,7 +684,13 @@ pub fn train(
     if options.snapshot_every.is_some_and(|n| steps % n == 0) && steps == total {
         write_snapshot(&files, run_dir, steps)?;
     }
-    Ok(TrainSummary { steps, interrupted, last, run_dir: run_dir.to_path_buf() })
+    Ok(TrainSummary {
+        steps,
+        steps_before: trainer.steps_before(),
+        interrupted,
+        last,
+        run_dir: run_dir.to_path_buf(),
+    })
 }
 
 /// Appends a line to a file (creating it).

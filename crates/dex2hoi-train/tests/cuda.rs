@@ -19,7 +19,7 @@ use dex2hoi_model::{
     SeededVarMap, StreamLayout,
 };
 use dex2hoi_sample::{Prompt, SampleRequest, SceneObject, TrainedRun, Weights, sample};
-use dex2hoi_train::{TrainConfig, TrainOptions, Trainer, train};
+use dex2hoi_train::{RunStart, TrainConfig, TrainOptions, Trainer, train};
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -172,7 +172,8 @@ fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
     let _ = std::fs::remove_dir_all(&dir);
     let gpu = gpu();
     let never = AtomicBool::new(false);
-    let options = TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &gpu };
+    let options =
+        TrainOptions { start: RunStart::Fresh, stop: &never, snapshot_every: None, device: &gpu };
     train(&dir, config, &data, Path::new("procedural"), options, &mut |_, _| {}).unwrap();
     let request = SampleRequest {
         prompts: vec![Prompt {

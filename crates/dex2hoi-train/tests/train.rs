@@ -9,7 +9,7 @@ use candle_core::Device;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_model::checkpoint::read_tensors;
-use dex2hoi_train::{Term, TrainConfig, TrainError, TrainOptions, Trainer, train};
+use dex2hoi_train::{RunStart, Term, TrainConfig, TrainError, TrainOptions, Trainer, train};
 
 fn dataset(sequences: usize) -> Dataset {
     dex2hoi_data::synth::build_dataset(sequences, 11, 20.0, &|_| {}).expect("a procedural dataset")
@@ -123,8 +123,12 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
     let stopped = dir.join("stopped");
     let config_model = config.model.clone();
     let never = AtomicBool::new(false);
-    let fresh =
-        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu };
+    let fresh = TrainOptions {
+        start: RunStart::Fresh,
+        stop: &never,
+        snapshot_every: None,
+        device: &Device::Cpu,
+    };
     train(&straight, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
 
     let stop = AtomicBool::new(false);
@@ -133,7 +137,12 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &stop, snapshot_every: Some(8), device: &Device::Cpu },
+        TrainOptions {
+            start: RunStart::Fresh,
+            stop: &stop,
+            snapshot_every: Some(8),
+            device: &Device::Cpu,
+        },
         &mut |report, _| {
             if report.step == 13 {
                 stop.store(true, Ordering::SeqCst);
@@ -148,7 +157,12 @@ fn interrupted_and_resumed_run_ends_with_the_same_weights() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: Some(8), device: &Device::Cpu },
+        TrainOptions {
+            start: RunStart::Resume,
+            stop: &never,
+            snapshot_every: Some(8),
+            device: &Device::Cpu,
+        },
         &mut |_, _| {},
     )
     .unwrap();
@@ -212,7 +226,12 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config.clone(),
         &data,
         Path::new("d"),
-        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu },
+        TrainOptions {
+            start: RunStart::Fresh,
+            stop: &never,
+            snapshot_every: None,
+            device: &Device::Cpu,
+        },
         &mut |_, _| {},
     )
     .unwrap();
@@ -229,7 +248,12 @@ fn a_nan_stops_the_run_and_keeps_the_last_checkpoint() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: None, device: &Device::Cpu },
+        TrainOptions {
+            start: RunStart::Resume,
+            stop: &never,
+            snapshot_every: None,
+            device: &Device::Cpu,
+        },
         &mut |_, _| {},
     )
     .unwrap_err();
@@ -285,8 +309,12 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.training.steps = 2;
     let never = AtomicBool::new(false);
-    let fresh =
-        TrainOptions { resume: false, stop: &never, snapshot_every: None, device: &Device::Cpu };
+    let fresh = TrainOptions {
+        start: RunStart::Fresh,
+        stop: &never,
+        snapshot_every: None,
+        device: &Device::Cpu,
+    };
     train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {}).unwrap();
     let error = train(&dir, config.clone(), &data, Path::new("d"), fresh, &mut |_, _| {})
         .unwrap_err()
@@ -299,12 +327,112 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
         config,
         &data,
         Path::new("d"),
-        TrainOptions { resume: true, stop: &never, snapshot_every: None, device: &Device::Cpu },
+        TrainOptions {
+            start: RunStart::Resume,
+            stop: &never,
+            snapshot_every: None,
+            device: &Device::Cpu,
+        },
         &mut |_, _| {},
     )
     .unwrap_err()
     .to_string();
     assert!(error.contains("checkpoint.safetensors"), "{error}");
+}
+
+#[test]
+fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
+    let data = dataset(8);
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.steps = 6;
+    let dir = tempfile_dir("init-from");
+    let never = AtomicBool::new(false);
+    let options =
+        |start| TrainOptions { start, stop: &never, snapshot_every: None, device: &Device::Cpu };
+    let base = dir.join("base");
+    train(&base, config.clone(), &data, Path::new("d"), options(RunStart::Fresh), &mut |_, _| {})
+        .unwrap();
+    let packed = dir.join("base.safetensors");
+    let summary =
+        dex2hoi_sample::pack_run(&base, &packed, dex2hoi_sample::PackedPrecision::F32).unwrap();
+    assert_eq!(summary.step, 6);
+    let ema = tensors(&packed);
+
+    // Another seed, so that the weights read are not the seed's by chance.
+    let mut tuned = config.clone();
+    tuned.training.seed += 1;
+    tuned.optimizer.learning_rate /= 3.0;
+    let mut trainer = Trainer::new(tuned.clone(), &data, Path::new("d"), &Device::Cpu).unwrap();
+    trainer.initialise_from(&packed).unwrap();
+    assert_eq!(trainer.steps_done(), 0);
+    assert_eq!(trainer.steps_before(), 6);
+    for p in trainer.parameters() {
+        let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(values, ema[&format!("ema.{}", p.name)], "{}", p.name);
+    }
+
+    // Trained on and packed, the model counts the steps of both runs; a resume keeps the count.
+    let run = dir.join("tuned");
+    tuned.training.steps = 3;
+    let summary = train(
+        &run,
+        tuned.clone(),
+        &data,
+        Path::new("d"),
+        options(RunStart::InitialisedFrom(&packed)),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!((summary.steps, summary.steps_before), (3, 6));
+    let trained = tensors(&run.join("checkpoint.safetensors"));
+    assert!(ema.iter().any(|(name, values)| &trained[name] != values), "the weights trained on");
+    let again = dir.join("tuned.safetensors");
+    let packed_again =
+        dex2hoi_sample::pack_run(&run, &again, dex2hoi_sample::PackedPrecision::F32).unwrap();
+    assert_eq!(packed_again.step, 9);
+    tuned.training.steps = 4;
+    let resumed = train(
+        &run,
+        tuned.clone(),
+        &data,
+        Path::new("d"),
+        options(RunStart::Resume),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!((resumed.steps, resumed.steps_before), (4, 6));
+    let loaded =
+        dex2hoi_sample::TrainedRun::load(&run, dex2hoi_sample::Weights::Ema, &Device::Cpu).unwrap();
+    assert_eq!(loaded.step, 10);
+
+    // A model of another network or vocabulary is refused, naming the file.
+    let mut other = tuned.clone();
+    other.model.latent = 64;
+    let error = train(
+        &dir.join("other"),
+        other,
+        &data,
+        Path::new("d"),
+        options(RunStart::InitialisedFrom(&packed)),
+        &mut |_, _| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(error.contains("base.safetensors") && error.contains("[model]"), "{error}");
+    let mut renamed = data.clone();
+    for sequences in renamed.splits.values_mut() {
+        for s in sequences {
+            s.texts.iter_mut().for_each(|t| t.push_str(" zebra"));
+        }
+    }
+    let mut trainer = Trainer::new(tuned, &renamed, Path::new("d"), &Device::Cpu).unwrap();
+    let error = trainer.initialise_from(&packed).unwrap_err().to_string();
+    assert!(error.contains("base.safetensors") && error.contains("vocabulary"), "{error}");
+    // A run's own checkpoint is a starting point too (its EMA weights).
+    let mut trainer = Trainer::new(config, &data, Path::new("d"), &Device::Cpu).unwrap();
+    trainer.initialise_from(&base.join("checkpoint.safetensors")).unwrap();
+    assert_eq!(trainer.steps_before(), 6);
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 fn tempfile_dir(name: &str) -> std::path::PathBuf {
