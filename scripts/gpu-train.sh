@@ -37,6 +37,14 @@
 # For a dry run elsewhere: GPU_TRAIN_PACK (a folder of gzipped binaries), GPU_TRAIN_DEVICE,
 # GPU_TRAIN_SEQUENCES, GPU_TRAIN_DATA (an existing dataset instead of making one).
 set -uo pipefail
+if [[ -n ${GPU_TRAIN_RESUME:-} && -n ${GPU_TRAIN_INIT_FROM:-} ]]; then
+    echo "GPU_TRAIN_RESUME and GPU_TRAIN_INIT_FROM: one or the other" >&2
+    exit 2
+fi
+if [[ -n ${GPU_TRAIN_INIT_FROM:-} && ! -f $GPU_TRAIN_INIT_FROM ]]; then
+    echo "GPU_TRAIN_INIT_FROM=$GPU_TRAIN_INIT_FROM: expected a packed model file" >&2
+    exit 2
+fi
 
 OUT=${OUT:-/tmp/gpu-train}
 SECONDS_TO_TRAIN=$1
@@ -99,10 +107,6 @@ for spec in "$@"; do
         --snapshot-every "${GPU_TRAIN_SNAPSHOT_EVERY:-1000}" --device "${GPU_TRAIN_DEVICE:-cuda}")
     log=$WORK/logs/$name.log
     : >"$log"
-    if [[ -n ${GPU_TRAIN_RESUME:-} && -n ${GPU_TRAIN_INIT_FROM:-} ]]; then
-        echo "GPU_TRAIN_RESUME and GPU_TRAIN_INIT_FROM: one or the other" >&2
-        exit 2
-    fi
     [[ -n ${GPU_TRAIN_INIT_FROM:-} ]] && args+=(--init-from "$GPU_TRAIN_INIT_FROM")
     if [[ -n ${GPU_TRAIN_RESUME:-} ]]; then
         continue_from "$WORK/$name" "$config" >>"$log" 2>&1 || {

@@ -33,7 +33,7 @@ pub struct TrainArgs {
     #[arg(long, conflicts_with = "init_from")]
     resume: bool,
     /// Start a new run from the EMA weights of a trained model (a packed model such as the
-    /// shipped one, or a run's `checkpoint.safetensors`) instead of the seed: fine-tuning. The
+    /// shipped one, or a run directory or its checkpoint) instead of the seed: fine-tuning. The
     /// optimiser and step count start afresh; the model's network, text encoder and vocabulary
     /// must be those of the configuration and dataset.
     #[arg(long, value_name = "MODEL")]
@@ -49,7 +49,11 @@ pub struct TrainArgs {
 /// Runs `dex2hoi train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let device = args.device.open()?;
-    let mut config = match (&args.config, args.resume, &args.init_from) {
+    let init_from = args
+        .init_from
+        .as_ref()
+        .map(|path| if path.is_dir() { RunFiles::new(path).checkpoint } else { path.clone() });
+    let mut config = match (&args.config, args.resume, &init_from) {
         (Some(path), _, _) => TrainConfig::load(path)?,
         (None, true, _) => TrainConfig::load(&RunFiles::new(&args.out).config)
             .context("reading the configuration of the run to resume")?,
@@ -94,10 +98,10 @@ pub fn run(args: TrainArgs) -> Result<()> {
         args.device.device,
         args.out.display()
     );
-    if let Some(model) = &args.init_from {
+    if let Some(model) = &init_from {
         println!("starting from the EMA weights of {}", model.display());
     }
-    let start = match (&args.init_from, args.resume) {
+    let start = match (&init_from, args.resume) {
         (Some(model), _) => RunStart::InitialisedFrom(model),
         (None, true) => RunStart::Resume,
         (None, false) => RunStart::Fresh,
@@ -125,7 +129,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         println!(
             "trained {} steps ({} in all with those of the model it started from)",
             summary.steps,
-            summary.steps + summary.steps_before
+            summary.steps.saturating_add(summary.steps_before)
         );
     } else {
         println!("trained {} steps", summary.steps);

@@ -174,8 +174,10 @@ fn fine_tune_a_packed_model() {
     assert!(stdout.contains("starting from the EMA weights of"), "{stdout}");
     assert!(stdout.contains("trained 3 steps (8 in all"), "{stdout}");
     let info = dex2hoi(&["model", "info", "--run", &path("tuned")]);
+    assert!(info.status.success(), "{}", String::from_utf8_lossy(&info.stderr));
     assert!(String::from_utf8_lossy(&info.stdout).contains("trained for 8 steps"));
     let repacked = dex2hoi(&["model", "pack", "--run", &path("tuned"), "--out", &path("t.st")]);
+    assert!(repacked.status.success(), "{}", String::from_utf8_lossy(&repacked.stderr));
     assert!(String::from_utf8_lossy(&repacked.stdout).contains("(8 steps"));
     let resumed = dex2hoi(&[
         "train",
@@ -187,7 +189,22 @@ fn fine_tune_a_packed_model() {
         "--steps",
         "4",
     ]);
+    assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
     assert!(String::from_utf8_lossy(&resumed.stdout).contains("trained 4 steps (9 in all"));
+    // A run directory is a starting point too (its checkpoint).
+    let from_run = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("tuned"),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("again"),
+        "--steps",
+        "1",
+    ]);
+    assert!(from_run.status.success(), "{}", String::from_utf8_lossy(&from_run.stderr));
+    assert!(String::from_utf8_lossy(&from_run.stdout).contains("trained 1 steps (10 in all"));
 
     // Bad input: with --resume, into a run that exists, a model of another network, no model.
     let both = dex2hoi(&[
@@ -227,7 +244,11 @@ fn fine_tune_a_packed_model() {
         &path("other"),
     ]);
     let stderr = String::from_utf8_lossy(&other.stderr);
-    assert!(stderr.contains("base.st") && stderr.contains("[model]"), "{stderr}");
+    assert!(!other.status.success());
+    assert!(
+        stderr.contains("base.st") && stderr.contains("latent = 32 (this run: 48)"),
+        "{stderr}"
+    );
     let missing = dex2hoi(&[
         "train",
         "--init-from",
@@ -237,6 +258,7 @@ fn fine_tune_a_packed_model() {
         "--out",
         &path("x"),
     ]);
+    assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("none.st"));
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -32,7 +32,7 @@ pub const VOCABULARY_KEY: &str = "dex2hoi.vocabulary";
 /// steps of the model its run started from, if any (0 where the metadata says nothing).
 pub fn trained_steps(metadata: &std::collections::BTreeMap<String, String>) -> usize {
     let number = |key: &str| metadata.get(key).and_then(|s| s.parse::<usize>().ok()).unwrap_or(0);
-    number(STEP_KEY) + number(STEPS_BEFORE_KEY)
+    number(STEP_KEY).saturating_add(number(STEPS_BEFORE_KEY))
 }
 
 /// The files of a run directory.

@@ -446,6 +446,10 @@ impl Trainer {
             ));
         }
         let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
+        let format = metadata.get(FORMAT_KEY).map_or("nothing", String::as_str);
+        if format != FORMAT {
+            return Err(TrainError::checkpoint(path, FORMAT_KEY, FORMAT, format));
+        }
         let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
             TrainError::checkpoint(
                 path,
@@ -454,22 +458,38 @@ impl Trainer {
                 "nothing",
             )
         })?;
-        let stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
-        if stored.model != self.config.model {
-            return Err(TrainError::checkpoint(
-                path,
+        let mut stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
+        // Dropout is how the network trains, not what it is.
+        stored.model.dropout = self.config.model.dropout;
+        for (section, model, run) in [
+            (
                 "[model]",
-                "the [model] settings of this run's configuration",
-                "other ones",
-            ));
-        }
-        if stored.text != self.config.text {
-            return Err(TrainError::checkpoint(
-                path,
-                "[text]",
-                "the [text] settings of this run's configuration",
-                "other ones",
-            ));
+                serde_json::to_value(&stored.model),
+                serde_json::to_value(&self.config.model),
+            ),
+            ("[text]", serde_json::to_value(&stored.text), serde_json::to_value(&self.config.text)),
+        ] {
+            let (model, run) =
+                (model.expect("a config serialises"), run.expect("a config serialises"));
+            let differing: Vec<String> = run
+                .as_object()
+                .into_iter()
+                .flatten()
+                .filter(|(key, value)| model.get(key.as_str()) != Some(value))
+                .map(|(key, value)| {
+                    let theirs =
+                        model.get(key.as_str()).map_or("nothing".into(), |v| v.to_string());
+                    format!("{key} = {theirs} (this run: {value})")
+                })
+                .collect();
+            if !differing.is_empty() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    section,
+                    format!("the {section} settings of this run's configuration"),
+                    differing.join(", "),
+                ));
+            }
         }
         self.check_vocabulary(&metadata, path)?;
         for (k, p) in self.parameters.iter().enumerate() {
@@ -495,18 +515,17 @@ impl Trainer {
     /// Checks that the built-in encoder's vocabulary in a file's metadata is this dataset's.
     fn check_vocabulary(&self, metadata: &BTreeMap<String, String>, path: &Path) -> Result<()> {
         if let TextModule::Builtin { encoder, .. } = &self.text {
-            let words: Vec<String> = metadata
+            let words: Option<Vec<String>> = metadata
                 .get(VOCABULARY_KEY)
                 .map(|w| serde_json::from_str(w))
                 .transpose()
-                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
-                .unwrap_or_default();
-            if words != encoder.vocabulary().words() {
+                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?;
+            if words.as_deref() != Some(encoder.vocabulary().words()) {
                 return Err(TrainError::checkpoint(
                     path,
                     VOCABULARY_KEY,
                     "the vocabulary of this dataset",
-                    "another vocabulary",
+                    if words.is_some() { "another vocabulary" } else { "none" },
                 ));
             }
         }

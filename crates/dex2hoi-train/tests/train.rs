@@ -370,6 +370,19 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
         assert_eq!(values, ema[&format!("ema.{}", p.name)], "{}", p.name);
     }
+    // Saved before a step: the parameters and their EMA are the model's, the moments zero.
+    let start = dir.join("start.safetensors");
+    trainer.save(&start).unwrap();
+    let saved = tensors(&start);
+    for p in trainer.parameters() {
+        let model = &ema[&format!("ema.{}", p.name)];
+        assert_eq!(&saved[&p.name], model, "{}", p.name);
+        assert_eq!(&saved[&format!("ema.{}", p.name)], model, "ema.{}", p.name);
+        for moment in ["first", "second"] {
+            let values = &saved[&format!("optimizer.{moment}.{}", p.name)];
+            assert!(values.iter().all(|&v| v == 0.0), "optimizer.{moment}.{}", p.name);
+        }
+    }
 
     // Trained on and packed, the model counts the steps of both runs; a resume keeps the count.
     let run = dir.join("tuned");
@@ -404,6 +417,10 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
     let loaded =
         dex2hoi_sample::TrainedRun::load(&run, dex2hoi_sample::Weights::Ema, &Device::Cpu).unwrap();
     assert_eq!(loaded.step, 10);
+    // A run started from that run counts on from its 10 steps.
+    let mut trainer = Trainer::new(tuned.clone(), &data, Path::new("d"), &Device::Cpu).unwrap();
+    trainer.initialise_from(&run.join("checkpoint.safetensors")).unwrap();
+    assert_eq!(trainer.steps_before(), 10);
 
     // A model of another network or vocabulary is refused, naming the file.
     let mut other = tuned.clone();
@@ -419,6 +436,20 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
     .unwrap_err()
     .to_string();
     assert!(error.contains("base.safetensors") && error.contains("[model]"), "{error}");
+    assert!(error.contains("latent = 32 (this run: 64)"), "{error}");
+    let mut other = tuned.clone();
+    let dex2hoi_sample::TextConfig::Builtin { width, .. } = &mut other.text else {
+        panic!("the tiny preset has the built-in text encoder")
+    };
+    *width *= 2;
+    let mut trainer = Trainer::new(other, &data, Path::new("d"), &Device::Cpu).unwrap();
+    let error = trainer.initialise_from(&packed).unwrap_err().to_string();
+    assert!(error.contains("[text]") && error.contains("width"), "{error}");
+    // Dropout is a training setting: a fine-tuning may change it.
+    let mut other = tuned.clone();
+    other.model.dropout = 0.25;
+    let mut trainer = Trainer::new(other, &data, Path::new("d"), &Device::Cpu).unwrap();
+    trainer.initialise_from(&packed).unwrap();
     let mut renamed = data.clone();
     for sequences in renamed.splits.values_mut() {
         for s in sequences {
