@@ -70,7 +70,7 @@ HAND_RELATIVE_CHANNELS = (*range(6, 9), *range(9, 12), *range(15, 18))
 PREDICTIONS = ("absolute", "prefix_residual", "prefix_residual_world")
 DIFFUSION_STEPS = 1000  # DEFAULT_DIFFUSION_STEPS of schedule.rs
 SAMPLING_STEPS = 50  # SamplerConfig::default()
-GUIDANCE = 2.5  # SamplerConfig::default()
+GUIDANCE = 2.0  # SamplerConfig::default() (dex2hoi_diffusion::DEFAULT_GUIDANCE)
 TOLERANCE = 1e-4  # largest accepted |torch - dex2hoi| on the reference batch
 
 # OptimizerConfig::default() of crates/dex2hoi-optim/src/config.rs (the learning rate is the

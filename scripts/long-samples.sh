@@ -5,10 +5,11 @@
 #
 #   scripts/long-samples.sh MODEL OUT_DIR      # MODEL: a packed model file or a run directory
 #
-# DEX2HOI (default target/release/dex2hoi) is the binary. Samples already in OUT_DIR are kept.
+# DEX2HOI (default target/release/dex2hoi) is the binary; SAMPLE_ARGS (split at spaces) are
+# passed to every `sample`, e.g. "--guidance 2.5". Samples already in OUT_DIR are kept.
 set -uo pipefail
 if (($# != 2)); then
-    sed -n '2,8p' "$0" >&2
+    sed -n '2,9p' "$0" >&2
     exit 2
 fi
 BIN=${DEX2HOI:-target/release/dex2hoi}
@@ -34,7 +35,7 @@ for entry in "${PROMPTS[@]}"; do
     for seed in 0 1 2 3 4 5; do
         [[ -f $OUT/$name-$seed/motion.npz ]] && continue
         "$BIN" sample --run "$MODEL" --text "$text" "${object_args[@]}" --frames 160 \
-            --seed "$seed" --out "$OUT/$name-$seed" >/dev/null ||
+            --seed "$seed" ${SAMPLE_ARGS:-} --out "$OUT/$name-$seed" >/dev/null ||
             { echo "$OUT/$name-$seed: sampling failed" >&2; status=1; }
     done
 done

@@ -106,10 +106,10 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
         (setup["sampler"].as_str(), setup["denoising_steps"].as_u64()),
         (Some("ddim"), Some(2))
     );
-    assert_eq!(setup["guidance"].as_f64(), Some(2.5), "{setup}");
+    assert_eq!(setup["guidance"].as_f64(), Some(2.0), "{setup}");
     assert!(
         report.contains(
-            "Weights after 3 training steps; sampler: DDIM (eta 0), 2 steps, guidance 2.5, seed 0."
+            "Weights after 3 training steps; sampler: DDIM (eta 0), 2 steps, guidance 2, seed 0."
         ),
         "{report}"
     );

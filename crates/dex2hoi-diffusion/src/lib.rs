@@ -13,5 +13,7 @@ mod sampler;
 mod schedule;
 
 pub use error::{DiffusionError, Result};
-pub use sampler::{Denoiser, SamplerConfig, SamplerKind, gaussian, sample, sample_timesteps};
+pub use sampler::{
+    DEFAULT_GUIDANCE, Denoiser, SamplerConfig, SamplerKind, gaussian, sample, sample_timesteps,
+};
 pub use schedule::{CosineSchedule, DEFAULT_DIFFUSION_STEPS};

@@ -53,7 +53,7 @@ pub struct EvaluateOptions {
     pub replications: usize,
     /// At most this many test sequences (all when `None`).
     pub sequences: Option<usize>,
-    /// The sampler (DDIM 50 steps, guidance 2.5 by default).
+    /// The sampler (DDIM 50 steps, guidance `dex2hoi_diffusion::DEFAULT_GUIDANCE` by default).
     pub sampler: SamplerConfig,
     /// Seed of the first replication's noise.
     pub seed: u64,

@@ -80,7 +80,7 @@ impl EvaluationSetup {
         }
     }
 
-    /// One line for the report: `DDIM (eta 0), 50 steps, guidance 2.5, seed 0`.
+    /// One line for the report: `DDIM (eta 0), 50 steps, guidance 2, seed 0`.
     pub fn describe(&self) -> String {
         let name = match self.sampler {
             SamplerName::Ddim => "DDIM",
