@@ -55,8 +55,8 @@ pub struct SamplerConfig {
 /// The default guidance scale: 2.0, below MDM's 2.5. On the shipped model's full evaluation
 /// (docs/results/shipped-model.md, "The guidance scale (session 15)") 2.5 puts a hand inside an
 /// object on 7.4% of frames and 2.0 on 6.3%, with contact, the objects' start, drift and
-/// sinking and the instruction measures as good or better, for 3 points of FID and 0.02 of
-/// R-precision top-3 (docs/CONVENTIONS.md, "Diffusion schedule").
+/// sinking and the instruction measures as good or better within noise, for 3 points of FID
+/// and 0.02 of R-precision top-3 (docs/CONVENTIONS.md, "Diffusion schedule").
 pub const DEFAULT_GUIDANCE: f64 = 2.0;
 
 impl Default for SamplerConfig {
