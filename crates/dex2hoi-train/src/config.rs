@@ -184,6 +184,15 @@ impl TrainConfig {
     pub fn from_model_file(path: &Path) -> Result<Self> {
         let (_, metadata) =
             dex2hoi_model::checkpoint::read_tensors(path, &candle_core::Device::Cpu)?;
+        Self::from_model_metadata(&metadata, path)
+    }
+
+    /// The training configuration in the metadata of a packed model or a checkpoint read from
+    /// `path` (named in errors).
+    pub fn from_model_metadata(
+        metadata: &std::collections::BTreeMap<String, String>,
+        path: &Path,
+    ) -> Result<Self> {
         let text = metadata.get(dex2hoi_sample::TRAIN_CONFIG_KEY).ok_or_else(|| {
             TrainError::checkpoint(
                 path,

@@ -450,15 +450,7 @@ impl Trainer {
         if format != FORMAT {
             return Err(TrainError::checkpoint(path, FORMAT_KEY, FORMAT, format));
         }
-        let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
-            TrainError::checkpoint(
-                path,
-                TRAIN_CONFIG_KEY,
-                "a packed model or a checkpoint (with its training configuration)",
-                "nothing",
-            )
-        })?;
-        let mut stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
+        let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
         for (section, model, run) in [
