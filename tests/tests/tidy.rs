@@ -220,6 +220,40 @@ fn no_stubs_or_ignored_tests() {
     }
 }
 
+/// The one file allowed to opt out of the workspace's `unsafe_code = "deny"`: raw `gemm` calls
+/// (docs/ARCHITECTURE.md, the fused kernels' invariant).
+const UNSAFE_MODULE: &str = "crates/dex2hoi-model/src/matmul.rs";
+
+#[test]
+fn unsafe_code_stays_in_one_module_with_a_safety_comment_per_block() {
+    let root = workspace_root();
+    let mut files = Vec::new();
+    for dir in ["crates", "xtask", "tests"] {
+        rust_files(&root.join(dir), &mut files);
+    }
+    // Built from pieces so that this file does not match itself.
+    let opt_out = concat!("allow(", "unsafe_code)");
+    let opting_out: Vec<String> = files
+        .iter()
+        .filter(|f| std::fs::read_to_string(f).expect("readable source").contains(opt_out))
+        .map(|f| f.strip_prefix(&root).expect("inside the workspace").display().to_string())
+        .collect();
+    assert_eq!(opting_out, [UNSAFE_MODULE], "only {UNSAFE_MODULE} may use `{opt_out}`");
+    let text = std::fs::read_to_string(root.join(UNSAFE_MODULE)).expect("readable source");
+    let lines: Vec<&str> = text.lines().collect();
+    let blocks: Vec<usize> =
+        (0..lines.len()).filter(|&i| lines[i].trim_start().starts_with("unsafe {")).collect();
+    assert!(!blocks.is_empty(), "{UNSAFE_MODULE}: no `unsafe` block left: restore the forbid");
+    for block in blocks {
+        let comment = lines[..block].iter().rev().take_while(|l| l.trim_start().starts_with("//"));
+        assert!(
+            comment.clone().any(|l| l.trim_start().starts_with("// SAFETY:")),
+            "{UNSAFE_MODULE}:{}: an `unsafe` block without a `// SAFETY:` comment above it",
+            block + 1
+        );
+    }
+}
+
 /// The repository's source and documentation files (`.rs`, `.md`, `.py`, `.toml`, `.sh`),
 /// outside `target/` and hidden folders.
 fn text_files(dir: &Path, out: &mut Vec<PathBuf>) {

@@ -214,6 +214,48 @@ impl CustomOp2 for AdaLn {
     }
 }
 
+/// A linear layer's product, `x @ weight` over the last dimension of `x`, through
+/// [`crate::matmul::product`] (no zero-filled output in candle, no thread count read from
+/// `/proc/cpuinfo` per call, one thread inside a rayon task).
+///
+/// # Shapes
+/// - `x`: `[..., input]`; `weight`: `[input, output]`; output `[..., output]`
+#[derive(Debug, Clone, Copy)]
+pub struct Product;
+
+impl CustomOp2 for Product {
+    fn name(&self) -> &'static str {
+        "fused-product"
+    }
+
+    fn cpu_fwd(
+        &self,
+        x_storage: &CpuStorage,
+        x_layout: &Layout,
+        weight_storage: &CpuStorage,
+        weight_layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = values(self.name(), x_storage, x_layout)?;
+        let weight = values(self.name(), weight_storage, weight_layout)?;
+        let Some((&input, leading)) = x_layout.dims().split_last() else {
+            return Err(op_error(self.name(), "a non-scalar input"));
+        };
+        // Counted from the leading dimensions: with `input` zero the element count says nothing.
+        let rows = leading.iter().product();
+        let &[weight_input, output] = weight_layout.dims() else {
+            return Err(op_error(self.name(), "a weight of two dimensions"));
+        };
+        if weight_input != input {
+            return Err(op_error(
+                self.name(),
+                format!("a weight of {input} rows, got {weight_input}"),
+            ));
+        }
+        let out = crate::matmul::product(x, weight, rows, input, output);
+        Ok((CpuStorage::F32(out), Shape::from([leading, &[output]].concat())))
+    }
+}
+
 /// The bias and activation after a linear layer's product: `y + bias`, or `SiLU(y + bias)`.
 ///
 /// # Shapes
@@ -593,6 +635,11 @@ pub fn adaln(
     swap_halves: bool,
 ) -> candle_core::Result<Tensor> {
     x.apply_op2_no_bwd(table, &AdaLn { column, swap_halves })
+}
+
+/// `x @ weight` over the last dimension of `x`.
+pub fn product(x: &Tensor, weight: &Tensor) -> candle_core::Result<Tensor> {
+    x.apply_op2_no_bwd(weight, &Product)
 }
 
 /// `y + bias`, then SiLU when `silu`.

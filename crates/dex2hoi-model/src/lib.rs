@@ -9,6 +9,7 @@ pub mod error;
 pub mod fused;
 pub mod init;
 pub mod layers;
+mod matmul;
 pub mod model;
 pub mod text;
 pub mod text_bert;

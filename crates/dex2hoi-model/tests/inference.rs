@@ -85,6 +85,43 @@ fn bias_silu_and_residual_equal_the_composite() {
     assert!(fused::bias(&y.t().unwrap(), &random(&[3], &mut rng), false).is_err());
 }
 
+#[test]
+fn product_equals_candles_matmul_on_and_off_the_pool_and_at_odd_sizes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let single = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let pair = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    for (rows, inner, columns) in
+        [(1, 1, 1), (17, 37, 5), (70, 256, 768), (3, 129, 33), (240, 64, 1)]
+    {
+        let x = random(&[rows, inner], &mut rng);
+        let w = random(&[inner, columns], &mut rng);
+        let expected = x.matmul(&w).unwrap();
+        // Outside a pool (every thread), inside one (one thread per product), a pool of one.
+        let outside = fused::product(&x, &w).unwrap();
+        let inside = pair.install(|| fused::product(&x, &w).unwrap());
+        let alone = single.install(|| fused::product(&x, &w).unwrap());
+        for got in [outside, inside, alone] {
+            assert!(max_difference(&got, &expected) < 1e-4, "{rows} x {inner} x {columns}");
+        }
+    }
+    // Leading dimensions are rows; empty products are zeros or empty.
+    let x = random(&[2, 3, 7], &mut rng);
+    let w = random(&[7, 4], &mut rng);
+    let expected = x.reshape((6, 7)).unwrap().matmul(&w).unwrap().reshape((2, 3, 4)).unwrap();
+    assert!(max_difference(&fused::product(&x, &w).unwrap(), &expected) < 1e-5);
+    let none = Tensor::zeros((4, 0), DType::F32, &Device::Cpu).unwrap();
+    let zeros = fused::product(&none, &Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap());
+    assert_eq!(zeros.unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap(), 0.0);
+    let empty = Tensor::zeros((0, 7), DType::F32, &Device::Cpu).unwrap();
+    assert_eq!(fused::product(&empty, &w).unwrap().dims(), [0, 4]);
+    // A weight of the wrong height, or strided, is refused rather than misread.
+    assert!(fused::product(&x, &random(&[6, 4], &mut rng)).is_err());
+    assert!(
+        fused::product(&random(&[4, 7], &mut rng), &random(&[4, 7], &mut rng).t().unwrap())
+            .is_err()
+    );
+}
+
 /// The composite attention on already projected queries, keys and values.
 fn composite_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Tensor {
     let (n, tq, l) = q.dims3().unwrap();
@@ -209,6 +246,16 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
         assert!(difference < 1e-4, "{cfg:?}: {difference}");
+        // Rows are split over the pool's threads (one group of rows per thread): any grouping
+        // gives the same result.
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let grouped = pool
+                .install(|| inference.forward(&prefix, &noisy, &timesteps, &condition))
+                .unwrap();
+            let difference = max_difference(&grouped, &got);
+            assert!(difference < 1e-5, "{cfg:?}, {threads} threads: {difference}");
+        }
         // The same prepared condition serves every step.
         let timesteps = Tensor::new(&[5u32, 6, 7], &Device::Cpu).unwrap();
         let again = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();

@@ -14,6 +14,7 @@
 //! composite [`Model::forward`].
 
 use candle_core::{DType, Device, Tensor};
+use rayon::prelude::*;
 
 use super::{Denoiser, DualStream, Fusion, Layout, Model, ModelInput, SingleStream};
 use super::{present_average, streams_into_batch};
@@ -27,13 +28,7 @@ use crate::transformer::{PreNorm, TransformerBlock};
 /// # Shapes
 /// - `x`: `[..., input]`; `weight`: `[input, output]`; returns `[..., output]`
 fn product(x: &Tensor, weight: &Tensor) -> Result<Tensor> {
-    let dims = x.dims();
-    let input = dims[dims.len() - 1];
-    let rows = x.elem_count() / input.max(1);
-    let out = x.contiguous()?.reshape((rows, input))?.matmul(weight)?;
-    let mut shape = dims.to_vec();
-    *shape.last_mut().expect("a non-scalar input") = weight.dims()[1];
-    Ok(out.reshape(shape)?)
+    Ok(fused::product(&x.contiguous()?, &weight.contiguous()?)?)
 }
 
 /// A linear layer's parameters, detached from the autograd graph.
@@ -340,6 +335,24 @@ impl PreparedCondition {
     pub fn batch(&self) -> usize {
         self.text.dims()[0]
     }
+
+    /// Rows `start..start + len` of the batch.
+    fn rows(&self, start: usize, len: usize) -> Result<Self> {
+        let batch = self.batch();
+        let latent = self.fixed.dim(1)?;
+        // `fixed` holds `streams` blocks of `batch` rows (stream A's block first).
+        let streams = self.fixed.dim(0)? / batch.max(1);
+        Ok(Self {
+            text: self.text.narrow(0, start, len)?,
+            bps: self.bps.narrow(0, start, len)?,
+            presence: self.presence.narrow(0, start, len)?,
+            fixed: self
+                .fixed
+                .reshape((streams, batch, latent))?
+                .narrow(1, start, len)?
+                .reshape((streams * len, latent))?,
+        })
+    }
 }
 
 /// The model for sampling (see the module's docs).
@@ -421,6 +434,41 @@ impl InferenceModel {
     /// - `prefix`: `[batch, 2, T_p, D]`; `noisy`: `[batch, 2, T_f, D]`; `timesteps`: `[batch]`
     /// - returns `[batch, 2, T_f, D]`
     pub fn forward(
+        &self,
+        prefix: &Tensor,
+        noisy: &Tensor,
+        timesteps: &Tensor,
+        condition: &PreparedCondition,
+    ) -> Result<Tensor> {
+        let batch = prefix.dim(0)?;
+        let parts = if self.fast.is_some() { rayon::current_num_threads().min(batch) } else { 1 };
+        if parts <= 1 {
+            return self.forward_rows(prefix, noisy, timesteps, condition);
+        }
+        // The rows of the batch are independent samples (the conditional and null rows of
+        // guidance among them): one group of rows per thread, each forward pass on its own
+        // thread, instead of every operation split over the threads. At sampling sizes
+        // (a few hundred tokens) the per-operation hand-offs between threads cost more than
+        // the products they split.
+        let bounds: Vec<(usize, usize)> =
+            (0..parts).map(|part| (part * batch / parts, (part + 1) * batch / parts)).collect();
+        let outputs = bounds
+            .par_iter()
+            .map(|&(start, end)| {
+                let len = end - start;
+                self.forward_rows(
+                    &prefix.narrow(0, start, len)?,
+                    &noisy.narrow(0, start, len)?,
+                    &timesteps.narrow(0, start, len)?,
+                    &condition.rows(start, len)?,
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Tensor::cat(&outputs, 0)?)
+    }
+
+    /// [`Self::forward`] on one group of rows.
+    fn forward_rows(
         &self,
         prefix: &Tensor,
         noisy: &Tensor,
