@@ -140,10 +140,11 @@ fn composite_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Tens
 #[test]
 fn attention_equals_the_composite_for_self_and_cross_layouts() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
-    // Blocked kernel (heads of a multiple of 8, query frames of a multiple of 4; keys padded
-    // when their count is not a multiple of 8) and the row-by-row one.
+    // Blocked kernel (heads of a multiple of 16, query frames of a multiple of 4; keys padded
+    // when their count is not a multiple of 16) and the row-by-row one.
     let cases = [
         (2, 7, 7, 12, 3),
+        (2, 8, 21, 64, 2),
         (4, 60, 60, 64, 4),
         (2, 8, 13, 32, 2),
         (1, 5, 11, 16, 1),
