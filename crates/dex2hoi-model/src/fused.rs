@@ -217,8 +217,8 @@ impl CustomOp2 for AdaLn {
 }
 
 /// A linear layer's product, `x @ weight` over the last dimension of `x`, through
-/// [`crate::matmul::product`] (no zero-filled output in candle, no thread count read from
-/// `/proc/cpuinfo` per call, one thread inside a rayon task).
+/// [`crate::matmul::product`] (no thread count read from `/proc/cpuinfo` per call, one thread
+/// inside a row group of the inference model).
 ///
 /// # Shapes
 /// - `x`: `[..., input]`; `weight`: `[input, output]`; output `[..., output]`
@@ -243,7 +243,10 @@ impl CustomOp2 for Product {
             return Err(op_error(self.name(), "a non-scalar input"));
         };
         // Counted from the leading dimensions: with `input` zero the element count says nothing.
-        let rows = leading.iter().product();
+        let rows = leading
+            .iter()
+            .try_fold(1usize, |rows, &d| rows.checked_mul(d))
+            .ok_or_else(|| op_error(self.name(), "a row count that fits in usize"))?;
         let &[weight_input, output] = weight_layout.dims() else {
             return Err(op_error(self.name(), "a weight of two dimensions"));
         };

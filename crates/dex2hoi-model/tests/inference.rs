@@ -96,7 +96,7 @@ fn product_equals_candles_matmul_on_and_off_the_pool_and_at_odd_sizes() {
         let x = random(&[rows, inner], &mut rng);
         let w = random(&[inner, columns], &mut rng);
         let expected = x.matmul(&w).unwrap();
-        // Outside a pool (every thread), inside one (one thread per product), a pool of one.
+        // On the global pool's threads, on a pool of two, on a pool of one.
         let outside = fused::product(&x, &w).unwrap();
         let inside = pair.install(|| fused::product(&x, &w).unwrap());
         let alone = single.install(|| fused::product(&x, &w).unwrap());
@@ -110,8 +110,12 @@ fn product_equals_candles_matmul_on_and_off_the_pool_and_at_odd_sizes() {
     let expected = x.reshape((6, 7)).unwrap().matmul(&w).unwrap().reshape((2, 3, 4)).unwrap();
     assert!(max_difference(&fused::product(&x, &w).unwrap(), &expected) < 1e-5);
     let none = Tensor::zeros((4, 0), DType::F32, &Device::Cpu).unwrap();
-    let zeros = fused::product(&none, &Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap());
-    assert_eq!(zeros.unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap(), 0.0);
+    let zeros =
+        fused::product(&none, &Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap()).unwrap();
+    assert_eq!(zeros.dims(), [4, 3]);
+    assert_eq!(zeros.abs().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap(), 0.0);
+    let no_columns = Tensor::zeros((7, 0), DType::F32, &Device::Cpu).unwrap();
+    assert_eq!(fused::product(&x, &no_columns).unwrap().dims(), [2, 3, 0]);
     let empty = Tensor::zeros((0, 7), DType::F32, &Device::Cpu).unwrap();
     assert_eq!(fused::product(&empty, &w).unwrap().dims(), [0, 4]);
     // A weight of the wrong height, or strided, is refused rather than misread.
@@ -247,9 +251,9 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
         assert!(difference < 1e-4, "{cfg:?}: {difference}");
-        // Rows are split over the pool's threads (one group of rows per thread): any grouping
-        // gives the same result.
-        for threads in [1, 2, 3] {
+        // Rows are split over the pool's threads (one group of rows per thread, none with
+        // fewer rows than threads): any grouping gives the same result.
+        for threads in [1, 2, 3, 4] {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             let grouped = pool
                 .install(|| inference.forward(&prefix, &noisy, &timesteps, &condition))
@@ -262,8 +266,14 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let again = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let expected = model.forward(&ModelInput { timesteps: &timesteps, ..input }, None).unwrap();
         assert!(max_difference(&again, &expected) < 1e-4, "{cfg:?}");
-        // Wrong shapes are refused with the composite's errors.
+        // Wrong shapes are refused with the composite's errors, before the rows are split.
         assert!(inference.forward(&noisy, &noisy, &timesteps, &condition).is_err());
+        let two = |t: &Tensor| t.narrow(0, 0, 2).unwrap();
+        let pair = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        let mismatched = pair.install(|| {
+            inference.forward(&two(&prefix), &two(&noisy), &two(&timesteps), &condition)
+        });
+        assert!(mismatched.is_err(), "{cfg:?}: a condition of 3 rows for 2 is refused");
     }
 }
 

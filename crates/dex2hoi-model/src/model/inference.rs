@@ -440,42 +440,47 @@ impl InferenceModel {
         timesteps: &Tensor,
         condition: &PreparedCondition,
     ) -> Result<Tensor> {
-        let batch = prefix.dim(0)?;
-        let parts = if self.fast.is_some() { rayon::current_num_threads().min(batch) } else { 1 };
+        self.model.check_input(&self.input(prefix, noisy, timesteps, condition))?;
+        let batch = noisy.dim(0)?;
+        let threads = rayon::current_num_threads();
+        // The rows of the batch are independent samples (the conditional and null rows of
+        // guidance among them): one group of rows per thread, each forward pass on its own
+        // thread with its products on that thread, instead of every operation split over the
+        // threads. At sampling sizes (a few hundred tokens) the per-operation hand-offs between
+        // threads cost more than the products they split. With fewer rows than threads every
+        // operation is split as before, so that no thread idles.
+        let parts = if self.fast.is_some() && batch >= threads { threads } else { 1 };
         if parts <= 1 {
             return self.forward_rows(prefix, noisy, timesteps, condition);
         }
-        // The rows of the batch are independent samples (the conditional and null rows of
-        // guidance among them): one group of rows per thread, each forward pass on its own
-        // thread, instead of every operation split over the threads. At sampling sizes
-        // (a few hundred tokens) the per-operation hand-offs between threads cost more than
-        // the products they split.
         let bounds: Vec<(usize, usize)> =
             (0..parts).map(|part| (part * batch / parts, (part + 1) * batch / parts)).collect();
         let outputs = bounds
             .par_iter()
             .map(|&(start, end)| {
                 let len = end - start;
-                self.forward_rows(
-                    &prefix.narrow(0, start, len)?,
-                    &noisy.narrow(0, start, len)?,
-                    &timesteps.narrow(0, start, len)?,
-                    &condition.rows(start, len)?,
-                )
+                crate::matmul::in_row_group(|| {
+                    self.forward_rows(
+                        &prefix.narrow(0, start, len)?,
+                        &noisy.narrow(0, start, len)?,
+                        &timesteps.narrow(0, start, len)?,
+                        &condition.rows(start, len)?,
+                    )
+                })
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Tensor::cat(&outputs, 0)?)
     }
 
-    /// [`Self::forward`] on one group of rows.
-    fn forward_rows(
+    /// The composite model's input for these tensors.
+    fn input<'a>(
         &self,
-        prefix: &Tensor,
-        noisy: &Tensor,
-        timesteps: &Tensor,
-        condition: &PreparedCondition,
-    ) -> Result<Tensor> {
-        let input = ModelInput {
+        prefix: &'a Tensor,
+        noisy: &'a Tensor,
+        timesteps: &'a Tensor,
+        condition: &'a PreparedCondition,
+    ) -> ModelInput<'a> {
+        ModelInput {
             noisy,
             prefix,
             timesteps,
@@ -483,8 +488,18 @@ impl InferenceModel {
             bps: &condition.bps,
             presence: &condition.presence,
             frame_mask: None,
-        };
-        self.model.check_input(&input)?;
+        }
+    }
+
+    /// [`Self::forward`] on one group of rows (the whole input already checked).
+    fn forward_rows(
+        &self,
+        prefix: &Tensor,
+        noisy: &Tensor,
+        timesteps: &Tensor,
+        condition: &PreparedCondition,
+    ) -> Result<Tensor> {
+        let input = self.input(prefix, noisy, timesteps, condition);
         let dtype = self.model.dtype();
         let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
         let head = match (fast, &self.model.layout) {
