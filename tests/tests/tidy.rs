@@ -202,13 +202,19 @@ fn architecture_doc_names_every_crate() {
     }
 }
 
-#[test]
-fn no_stubs_or_ignored_tests() {
-    let root = workspace_root();
+/// The `.rs` files of the workspace's crates, xtask and tests.
+fn workspace_rust_files(root: &Path) -> Vec<PathBuf> {
     let mut files = Vec::new();
     for dir in ["crates", "xtask", "tests"] {
         rust_files(&root.join(dir), &mut files);
     }
+    files
+}
+
+#[test]
+fn no_stubs_or_ignored_tests() {
+    let root = workspace_root();
+    let files = workspace_rust_files(&root);
     // Built from pieces so that this file does not match itself.
     let forbidden =
         [concat!("todo", "!("), concat!("unimplemented", "!("), concat!("#[", "ignore")];
@@ -236,10 +242,7 @@ fn unsafe_stays_in_one_module_with_a_safety_comment_per_use() {
         .find_map(|l| l.trim().strip_prefix(lint).map(|rest| rest.trim().to_owned()))
         .expect("a workspace level for the lint");
     assert!(level == "= \"deny\"" || level == "= \"forbid\"", "{lint} {level}");
-    let mut files = Vec::new();
-    for dir in ["crates", "xtask", "tests"] {
-        rust_files(&root.join(dir), &mut files);
-    }
+    let files = workspace_rust_files(&root);
     // Any file naming the lint (allow, expect, warn, in any list or spacing).
     let opting_out: Vec<String> = files
         .iter()
@@ -260,9 +263,10 @@ fn unsafe_stays_in_one_module_with_a_safety_comment_per_use() {
         .collect();
     assert!(!uses.is_empty(), "{UNSAFE_MODULE}: no `unsafe` left: restore the forbid");
     for line in uses {
-        let comment = lines[..line].iter().rev().take_while(|l| l.trim_start().starts_with("//"));
+        let mut comment =
+            lines[..line].iter().rev().take_while(|l| l.trim_start().starts_with("//"));
         assert!(
-            comment.clone().any(|l| l.trim_start().starts_with("// SAFETY:")),
+            comment.any(|l| l.trim_start().starts_with("// SAFETY:")),
             "{UNSAFE_MODULE}:{}: `unsafe` without a `// SAFETY:` comment right above it",
             line + 1
         );

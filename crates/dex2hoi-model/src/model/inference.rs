@@ -453,11 +453,10 @@ impl InferenceModel {
         if parts <= 1 {
             return self.forward_rows(prefix, noisy, timesteps, condition);
         }
-        let bounds: Vec<(usize, usize)> =
-            (0..parts).map(|part| (part * batch / parts, (part + 1) * batch / parts)).collect();
-        let outputs = bounds
-            .par_iter()
-            .map(|&(start, end)| {
+        let outputs = (0..parts)
+            .into_par_iter()
+            .map(|part| {
+                let (start, end) = (part * batch / parts, (part + 1) * batch / parts);
                 let len = end - start;
                 crate::matmul::in_row_group(|| {
                     self.forward_rows(
