@@ -30,6 +30,7 @@ use clap::{Parser, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod body;
+mod candle_threads;
 mod compare;
 mod device;
 mod evaluate;
@@ -111,6 +112,8 @@ enum DataCommand {
 }
 
 fn main() -> std::process::ExitCode {
+    // Before anything starts a thread: candle reads it once, when its pool starts.
+    candle_threads::run_inline();
     match run(Cli::parse().command) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(error) => {

@@ -4,6 +4,9 @@
 //! weights, next to a large matmul measured in the same run. Medians; also written to
 //! `target/bench/sample.json`.
 
+#[path = "../../dex2hoi-cli/src/candle_threads.rs"]
+mod candle_threads;
+
 use std::time::{Duration, Instant};
 
 mod memory;
@@ -59,6 +62,8 @@ fn flops_per_forward(c: &ModelConfig, batch: usize) -> f64 {
 }
 
 fn main() {
+    // As `dex2hoi` does, before anything starts a thread.
+    candle_threads::run_inline();
     let device = Device::Cpu;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     println!("dex2hoi sampling benchmark ({} rayon threads; medians)\n", rayon_threads());

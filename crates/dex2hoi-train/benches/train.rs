@@ -8,6 +8,8 @@
 use std::path::Path;
 use std::time::Instant;
 
+#[path = "../../dex2hoi-cli/src/candle_threads.rs"]
+mod candle_threads;
 #[path = "../../dex2hoi-sample/benches/memory.rs"]
 mod memory;
 use memory::{peak_memory_mib, reset_peak_memory};
@@ -36,6 +38,8 @@ fn median_step(trainer: &mut Trainer, runs: usize) -> (f64, [f64; 5]) {
 }
 
 fn main() {
+    // As `dex2hoi` does, before anything starts a thread.
+    candle_threads::run_inline();
     let runs: usize =
         std::env::var("DEX2HOI_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(7);
     println!(

@@ -139,6 +139,13 @@ pub struct LoopConfig {
     /// Steps between checkpoints (default 500).
     #[serde(default = "default_checkpoint_every")]
     pub checkpoint_every: usize,
+    /// Most windows of a batch per group on the CPU (default 8): the model's forward and
+    /// backward passes run once per group of rows, the groups in parallel, each drawing its own
+    /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group.
+    /// A number of the configuration rather than of the machine, so that a run gives the same
+    /// bits on any thread count.
+    #[serde(default = "default_group_windows")]
+    pub group_windows: usize,
 }
 
 fn default_stride() -> usize {
@@ -155,6 +162,9 @@ fn default_half() -> f64 {
 }
 fn default_log_every() -> usize {
     10
+}
+fn default_group_windows() -> usize {
+    8
 }
 fn default_checkpoint_every() -> usize {
     500
@@ -243,6 +253,7 @@ impl TrainConfig {
             ("training.diffusion_steps", t.diffusion_steps),
             ("training.log_every", t.log_every),
             ("training.checkpoint_every", t.checkpoint_every),
+            ("training.group_windows", t.group_windows),
         ] {
             if value == 0 {
                 return bad(field, "a positive number", &value);

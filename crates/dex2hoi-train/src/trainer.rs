@@ -12,9 +12,11 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use candle_core::{DType, Device, Tensor};
-use rand::Rng;
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Tensor, Var};
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 
 use dex2hoi_data::dataset::{Dataset, write_atomically};
 use dex2hoi_data::window::WindowConfig;
@@ -79,6 +81,26 @@ pub fn trained_parameters(model_vars: &SeededVarMap, text: &TextModule) -> Vec<P
         parameters.extend(parameters_of(vars.var_map(), "text_encoder."));
     }
     parameters
+}
+
+/// The model's prediction of a step's batch, `[batch, 2, T_f, D]`, with its graph.
+enum Prediction {
+    /// One forward pass over the whole batch.
+    Whole(Tensor),
+    /// One forward pass per group of rows ([`Trainer::predict`]): `whole` is their outputs
+    /// joined, a leaf that the objective is computed on; `groups` holds each group's first
+    /// row and output, whose graphs reach the parameters.
+    Grouped { whole: Var, groups: Vec<(usize, Tensor)> },
+}
+
+impl Prediction {
+    /// The prediction of the whole batch.
+    fn tensor(&self) -> &Tensor {
+        match self {
+            Self::Whole(prediction) => prediction,
+            Self::Grouped { whole, .. } => whole.as_tensor(),
+        }
+    }
 }
 
 /// A model in training with its optimiser state.
@@ -227,14 +249,14 @@ impl Trainer {
     /// The objective of the batch of a step (no update): for tests and benchmarks.
     pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
         let mut rng = step_rng(self.config.training.seed, step);
-        self.objective(&mut rng, &mut StepTiming::default())
+        Ok(self.objective(&mut rng, &mut StepTiming::default())?.0)
     }
 
     fn objective(
         &self,
         rng: &mut ChaCha8Rng,
         timing: &mut StepTiming,
-    ) -> Result<crate::loss::Objective> {
+    ) -> Result<(crate::loss::Objective, Prediction)> {
         let clock = Instant::now();
         let c = &self.config;
         let options = BatchOptions {
@@ -262,12 +284,99 @@ impl Trainer {
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let prediction = self.model.forward(&input, Some(rng))?;
+        let prediction = self.predict(&input, batch.size, rng)?;
         timing.forward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let objective = self.loss.objective(&prediction, &batch, &timesteps);
+        let objective = self.loss.objective(prediction.tensor(), &batch, &timesteps)?;
         timing.objective = clock.elapsed().as_secs_f64();
-        objective
+        Ok((objective, prediction))
+    }
+
+    /// The model's prediction for a batch of `windows`: one forward pass, or on the CPU, for a
+    /// batch of more than `training.group_windows`, one per group of rows with the groups in
+    /// parallel. Each group draws its dropout masks from its own generator, seeded by a draw
+    /// of the step's in group order.
+    ///
+    /// Why groups: candle runs many of the backward pass's operations (gradient sums, copies,
+    /// zero fills) on one thread, and splits every product over all of them with a hand-off
+    /// per call; a group runs all of its work on one thread while the others run theirs.
+    /// Measured on 2 threads (`benches/train.rs`, session 17): a group of 16 windows on one
+    /// thread took 0.77 s, the batch of 32 on both 1.0 s.
+    fn predict(
+        &self,
+        input: &ModelInput<'_>,
+        windows: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<Prediction> {
+        let groups = windows.div_ceil(self.config.training.group_windows.max(1));
+        if groups <= 1 || !self.device.is_cpu() {
+            return Ok(Prediction::Whole(self.model.forward(input, Some(rng))?));
+        }
+        let seeds: Vec<u64> = (0..groups).map(|_| rng.random()).collect();
+        let bounds: Vec<(usize, usize)> = (0..groups)
+            .map(|g| (g * windows / groups, (g + 1) * windows / groups - g * windows / groups))
+            .collect();
+        let model = &self.model;
+        let outputs: Vec<Tensor> = bounds
+            .par_iter()
+            .zip(&seeds)
+            .map(|(&(start, len), &seed)| -> Result<Tensor> {
+                let rows = |t: &Tensor| t.narrow(0, start, len);
+                let mask = input.frame_mask.map(rows).transpose()?;
+                let group = ModelInput {
+                    noisy: &rows(input.noisy)?,
+                    prefix: &rows(input.prefix)?,
+                    timesteps: &rows(input.timesteps)?,
+                    text: &rows(input.text)?,
+                    bps: &rows(input.bps)?,
+                    presence: &rows(input.presence)?,
+                    frame_mask: mask.as_ref(),
+                };
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                Ok(model.forward(&group, Some(&mut rng))?)
+            })
+            .collect::<Result<_>>()?;
+        let detached: Vec<Tensor> = outputs.iter().map(Tensor::detach).collect();
+        let whole = Var::from_tensor(&Tensor::cat(&detached, 0)?)?;
+        let groups = bounds.into_iter().map(|(start, _)| start).zip(outputs).collect();
+        Ok(Prediction::Grouped { whole, groups })
+    }
+
+    /// The gradients of the trained parameters: through the objective and the model at once
+    /// for a whole-batch prediction; for a grouped one, the objective's gradient with respect
+    /// to the prediction first, then each group's backward pass from its rows of it (the
+    /// groups in parallel), summed in group order.
+    fn gradients(&self, total: &Tensor, prediction: Prediction) -> Result<GradStore> {
+        let (whole, groups) = match prediction {
+            Prediction::Whole(_) => return Ok(total.backward()?),
+            Prediction::Grouped { whole, groups } => (whole, groups),
+        };
+        let of_objective = total.backward()?;
+        let upstream = match of_objective.get(whole.as_tensor()) {
+            Some(gradient) => gradient.clone(),
+            None => whole.as_tensor().zeros_like()?,
+        };
+        let mut stores = groups
+            .par_iter()
+            .map(|(start, output)| -> Result<GradStore> {
+                let rows = upstream.narrow(0, *start, output.dim(0)?)?;
+                Ok((output * rows)?.sum_all()?.backward()?)
+            })
+            .collect::<Result<Vec<_>>>()?
+            .into_iter();
+        let mut merged = stores.next().expect("at least two groups");
+        for store in stores {
+            for parameter in &self.parameters {
+                let var = parameter.var.as_tensor();
+                let sum = match (merged.get(var), store.get(var)) {
+                    (Some(a), Some(b)) => (a + b)?,
+                    (None, Some(b)) => b.clone(),
+                    _ => continue,
+                };
+                merged.insert(var, sum);
+            }
+        }
+        Ok(merged)
     }
 
     /// One optimiser step. A NaN or infinite loss returns [`TrainError::NonFinite`] before
@@ -276,7 +385,7 @@ impl Trainer {
         let started = Instant::now();
         let mut rng = step_rng(self.config.training.seed, self.step);
         let mut timing = StepTiming::default();
-        let objective = self.objective(&mut rng, &mut timing)?;
+        let (objective, prediction) = self.objective(&mut rng, &mut timing)?;
         let loss = f64::from(objective.total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
         let mut terms = Vec::with_capacity(objective.terms.len());
         for (term, value) in &objective.terms {
@@ -300,7 +409,7 @@ impl Trainer {
             });
         }
         let clock = Instant::now();
-        let gradients = objective.total.backward()?;
+        let gradients = self.gradients(&objective.total, prediction)?;
         timing.backward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);

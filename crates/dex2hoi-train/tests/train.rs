@@ -472,3 +472,48 @@ fn tempfile_dir(name: &str) -> std::path::PathBuf {
     std::fs::create_dir_all(&dir).unwrap();
     dir
 }
+
+/// Losses and gradient norms of `steps` steps from the seed, and the parameters after them.
+fn train_steps(config: &TrainConfig, data: &Dataset, steps: usize) -> (Vec<(f64, f64)>, Vec<f32>) {
+    let mut trainer =
+        Trainer::new(config.clone(), data, Path::new("procedural"), &Device::Cpu).unwrap();
+    let reports =
+        (0..steps).map(|_| trainer.step(0).map(|r| (r.loss, r.gradient_norm)).unwrap()).collect();
+    let mut parameters = Vec::new();
+    for p in trainer.parameters() {
+        parameters.extend(p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap());
+    }
+    (reports, parameters)
+}
+
+/// On the CPU a batch trains as groups of `training.group_windows` windows, one forward and
+/// backward pass each (`Trainer::step`). Without dropout that is the same step as one pass over
+/// the whole batch, up to float rounding: the same losses, gradient norms and parameters after
+/// a few steps, with groups of uneven sizes (8 windows in groups of 2, 3, 3). And a grouped run
+/// gives the same bits on one thread as on several.
+#[test]
+fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
+    let data = dataset(32);
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    assert_eq!((config.model.dropout, config.training.batch_size), (0.0, 8));
+    config.training.group_windows = 8;
+    let (whole, whole_parameters) = train_steps(&config, &data, 4);
+    config.training.group_windows = 3;
+    let (grouped, grouped_parameters) = train_steps(&config, &data, 4);
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let on_one_thread = one_thread.install(|| train_steps(&config, &data, 4));
+    let relative = |x: f64, y: f64| (x - y).abs() / x.abs().max(1e-12);
+    for (step, (&(loss, norm), &(grouped_loss, grouped_norm))) in
+        whole.iter().zip(&grouped).enumerate()
+    {
+        assert!(relative(loss, grouped_loss) < 1e-5, "step {step}: loss {loss} vs {grouped_loss}");
+        assert!(relative(norm, grouped_norm) < 1e-4, "step {step}: norm {norm} vs {grouped_norm}");
+    }
+    let difference = whole_parameters
+        .iter()
+        .zip(&grouped_parameters)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(difference < 1e-5, "parameters differ by {difference}");
+    assert!((grouped, grouped_parameters) == on_one_thread, "a thread count changed the bits");
+}
