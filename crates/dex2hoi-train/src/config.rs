@@ -142,8 +142,8 @@ pub struct LoopConfig {
     /// Most windows of a batch per group on the CPU (default 8): the model's forward and
     /// backward passes run once per group of rows, the groups in parallel, each drawing its own
     /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group.
-    /// A number of the configuration rather than of the machine, so that a run gives the same
-    /// bits on any thread count.
+    /// A number of the configuration rather than of the machine, so that the thread count does
+    /// not change a run's bits.
     #[serde(default = "default_group_windows")]
     pub group_windows: usize,
 }
