@@ -7,8 +7,9 @@
 //! rayon's threads: training runs one forward and backward pass per group of windows on each
 //! (`dex2hoi_train::Trainer::step`). The groups' operations then wait on that lock in turn while
 //! the pool's threads spin on the cores the groups run on. Measured with `benches/train.rs`
-//! (`small`, batch 32, two groups, 2 threads, session 17): the backward pass took 0.90 s as it
-//! was and 0.52 s with `CANDLE_NUM_THREADS=1`, which leaves candle's pool without threads.
+//! (`small`, batch 32 in two groups of 16, 2 threads, session 17): the backward pass took
+//! 0.88-0.96 s as it was and 0.50-0.53 s with `CANDLE_NUM_THREADS=1`, which leaves candle's
+//! pool without threads.
 //!
 //! candle reads the variable once, when its pool starts, so [`run_inline`] runs first thing
 //! in `main` (the command line's and the benchmarks', which measure what it does).

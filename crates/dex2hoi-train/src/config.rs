@@ -139,13 +139,14 @@ pub struct LoopConfig {
     /// Steps between checkpoints (default 500).
     #[serde(default = "default_checkpoint_every")]
     pub checkpoint_every: usize,
-    /// Most windows of a batch per group on the CPU (default 8): the model's forward and
+    /// Most windows of a batch per group on the CPU (the presets: 8): the model's forward and
     /// backward passes run once per group of rows, the groups in parallel, each drawing its own
-    /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group.
-    /// A number of the configuration rather than of the machine, so that the thread count does
-    /// not change a run's bits.
-    #[serde(default = "default_group_windows")]
-    pub group_windows: usize,
+    /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group;
+    /// absent, the whole batch is (as every run before session 17 trained, so that their
+    /// checkpoints resume bit for bit). A number of the configuration rather than of the
+    /// machine, so that the thread count does not change a run's bits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub group_windows: Option<usize>,
 }
 
 fn default_stride() -> usize {
@@ -162,9 +163,6 @@ fn default_half() -> f64 {
 }
 fn default_log_every() -> usize {
     10
-}
-fn default_group_windows() -> usize {
-    8
 }
 fn default_checkpoint_every() -> usize {
     500
@@ -253,7 +251,7 @@ impl TrainConfig {
             ("training.diffusion_steps", t.diffusion_steps),
             ("training.log_every", t.log_every),
             ("training.checkpoint_every", t.checkpoint_every),
-            ("training.group_windows", t.group_windows),
+            ("training.group_windows", t.group_windows.unwrap_or(1)),
         ] {
             if value == 0 {
                 return bad(field, "a positive number", &value);

@@ -3,8 +3,9 @@
 //!
 //! Every random draw of a step comes from a ChaCha8 stream seeded by the run's seed and the
 //! step number (window choice, text choice and dropout, augmentation, timesteps, noise, dropout
-//! masks, in that order), so the generator state of a checkpoint is its step: a resumed run
-//! draws exactly what an uninterrupted one would.
+//! masks, in that order; a batch that trains in groups draws one seed per group there instead,
+//! each group's masks drawn from its own seed), so the generator state of a checkpoint is its
+//! step: a resumed run draws exactly what an uninterrupted one would.
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -89,8 +90,9 @@ enum Prediction {
     Whole(Tensor),
     /// One forward pass per group of rows ([`Trainer::predict`]): `whole` is their outputs
     /// joined, a leaf that the objective is computed on; `groups` holds each group's first
-    /// row and output, whose graphs reach the parameters.
-    Grouped { whole: Var, groups: Vec<(usize, Tensor)> },
+    /// row and output, whose graphs reach the parameters; `text` the texts' embedding (with
+    /// the text encoder's graph) and the leaf the groups read it from.
+    Grouped { whole: Var, groups: Vec<(usize, Tensor)>, text: (Tensor, Var) },
 }
 
 impl Prediction {
@@ -246,7 +248,9 @@ impl Trainer {
         Ok(embedded.to_dtype(DType::F32)?.broadcast_mul(&keep)?)
     }
 
-    /// The objective of the batch of a step (no update): for tests and benchmarks.
+    /// The objective of the batch of a step (no update): for tests and benchmarks. For a batch
+    /// that trains in groups (`training.group_windows`) the total's graph ends at the joined
+    /// prediction, not at the parameters.
     pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
         let mut rng = step_rng(self.config.training.seed, step);
         Ok(self.objective(&mut rng, &mut StepTiming::default())?.0)
@@ -292,30 +296,36 @@ impl Trainer {
         Ok((objective, prediction))
     }
 
-    /// The model's prediction for a batch of `windows`: one forward pass, or on the CPU, for a
-    /// batch of more than `training.group_windows`, one per group of rows with the groups in
-    /// parallel. Each group draws its dropout masks from its own generator, seeded by a draw
-    /// of the step's in group order.
+    /// The model's prediction for a batch of `windows`: one forward pass, or on the CPU, with
+    /// `training.group_windows` set and smaller than the batch, one per group of at most that
+    /// many windows, the groups in parallel. Each group draws its dropout masks from its own
+    /// generator, seeded by a draw of the step's stream in group order.
     ///
     /// Why groups: candle runs many of the backward pass's operations (gradient sums, copies,
-    /// zero fills) on one thread, and splits every product over all of them with a hand-off
-    /// per call; a group runs all of its work on one thread while the others run theirs.
-    /// Measured on 2 threads (`benches/train.rs`, session 17): a group of 16 windows on one
-    /// thread took 0.77 s, the batch of 32 on both 1.0 s.
+    /// zero fills) on the calling thread, one after the other; in groups, each thread runs
+    /// those of its own groups (the products are still split over the pool's threads).
+    /// Measured on 2 threads (`benches/train.rs`, `small`, batch 32, session 17): one group of
+    /// 16 windows on one thread took 0.77 s, the whole batch on both 1.0 s.
     fn predict(
         &self,
         input: &ModelInput<'_>,
         windows: usize,
         rng: &mut ChaCha8Rng,
     ) -> Result<Prediction> {
-        let groups = windows.div_ceil(self.config.training.group_windows.max(1));
-        if groups <= 1 || !self.device.is_cpu() {
+        let groups = match self.config.training.group_windows {
+            Some(most) if self.device.is_cpu() => windows.div_ceil(most.max(1)),
+            _ => 1,
+        };
+        if groups <= 1 {
             return Ok(Prediction::Whole(self.model.forward(input, Some(rng))?));
         }
         let seeds: Vec<u64> = (0..groups).map(|_| rng.random()).collect();
         let bounds: Vec<(usize, usize)> = (0..groups)
             .map(|g| (g * windows / groups, (g + 1) * windows / groups - g * windows / groups))
             .collect();
+        // The texts' embedding as a leaf too: its graph (the built-in encoder's) is walked
+        // once, from the groups' summed gradients, rather than once per group.
+        let text = Var::from_tensor(&input.text.detach())?;
         let model = &self.model;
         let outputs: Vec<Tensor> = bounds
             .par_iter()
@@ -327,7 +337,7 @@ impl Trainer {
                     noisy: &rows(input.noisy)?,
                     prefix: &rows(input.prefix)?,
                     timesteps: &rows(input.timesteps)?,
-                    text: &rows(input.text)?,
+                    text: &rows(text.as_tensor())?,
                     bps: &rows(input.bps)?,
                     presence: &rows(input.presence)?,
                     frame_mask: mask.as_ref(),
@@ -339,44 +349,67 @@ impl Trainer {
         let detached: Vec<Tensor> = outputs.iter().map(Tensor::detach).collect();
         let whole = Var::from_tensor(&Tensor::cat(&detached, 0)?)?;
         let groups = bounds.into_iter().map(|(start, _)| start).zip(outputs).collect();
-        Ok(Prediction::Grouped { whole, groups })
+        Ok(Prediction::Grouped { whole, groups, text: (input.text.clone(), text) })
     }
 
     /// The gradients of the trained parameters: through the objective and the model at once
-    /// for a whole-batch prediction; for a grouped one, the objective's gradient with respect
-    /// to the prediction first, then each group's backward pass from its rows of it (the
-    /// groups in parallel), summed in group order.
+    /// for a whole-batch prediction. For a grouped one: the objective's gradient with respect
+    /// to the joined prediction first, then each group's backward pass from its rows of it
+    /// (as many groups at a time as the pool has threads, so that only that many gradient
+    /// stores are alive), the parameters' gradients summed in group order, and last the text
+    /// encoder's from the groups' summed gradient of the embedding.
     fn gradients(&self, total: &Tensor, prediction: Prediction) -> Result<GradStore> {
-        let (whole, groups) = match prediction {
+        let (whole, groups, (text, text_leaf)) = match prediction {
             Prediction::Whole(_) => return Ok(total.backward()?),
-            Prediction::Grouped { whole, groups } => (whole, groups),
+            Prediction::Grouped { whole, groups, text } => (whole, groups, text),
         };
-        let of_objective = total.backward()?;
-        let upstream = match of_objective.get(whole.as_tensor()) {
-            Some(gradient) => gradient.clone(),
+        let upstream = match total.backward()?.get(whole.as_tensor()) {
+            Some(gradient) => gradient.detach(),
             None => whole.as_tensor().zeros_like()?,
         };
-        let mut stores = groups
-            .par_iter()
-            .map(|(start, output)| -> Result<GradStore> {
-                let rows = upstream.narrow(0, *start, output.dim(0)?)?;
-                Ok((output * rows)?.sum_all()?.backward()?)
-            })
-            .collect::<Result<Vec<_>>>()?
-            .into_iter();
-        let mut merged = stores.next().expect("at least two groups");
-        for store in stores {
-            for parameter in &self.parameters {
-                let var = parameter.var.as_tensor();
-                let sum = match (merged.get(var), store.get(var)) {
-                    (Some(a), Some(b)) => (a + b)?,
-                    (None, Some(b)) => b.clone(),
-                    _ => continue,
-                };
-                merged.insert(var, sum);
+        let mut merged: Option<GradStore> = None;
+        let mut text_gradient: Option<Tensor> = None;
+        for chunk in groups.chunks(rayon::current_num_threads().max(1)) {
+            let stores = chunk
+                .par_iter()
+                .map(|(start, output)| -> Result<GradStore> {
+                    let rows = upstream.narrow(0, *start, output.dim(0)?)?;
+                    Ok((output * rows)?.sum_all()?.backward()?)
+                })
+                .collect::<Result<Vec<_>>>()?;
+            for mut store in stores {
+                if let Some(gradient) = store.remove(text_leaf.as_tensor()) {
+                    text_gradient = Some(match text_gradient {
+                        Some(sum) => (sum + gradient)?,
+                        None => gradient,
+                    });
+                }
+                merged = Some(match merged {
+                    None => store,
+                    Some(merged) => self.add_gradients(merged, &store)?,
+                });
             }
         }
+        let mut merged = merged.expect("at least two groups");
+        if let Some(gradient) = text_gradient {
+            let of_text = (text * gradient.detach())?.sum_all()?.backward()?;
+            merged = self.add_gradients(merged, &of_text)?;
+        }
         Ok(merged)
+    }
+
+    /// `into` with the trained parameters' gradients of `from` added.
+    fn add_gradients(&self, mut into: GradStore, from: &GradStore) -> Result<GradStore> {
+        for parameter in &self.parameters {
+            let var = parameter.var.as_tensor();
+            let sum = match (into.get(var), from.get(var)) {
+                (Some(a), Some(b)) => (a + b)?,
+                (None, Some(b)) => b.clone(),
+                _ => continue,
+            };
+            into.insert(var, sum);
+        }
+        Ok(into)
     }
 
     /// One optimiser step. A NaN or infinite loss returns [`TrainError::NonFinite`] before
