@@ -66,11 +66,18 @@ const TILE_ROWS: usize = 4;
 const TILE_COLUMNS: usize = 16;
 
 /// `c = a b` for row-major `a` `[m, k]`, `b` `[k, n]` and `c` `[m, n]`: the small products of
-/// one head (at most a few hundred rows and columns), register-blocked in tiles of
+/// one head (at most a few hundred rows and columns). In f32 through gemm on this thread (the
+/// sequences are already spread over the threads): 1.65x faster for the forward pass of a
+/// `small` batch's attention than the loop below (session 17). In f64 (the gradient checks)
+/// register-blocked in tiles of
 /// [`TILE_ROWS`] x [`TILE_COLUMNS`] whose sums stay in registers while the rows of `b` stream
 /// past (vectorised under [`simd`]).
 #[inline(always)]
 fn product<T: Real>(a: &[T], b: &[T], c: &mut [T], (m, k, n): (usize, usize, usize)) {
+    if let Some(out) = T::gemm_product(a, b, (m, k, n)) {
+        c.copy_from_slice(&out);
+        return;
+    }
     for i in (0..m).step_by(TILE_ROWS) {
         let rows = TILE_ROWS.min(m - i);
         for j in (0..n).step_by(TILE_COLUMNS) {
