@@ -1,6 +1,9 @@
 //! Row-major f32 matrix products on the CPU, straight through `gemm` (the crate candle's CPU
-//! backend calls for `Tensor::matmul`). This is the one module of the workspace that uses
-//! `unsafe` (the workspace denies it everywhere else; a tidy test keeps it to this file).
+//! backend calls for `Tensor::matmul`): the inference path's, and the per-head products of the
+//! training attention (`differentiable::attention`, on the calling thread). One of the two
+//! modules of the workspace that use `unsafe` (the workspace denies it everywhere else; a tidy
+//! test keeps it to them; the other sets an environment variable, `dex2hoi-cli`'s
+//! `candle_threads`).
 //!
 //! Why not `Tensor::matmul` on the inference path: candle asks for its thread count on every
 //! product (`candle_core::utils::get_num_threads`), which on Linux reads and parses
