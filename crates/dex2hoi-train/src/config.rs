@@ -143,7 +143,7 @@ pub struct LoopConfig {
     /// backward passes run once per group of rows, the groups in parallel, each drawing its own
     /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group;
     /// absent, the whole batch is (as every run before session 17 trained, so that their
-    /// checkpoints resume bit for bit). A number of the configuration rather than of the
+    /// checkpoints resume as they trained). A number of the configuration rather than of the
     /// machine, so that the thread count does not change a run's bits.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub group_windows: Option<usize>,
