@@ -21,4 +21,4 @@ pub use config::{
 };
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
-pub use model::{InferenceModel, Model, ModelInput, PreparedCondition};
+pub use model::{InferenceModel, Model, ModelInput, PreparedCondition, row_groups};

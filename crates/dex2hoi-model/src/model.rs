@@ -26,6 +26,15 @@ use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, Transformer
 mod inference;
 pub use inference::{InferenceModel, PreparedCondition};
 
+/// `rows` split into `groups` runs as even as can be, in order: each run's first row and length
+/// (the row groups of [`InferenceModel::forward`] and of training on the CPU).
+pub fn row_groups(rows: usize, groups: usize) -> impl Iterator<Item = (usize, usize)> {
+    (0..groups).map(move |g| {
+        let (start, end) = (g * rows / groups, (g + 1) * rows / groups);
+        (start, end - start)
+    })
+}
+
 /// What the model reads for one batch.
 #[derive(Debug, Clone, Copy)]
 pub struct ModelInput<'a> {

@@ -320,9 +320,7 @@ impl Trainer {
             return Ok(Prediction::Whole(self.model.forward(input, Some(rng))?));
         }
         let seeds: Vec<u64> = (0..groups).map(|_| rng.random()).collect();
-        let bounds: Vec<(usize, usize)> = (0..groups)
-            .map(|g| (g * windows / groups, (g + 1) * windows / groups - g * windows / groups))
-            .collect();
+        let bounds: Vec<(usize, usize)> = dex2hoi_model::row_groups(windows, groups).collect();
         // The texts' embedding as a leaf too: its graph (the built-in encoder's) is walked
         // once, from the groups' summed gradients, rather than once per group.
         let text = Var::from_tensor(&input.text.detach())?;

@@ -453,11 +453,10 @@ impl InferenceModel {
         if parts <= 1 {
             return self.forward_rows(prefix, noisy, timesteps, condition);
         }
-        let outputs = (0..parts)
+        let bounds: Vec<(usize, usize)> = super::row_groups(batch, parts).collect();
+        let outputs = bounds
             .into_par_iter()
-            .map(|part| {
-                let (start, end) = (part * batch / parts, (part + 1) * batch / parts);
-                let len = end - start;
+            .map(|(start, len)| {
                 crate::matmul::in_row_group(|| {
                     self.forward_rows(
                         &prefix.narrow(0, start, len)?,
