@@ -13,6 +13,7 @@ use rayon::prelude::*;
 
 use crate::differentiable::{ROWS_PER_TASK, op_error, simd};
 use crate::layers::LAYER_NORM_EPS;
+use crate::matmul::{Strided, product_into};
 
 /// The values of a contiguous f32 tensor.
 fn values<'a>(
@@ -23,12 +24,7 @@ fn values<'a>(
     crate::differentiable::values::<f32>(op, storage, layout)
 }
 
-/// Query rows per rayon task of the attention, attended together by the blocked kernel.
-const QUERY_BLOCK: usize = 4;
-
-/// Floats per SIMD tile of the blocked attention kernel: one AVX-512 register, two AVX2 ones.
-/// With [`QUERY_BLOCK`] rows that is four (eight) independent sums in flight, enough to keep
-/// the FMA units busy; 8 lanes were about 10% slower for a `small` sample (session 16).
+/// Independent partial sums of the row reductions: one AVX-512 register, two AVX2 ones.
 const LANES: usize = 16;
 
 /// The last dimension and the number of rows before it.
@@ -374,9 +370,19 @@ impl CustomOp3 for Residual {
 }
 
 /// Multi-head attention after the projections ([`crate::layers::Attention`] without its
-/// linear layers): the projections' biases added on the fly, scores scaled by
-/// `1/sqrt(head)`, softmax fused, heads merged in the output. Queries, keys and values are read
-/// where the (fused) projections put them, so no head split or transposition is copied.
+/// linear layers): scores scaled by `1/sqrt(head)`, softmax fused, heads merged in the output.
+/// Queries, keys and values are read where the (fused) projections put them, each head's two
+/// products straight from there ([`crate::matmul::product_into`]), so no head split,
+/// transposition or biased copy is made.
+///
+/// The projections' biases enter without being added to every row (Eq. 5's attention is
+/// unchanged):
+/// - the query bias `b_q` adds `b_q . k_j` to every query's score for key `j`: one row of
+///   `Tk` values per head, the scores' starting value;
+/// - the key bias `b_k` adds `q_i . b_k + b_q . b_k` to query `i`'s scores for every key
+///   alike, which the softmax removes;
+/// - the value bias `b_v` adds `b_v` to every output row (a softmax row sums to 1), added
+///   while the row is normalised.
 ///
 /// # Shapes
 /// - `queries`: `[N, Tq, Cq]`, the queries at columns `query_column..query_column + latent`
@@ -392,134 +398,6 @@ pub struct Attention {
     pub query_column: usize,
     /// The first column of the keys in their tensor (the values follow).
     pub key_column: usize,
-}
-
-impl Attention {
-    /// Each sequence's biased keys or values per head: `[N][heads][Tk][head]`, or with a
-    /// `transposed_stride` `[N][heads][head][stride]` (the keys, zero-padded to `stride >= Tk`:
-    /// the scores of a query are then sums of contiguous rows, which vectorise without
-    /// horizontal sums).
-    fn gather(
-        &self,
-        source: &[f32],
-        (frames, width, column): (usize, usize, usize),
-        bias: &[f32],
-        transposed_stride: Option<usize>,
-    ) -> Vec<f32> {
-        let head = self.latent / self.heads;
-        let sequences = source.len() / (frames * width).max(1);
-        let per_head = transposed_stride.unwrap_or(frames) * head;
-        let mut out = vec![0f32; sequences * self.heads * per_head];
-        out.par_chunks_mut((self.heads * per_head).max(1)).enumerate().for_each(|(n, out)| {
-            for h in 0..self.heads {
-                let block = &mut out[h * per_head..][..per_head];
-                for j in 0..frames {
-                    let from = &source[(n * frames + j) * width + column + h * head..][..head];
-                    for (d, (&f, &b)) in from.iter().zip(&bias[h * head..]).enumerate() {
-                        let at = match transposed_stride {
-                            Some(stride) => d * stride + j,
-                            None => j * head + d,
-                        };
-                        block[at] = f + b;
-                    }
-                }
-            }
-        });
-        out
-    }
-
-    /// One query row of one head: `softmax(q K^T / sqrt(head)) V` into `out`.
-    ///
-    /// `keys_t` is `[head][stride]`, `values` `[Tk][head]`; `scores` is scratch of `Tk`.
-    #[inline(always)]
-    fn attend(
-        query: &[f32],
-        keys_t: &[f32],
-        values: &[f32],
-        (stride, scale): (usize, f32),
-        scores: &mut [f32],
-        out: &mut [f32],
-    ) {
-        let frames = scores.len();
-        scores.fill(0.0);
-        for (&q, keys) in query.iter().zip(keys_t.chunks_exact(stride)) {
-            for (s, &k) in scores.iter_mut().zip(keys) {
-                *s = q.mul_add(k, *s);
-            }
-        }
-        let largest = max(scores) * scale;
-        for s in scores.iter_mut() {
-            *s = exp(*s * scale - largest);
-        }
-        let total = sum(scores, |s| s);
-        out.fill(0.0);
-        for (&w, value) in scores[..frames].iter().zip(values.chunks_exact(out.len())) {
-            let w = w / total;
-            for (o, &v) in out.iter_mut().zip(value) {
-                *o = w.mul_add(v, *o);
-            }
-        }
-    }
-
-    /// [`Self::attend`] for [`QUERY_BLOCK`] query rows of one head at once, register-blocked:
-    /// each tile of [`LANES`] keys (or head channels) is loaded once for all the rows while
-    /// their sums stay in registers. `head` and `stride` must be multiples of [`LANES`]; the
-    /// zero padding keys past `Tk` never enter the softmax.
-    ///
-    /// `queries` is `[QUERY_BLOCK][head]`, `keys_t` `[head][stride]`, `values` `[Tk][head]`,
-    /// `scores` scratch of `[QUERY_BLOCK][stride]`; `out[r]` receives row `r`.
-    #[inline(always)]
-    fn attend_block(
-        queries: &[f32],
-        keys_t: &[f32],
-        values: &[f32],
-        (frames, stride, scale): (usize, usize, f32),
-        scores: &mut [f32],
-        out: &mut [&mut [f32]; QUERY_BLOCK],
-    ) {
-        let head = queries.len() / QUERY_BLOCK;
-        for tile in (0..stride).step_by(LANES) {
-            let mut sums = [[0f32; LANES]; QUERY_BLOCK];
-            for d in 0..head {
-                let keys = &keys_t[d * stride + tile..][..LANES];
-                for (r, sums) in sums.iter_mut().enumerate() {
-                    let q = queries[r * head + d];
-                    for (s, &k) in sums.iter_mut().zip(keys) {
-                        *s = q.mul_add(k, *s);
-                    }
-                }
-            }
-            for (r, sums) in sums.iter().enumerate() {
-                scores[r * stride + tile..][..LANES].copy_from_slice(sums);
-            }
-        }
-        let mut inverse = [0f32; QUERY_BLOCK];
-        for (r, inverse) in inverse.iter_mut().enumerate() {
-            let row = &mut scores[r * stride..][..frames];
-            let largest = max(row) * scale;
-            for s in row.iter_mut() {
-                *s = exp(*s * scale - largest);
-            }
-            *inverse = 1.0 / sum(row, |s| s);
-        }
-        for tile in (0..head).step_by(LANES) {
-            let mut sums = [[0f32; LANES]; QUERY_BLOCK];
-            for j in 0..frames {
-                let value = &values[j * head + tile..][..LANES];
-                for (r, sums) in sums.iter_mut().enumerate() {
-                    let w = scores[r * stride + j];
-                    for (s, &v) in sums.iter_mut().zip(value) {
-                        *s = w.mul_add(v, *s);
-                    }
-                }
-            }
-            for ((out, sums), &inverse) in out.iter_mut().zip(&sums).zip(&inverse) {
-                for (o, &s) in out[tile..][..LANES].iter_mut().zip(sums) {
-                    *o = s * inverse;
-                }
-            }
-        }
-    }
 }
 
 impl CustomOp3 for Attention {
@@ -545,6 +423,7 @@ impl CustomOp3 for Attention {
         if self.heads == 0
             || !l.is_multiple_of(self.heads)
             || kv_sequences != sequences
+            || key_frames == 0
             || self.query_column + l > query_width
             || self.key_column + 2 * l > kv_width
             || bias.len() != 3 * l
@@ -552,7 +431,7 @@ impl CustomOp3 for Attention {
             return Err(op_error(
                 self.name(),
                 format!(
-                    "queries [N, Tq, >= {}], keys and values [N, Tk, >= {}], a bias of {} and heads dividing {l}; got {:?}, {:?}, {}",
+                    "queries [N, Tq, >= {}], keys and values [N, Tk >= 1, >= {}], a bias of {} and heads dividing {l}; got {:?}, {:?}, {}",
                     self.query_column + l,
                     self.key_column + 2 * l,
                     3 * l,
@@ -564,67 +443,106 @@ impl CustomOp3 for Attention {
         }
         let head = l / self.heads;
         let scale = 1.0 / (head as f32).sqrt();
-        // The keys' rows are padded to whole SIMD tiles for the blocked kernel.
-        let stride = key_frames.div_ceil(LANES) * LANES;
-        let source = (key_frames, kv_width, self.key_column);
-        let keys_t = self.gather(keys_values, source, &bias[l..2 * l], Some(stride));
-        let source = (key_frames, kv_width, self.key_column + l);
-        let vals = self.gather(keys_values, source, &bias[2 * l..], None);
-        let (keys_per_head, values_per_head) = (stride * head, key_frames * head);
-        let keys_of =
-            |n: usize, h: usize| &keys_t[(n * self.heads + h) * keys_per_head..][..keys_per_head];
-        let values_of =
-            |n: usize, h: usize| &vals[(n * self.heads + h) * values_per_head..][..values_per_head];
-        let load_query = |row: usize, h: usize, into: &mut [f32]| {
-            let q_row = &queries[row * query_width + self.query_column + h * head..][..head];
-            for ((into, &x), &b) in into.iter_mut().zip(q_row).zip(&bias[h * head..]) {
-                *into = x + b;
-            }
-        };
-        // Tasks of QUERY_BLOCK rows: whole blocks of one sequence when the frames divide.
-        let blocked = head.is_multiple_of(LANES) && query_frames.is_multiple_of(QUERY_BLOCK);
+        let (query_bias, value_bias) = (&bias[..l], &bias[2 * l..]);
         let mut out = vec![0f32; sequences * query_frames * l];
-        out.par_chunks_mut((l * QUERY_BLOCK).max(1)).enumerate().for_each(|(task, out)| {
-            simd(
-                #[inline(always)]
-                || {
-                    let first = task * QUERY_BLOCK;
-                    let mut query = vec![0f32; QUERY_BLOCK * head];
-                    let mut scores = vec![0f32; QUERY_BLOCK * stride];
-                    if blocked {
-                        let n = first / query_frames;
-                        let sizes = (key_frames, stride, scale);
-                        for h in 0..self.heads {
-                            for (r, query) in query.chunks_exact_mut(head).enumerate() {
-                                load_query(first + r, h, query);
-                            }
-                            let mut rows =
-                                out.chunks_exact_mut(l).map(|o| &mut o[h * head..][..head]);
-                            let mut outs: [&mut [f32]; QUERY_BLOCK] = std::array::from_fn(|_| {
-                                rows.next().expect("whole blocks when the frames divide")
-                            });
-                            let (keys, values) = (keys_of(n, h), values_of(n, h));
-                            Self::attend_block(&query, keys, values, sizes, &mut scores, &mut outs);
+        // One task per sequence: its heads one after the other on one thread.
+        out.par_chunks_mut((query_frames * l).max(1)).enumerate().for_each(|(n, out)| {
+            let queries = &queries[n * query_frames * query_width..][..query_frames * query_width];
+            let keys_values = &keys_values[n * key_frames * kv_width..][..key_frames * kv_width];
+            let mut scores = vec![0f32; query_frames * key_frames];
+            let mut key_scores = vec![0f32; key_frames];
+            let mut inverse = vec![0f32; query_frames];
+            for h in 0..self.heads {
+                let (query_column, key_column) =
+                    (self.query_column + h * head, self.key_column + h * head);
+                let key_view = |column: usize| Strided {
+                    data: &keys_values[column..],
+                    rows: key_frames,
+                    columns: head,
+                    row_stride: kv_width,
+                    column_stride: 1,
+                };
+                let (keys, values) = (key_view(key_column), key_view(key_column + l));
+                let query = Strided {
+                    data: &queries[query_column..],
+                    rows: query_frames,
+                    columns: head,
+                    row_stride: query_width,
+                    column_stride: 1,
+                };
+                // The keys transposed, read in place: `[head, Tk]`.
+                let keys_t = Strided {
+                    rows: head,
+                    columns: key_frames,
+                    row_stride: 1,
+                    column_stride: kv_width,
+                    ..keys
+                };
+                let query_bias = &query_bias[h * head..][..head];
+                simd(
+                    #[inline(always)]
+                    || {
+                        for (j, score) in key_scores.iter_mut().enumerate() {
+                            let key = &keys_values[j * kv_width + key_column..][..head];
+                            *score = scale * dot(query_bias, key);
                         }
-                    } else {
-                        for (r, o) in out.chunks_exact_mut(l).enumerate() {
-                            let row = first + r;
-                            let n = row / query_frames.max(1);
-                            for h in 0..self.heads {
-                                let query = &mut query[..head];
-                                load_query(row, h, query);
-                                let (keys, values) = (keys_of(n, h), values_of(n, h));
-                                let scores = &mut scores[..key_frames];
-                                let o = &mut o[h * head..][..head];
-                                Self::attend(query, keys, values, (stride, scale), scores, o);
+                        for row in scores.chunks_exact_mut(key_frames) {
+                            row.copy_from_slice(&key_scores);
+                        }
+                    },
+                );
+                product_into(&mut scores, key_frames, query, keys_t, scale, true);
+                simd(
+                    #[inline(always)]
+                    || {
+                        let rows = scores.chunks_exact_mut(key_frames);
+                        for (row, inverse) in rows.zip(inverse.iter_mut()) {
+                            let largest = max(row);
+                            for s in row.iter_mut() {
+                                *s = exp(*s - largest);
+                            }
+                            *inverse = 1.0 / sum(row, |s| s);
+                        }
+                    },
+                );
+                let weights = Strided {
+                    data: &scores,
+                    rows: query_frames,
+                    columns: key_frames,
+                    row_stride: key_frames,
+                    column_stride: 1,
+                };
+                let heads_out = &mut out[h * head..];
+                product_into(heads_out, l, weights, values, 1.0, false);
+                let value_bias = &value_bias[h * head..][..head];
+                simd(
+                    #[inline(always)]
+                    || {
+                        for (row, &inverse) in heads_out.chunks_mut(l).zip(&inverse) {
+                            for (o, &b) in row[..head].iter_mut().zip(value_bias) {
+                                *o = o.mul_add(inverse, b);
                             }
                         }
-                    }
-                },
-            )
+                    },
+                );
+            }
         });
         Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
     }
+}
+
+/// `a . b` in [`LANES`] independent partial sums (see [`sum`]).
+#[inline(always)]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut lanes = [0f32; LANES];
+    let (chunks_a, chunks_b) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let tail: f32 = chunks_a.remainder().iter().zip(chunks_b.remainder()).map(|(x, y)| x * y).sum();
+    for (chunk_a, chunk_b) in chunks_a.zip(chunks_b) {
+        for ((lane, &x), &y) in lanes.iter_mut().zip(chunk_a).zip(chunk_b) {
+            *lane = x.mul_add(y, *lane);
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
 }
 
 /// `x` through [`LayerNorm`].

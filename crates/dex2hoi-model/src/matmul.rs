@@ -1,6 +1,7 @@
 //! Row-major f32 matrix products on the CPU, straight through `gemm` (the crate candle's CPU
 //! backend calls for `Tensor::matmul`): the inference path's, and the per-head products of the
-//! training attention (`differentiable::attention`, on the calling thread). One of the two
+//! training attention (`differentiable::attention`, on the calling thread), and [`product_into`]
+//! on views read in place (the inference attention's per-head products). One of the two
 //! modules of the workspace that use `unsafe` (the workspace denies it everywhere else; a tidy
 //! test keeps it to them; the other sets an environment variable, `dex2hoi-cli`'s
 //! `candle_threads`).
@@ -15,8 +16,8 @@
 //! and on every thread of the pool elsewhere.
 //!
 //! Why `unsafe`: `gemm::gemm` takes raw pointers and strides, and safe Rust cannot call it.
-//! [`product`] checks every length (with overflow-checked sizes) before the call, so that safe
-//! callers cannot make it read or write out of bounds.
+//! [`product`] and [`product_into`] check every length and stride (with overflow-checked
+//! sizes) before the call, so that safe callers cannot make them read or write out of bounds.
 #![allow(unsafe_code)]
 
 use std::cell::Cell;
@@ -40,6 +41,102 @@ pub(crate) fn in_row_group<R>(work: impl FnOnce() -> R) -> R {
     }
     let _restore = Restore(IN_ROW_GROUP.with(|flag| flag.replace(true)));
     work()
+}
+
+/// A matrix read in place from a slice: element `(r, c)` at `r * row_stride + c * column_stride`
+/// (a head's columns of a projection, or a transposed view, without copying).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Strided<'a> {
+    pub data: &'a [f32],
+    pub rows: usize,
+    pub columns: usize,
+    pub row_stride: usize,
+    pub column_stride: usize,
+}
+
+impl Strided<'_> {
+    /// Whether every element's index is inside `data` (overflow-checked); empty views always
+    /// are.
+    fn fits(&self) -> bool {
+        if self.rows == 0 || self.columns == 0 {
+            return true;
+        }
+        let last = (self.rows - 1)
+            .checked_mul(self.row_stride)
+            .zip((self.columns - 1).checked_mul(self.column_stride))
+            .and_then(|(r, c)| r.checked_add(c));
+        last.is_some_and(|last| last < self.data.len())
+    }
+}
+
+/// `out = scale * lhs @ rhs`, or with `accumulate` `out += scale * lhs @ rhs`, on the calling
+/// thread: `lhs` is `[rows, inner]`, `rhs` `[inner, columns]`, both read in place; `out` holds
+/// row `r` at `r * out_row_stride..` (`out_row_stride >= columns`, so that no two elements
+/// share a place). The attention's per-head products (`crate::fused::Attention`).
+///
+/// # Panics
+/// If the inner sizes differ, a view reaches past its slice, `out` is too short or its row
+/// stride below `columns`, or a size overflows `usize`.
+pub(crate) fn product_into(
+    out: &mut [f32],
+    out_row_stride: usize,
+    lhs: Strided<'_>,
+    rhs: Strided<'_>,
+    scale: f32,
+    accumulate: bool,
+) {
+    let (rows, inner, columns) = (lhs.rows, lhs.columns, rhs.columns);
+    assert_eq!(rhs.rows, inner, "lhs is [{rows}, {inner}], rhs has {} rows", rhs.rows);
+    assert!(lhs.fits() && rhs.fits(), "a view reaches past its slice");
+    assert!(out_row_stride >= columns, "out's row stride {out_row_stride} below {columns}");
+    if rows == 0 || columns == 0 {
+        return;
+    }
+    let out_end = (rows - 1)
+        .checked_mul(out_row_stride)
+        .and_then(|r| r.checked_add(columns))
+        .expect("an output size that fits in usize");
+    assert!(out_end <= out.len(), "out holds {} values, needs {out_end}", out.len());
+    if inner == 0 {
+        // An empty sum is zero: no call with empty or dangling pointers.
+        if !accumulate {
+            for row in out.chunks_mut(out_row_stride).take(rows) {
+                row[..columns].fill(0.0);
+            }
+        }
+        return;
+    }
+    let stride = |s: usize| isize::try_from(s).expect("a stride that fits in isize");
+    // SAFETY: every index gemm reads is below its slice's length: `lhs` element `(r, i)` at
+    // `r * lhs.row_stride + i * lhs.column_stride` for `r < rows`, `i < inner`, and `rhs`
+    // element `(i, c)` likewise, are at most the last index checked by `fits`; `out` element
+    // `(r, c)` at `r * out_row_stride + c < out_end <= out.len()`, each at its own index (row
+    // stride at least `columns`, column stride 1). The slices are live for the whole call and
+    // `out` is borrowed mutably, apart from the inputs. `Parallelism::None`: gemm writes from
+    // this thread only. With `read_dst` false gemm only writes `out` (alpha unused).
+    unsafe {
+        gemm::gemm(
+            rows,
+            columns,
+            inner,
+            out.as_mut_ptr(),
+            1,
+            stride(out_row_stride),
+            accumulate,
+            lhs.data.as_ptr(),
+            stride(lhs.column_stride),
+            stride(lhs.row_stride),
+            rhs.data.as_ptr(),
+            stride(rhs.column_stride),
+            stride(rhs.row_stride),
+            1.0,
+            scale,
+            false,
+            false,
+            false,
+            Parallelism::None,
+        );
+    }
 }
 
 /// `lhs @ rhs` for a row-major `[rows, inner]` `lhs` and `[inner, columns]` `rhs`: the
@@ -99,4 +196,109 @@ pub(crate) fn product(
         );
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::{Strided, product_into};
+
+    /// Element `(r, c)` of a view, read by index.
+    fn at(view: &Strided<'_>, r: usize, c: usize) -> f32 {
+        view.data[r * view.row_stride + c * view.column_stride]
+    }
+
+    /// `product_into` against a plain triple loop: row-major, transposed and padded views,
+    /// odd sizes, accumulating or not, the output's padding left alone.
+    #[test]
+    fn product_into_equals_the_plain_sum_on_strided_views() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for (rows, inner, columns) in
+            [(1, 1, 1), (7, 3, 5), (60, 64, 60), (60, 60, 64), (17, 33, 129), (3, 0, 4)]
+        {
+            for (transposed_lhs, transposed_rhs, accumulate) in [
+                (false, false, false),
+                (true, false, true),
+                (false, true, false),
+                (true, true, true),
+            ] {
+                // Each operand sits inside a wider buffer, possibly transposed.
+                let view = |data, rows, columns, transposed: bool, pad: usize| {
+                    if transposed {
+                        Strided { data, rows, columns, row_stride: 1, column_stride: rows + pad }
+                    } else {
+                        Strided { data, rows, columns, row_stride: columns + pad, column_stride: 1 }
+                    }
+                };
+                let mut buffer = |len: usize| -> Vec<f32> {
+                    (0..len).map(|_| rng.random_range(-1.0..1.0)).collect()
+                };
+                let (lhs_values, rhs_values) =
+                    (buffer((rows + 3) * (inner + 3)), buffer((inner + 2) * (columns + 2)));
+                let lhs = view(&lhs_values, rows, inner, transposed_lhs, 3);
+                let rhs = view(&rhs_values, inner, columns, transposed_rhs, 2);
+                let out_stride = columns + 1;
+                let start: Vec<f32> =
+                    (0..rows * out_stride).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let mut out = start.clone();
+                product_into(&mut out, out_stride, lhs, rhs, 0.5, accumulate);
+                for r in 0..rows {
+                    for c in 0..out_stride {
+                        let old = start[r * out_stride + c];
+                        let expected = if c == columns {
+                            old
+                        } else {
+                            let sum: f32 =
+                                (0..inner).map(|i| at(&lhs, r, i) * at(&rhs, i, c)).sum();
+                            0.5 * sum + if accumulate { old } else { 0.0 }
+                        };
+                        let got = out[r * out_stride + c];
+                        assert!(
+                            (got - expected).abs() < 1e-4,
+                            "{rows}x{inner}x{columns} ({r}, {c}): {got} vs {expected}"
+                        );
+                    }
+                }
+            }
+        }
+        // Empty outputs write nothing.
+        let mut out = vec![7f32; 3];
+        let empty = Strided { data: &[], rows: 0, columns: 4, row_stride: 4, column_stride: 1 };
+        let rhs =
+            Strided { data: &[1.0; 12], rows: 4, columns: 3, row_stride: 3, column_stride: 1 };
+        product_into(&mut out, 3, empty, rhs, 1.0, false);
+        assert_eq!(out, [7.0; 3]);
+    }
+
+    /// Views past their slice, a short output and overlapping output rows are refused before
+    /// gemm is called.
+    #[test]
+    fn product_into_refuses_what_would_reach_out_of_bounds() {
+        let data = [1f32; 12];
+        let view = |rows, columns, row_stride| Strided {
+            data: &data,
+            rows,
+            columns,
+            row_stride,
+            column_stride: 1,
+        };
+        let attempt = |out_len: usize, out_stride, lhs, rhs| {
+            std::panic::catch_unwind(move || {
+                let mut out = vec![0f32; out_len];
+                product_into(&mut out, out_stride, lhs, rhs, 1.0, false);
+            })
+            .is_err()
+        };
+        assert!(!attempt(9, 3, view(3, 4, 4), view(4, 3, 3)));
+        assert!(attempt(9, 3, view(3, 4, 5), view(4, 3, 3)), "lhs past its slice");
+        assert!(attempt(9, 3, view(3, 4, 4), view(4, 3, 4)), "rhs past its slice");
+        assert!(attempt(8, 3, view(3, 4, 4), view(4, 3, 3)), "output too short");
+        assert!(attempt(9, 2, view(3, 4, 4), view(4, 3, 3)), "output rows overlapping");
+        assert!(attempt(9, 3, view(3, 4, 4), view(3, 3, 3)), "inner sizes differ");
+        let huge =
+            Strided { data: &data, rows: 2, columns: 1, row_stride: usize::MAX, column_stride: 1 };
+        assert!(attempt(9, 3, huge, view(1, 3, 3)), "an overflowing stride");
+    }
 }

@@ -99,9 +99,20 @@ impl Conditioning {
     /// # Shapes
     /// - `timesteps`: `[batch]`; returns `[batch, latent]`
     fn time(&self, timesteps: &Tensor, dtype: DType) -> Result<Tensor> {
+        self.time_with(timesteps, dtype, Dense::forward)
+    }
+
+    /// [`Self::time`] with its linear layers applied by `project` (the inference path's
+    /// products).
+    fn time_with(
+        &self,
+        timesteps: &Tensor,
+        dtype: DType,
+        project: impl Fn(&Dense, &Tensor) -> Result<Tensor>,
+    ) -> Result<Tensor> {
         let device = self.time_in.weight.device();
         let time = timestep_embedding(timesteps, self.latent, dtype, device)?;
-        self.time_out.forward(&self.time_in.forward(&time)?.silu()?)
+        project(&self.time_out, &project(&self.time_in, &time)?.silu()?)
     }
 }
 
@@ -343,16 +354,19 @@ impl FusionNetwork {
         presence_b: &Tensor,
         rng: Option<&mut ChaCha8Rng>,
     ) -> Result<Tensor> {
-        self.fuse(body_a, body_b, presence_b, |x| self.layers.forward(x, None, rng))
+        let encode = |x: &Tensor| self.layers.forward(x, None, rng);
+        self.fuse(body_a, body_b, presence_b, Dense::forward, encode)
     }
 
-    /// [`Self::forward`] with the trunk (blocks and final norm) given by `encode`: the
-    /// inference path runs its fused blocks there.
+    /// [`Self::forward`] with the input and output layers applied by `project` and the trunk
+    /// (blocks and final norm) given by `encode`: the inference path runs its products and
+    /// fused blocks there.
     fn fuse(
         &self,
         body_a: &Tensor,
         body_b: &Tensor,
         presence_b: &Tensor,
+        project: impl Fn(&Dense, &Tensor) -> Result<Tensor>,
         encode: impl FnOnce(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
         let (batch, frames, _) = body_a.dims3()?;
@@ -360,9 +374,9 @@ impl FusionNetwork {
         let masked_b = body_b.broadcast_mul(&present)?;
         let flag = present.broadcast_as((batch, frames, 1))?.contiguous()?;
         let average = body_average(body_a, &masked_b, &present)?;
-        let tokens = self.input.forward(&Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
+        let tokens = project(&self.input, &Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
         let x = tokens.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        Ok((average + self.output.forward(&encode(&x)?)?)?)
+        Ok((average + project(&self.output, &encode(&x)?)?)?)
     }
 }
 

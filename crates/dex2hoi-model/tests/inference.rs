@@ -144,8 +144,7 @@ fn composite_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Tens
 #[test]
 fn attention_equals_the_composite_for_self_and_cross_layouts() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
-    // Blocked kernel (heads of a multiple of 16, query frames of a multiple of 4; keys padded
-    // when their count is not a multiple of 16) and the row-by-row one.
+    // Query and key counts equal and not, heads of one to 64 channels, one key.
     let cases = [
         (2, 7, 7, 12, 3),
         (2, 8, 21, 64, 2),
@@ -192,6 +191,9 @@ fn attention_equals_the_composite_for_self_and_cross_layouts() {
     let op = |heads| fused::Attention { heads, latent: 12, query_column: 0, key_column: 0 };
     assert!(fused::attention(&q, &kv, &random(&[36], &mut rng), op(5)).is_err());
     assert!(fused::attention(&q, &kv, &random(&[35], &mut rng), op(3)).is_err());
+    // No keys to attend to is refused rather than divided by a zero sum.
+    let no_keys = random(&[1, 0, 24], &mut rng);
+    assert!(fused::attention(&q, &no_keys, &random(&[36], &mut rng), op(3)).is_err());
 }
 
 fn variants() -> Vec<ModelConfig> {

@@ -31,6 +31,15 @@ fn product(x: &Tensor, weight: &Tensor) -> Result<Tensor> {
     Ok(fused::product(&x.contiguous()?, &weight.contiguous()?)?)
 }
 
+/// `dense.forward(x)` through [`product`] (the composite model's layers that the inference
+/// path uses as they are).
+///
+/// # Shapes
+/// - `x`: `[..., input]`; returns `[..., output]`
+fn project(dense: &Dense, x: &Tensor) -> Result<Tensor> {
+    Linear::of(dense).forward(x)
+}
+
 /// A linear layer's parameters, detached from the autograd graph.
 #[derive(Debug, Clone)]
 struct Linear {
@@ -190,15 +199,32 @@ impl Block {
     /// [`TransformerBlock::forward`] without dropout; with a cross-attention, the batch stacks
     /// both streams and the keys come from the other half of `x` (Eq. 5).
     ///
+    /// With `kept = Some((start, len))` only frames `start..start + len` of each sequence are
+    /// computed and returned (the last block, whose other frames the head drops): every frame
+    /// still serves as a key and value, and past the attention each frame's row is computed
+    /// on its own, so the kept rows are those of the whole block.
+    ///
     /// # Shapes
-    /// - `x`: `[N, T, latent]`; `table`: `[N, columns]` (AdaLN only); returns `x`'s shape
-    fn forward(&self, x: &Tensor, table: Option<&Tensor>) -> Result<Tensor> {
+    /// - `x`: `[N, T, latent]`; `table`: `[N, columns]` (AdaLN only)
+    /// - returns `[N, len, latent]` (`len = T` without `kept`)
+    fn forward(
+        &self,
+        x: &Tensor,
+        table: Option<&Tensor>,
+        kept: Option<(usize, usize)>,
+    ) -> Result<Tensor> {
         let l = self.latent;
+        let keep = |t: &Tensor| -> Result<Tensor> {
+            Ok(match kept {
+                Some((start, len)) => t.narrow(1, start, len)?.contiguous()?,
+                None => t.clone(),
+            })
+        };
         let h = self.self_norm.forward(x, table, false)?;
         let qkv = product(&h, &self.qkv.weight)?;
-        let attended = fused::attention(&qkv, &qkv, &self.qkv.bias, self.attention_op(l))?;
+        let attended = fused::attention(&keep(&qkv)?, &qkv, &self.qkv.bias, self.attention_op(l))?;
         let out = product(&attended, &self.self_out.weight)?;
-        let mut y = fused::residual(x, &out, &self.self_out.bias)?;
+        let mut y = fused::residual(&keep(x)?, &out, &self.self_out.bias)?;
         if let Some(cross) = &self.cross {
             let queries = product(&cross.norm.forward(&y, table, false)?, &cross.query)?;
             let keys = product(&cross.other_norm.forward(x, table, true)?, &cross.key_value)?;
@@ -258,10 +284,15 @@ impl FastDenoiser {
         };
         let mut x = product(&frames, &self.input)?.broadcast_add(&self.tokens)?;
         let table = self.modulations.forward(&condition.silu()?)?;
-        for block in &self.blocks {
-            x = block.forward(&x, Some(&table))?;
+        let predicted = (self.prefix_frames, self.predicted_frames);
+        let Some((last, blocks)) = self.blocks.split_last() else {
+            return Err(crate::error::ModelError::shape("denoiser", "at least one block", &[]));
+        };
+        for block in blocks {
+            x = block.forward(&x, Some(&table), None)?;
         }
-        let predicted = x.narrow(1, self.prefix_frames, self.predicted_frames)?.contiguous()?;
+        // The head reads the predicted frames only: the last block computes just those.
+        let predicted = last.forward(&x, Some(&table), Some(predicted))?;
         self.head.forward(&fused::adaln(&predicted, &table, self.final_column, false)?)
     }
 }
@@ -298,10 +329,10 @@ impl FastFusion {
     ) -> Result<Tensor> {
         match (self, fusion) {
             (Self::Network(blocks), Fusion::Network(network)) => {
-                network.fuse(body_a, body_b, presence_b, |x| {
+                network.fuse(body_a, body_b, presence_b, project, |x| {
                     let mut x = x.clone();
                     for block in blocks {
-                        x = block.forward(&x, None)?;
+                        x = block.forward(&x, None, None)?;
                     }
                     Ok(fused::layer_norm(&x)?)
                 })
@@ -504,7 +535,7 @@ impl InferenceModel {
             (FastLayout::Dual { denoiser, fusion }, Layout::Dual(dual)) => {
                 let frames = streams_into_batch(&Tensor::cat(&[prefix, noisy], 2)?)?;
                 let timesteps = Tensor::cat(&[timesteps, timesteps], 0)?;
-                let time = dual.conditioning.time(&timesteps, dtype)?.detach();
+                let time = dual.conditioning.time_with(&timesteps, dtype, project)?;
                 let out = denoiser.forward(&frames, &(time + &condition.fixed)?)?;
                 dual.assemble(&out, &condition.presence, |a, b, presence_b| {
                     fusion.forward(&dual.fusion, a, b, presence_b)
@@ -512,7 +543,7 @@ impl InferenceModel {
             }
             (FastLayout::Single { denoiser }, Layout::Single(single)) => {
                 let frames = single.frames(prefix, noisy)?;
-                let time = single.conditioning.time(timesteps, dtype)?.detach();
+                let time = single.conditioning.time_with(timesteps, dtype, project)?;
                 single.split(&denoiser.forward(&frames, &(time + &condition.fixed)?)?)
             }
             _ => unreachable!("the inference layout is built from the model's"),
