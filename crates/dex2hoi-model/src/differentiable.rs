@@ -33,7 +33,7 @@ pub(crate) trait Real:
     + Mul<Output = Self>
     + Div<Output = Self>
     + std::iter::Sum
-    + 'static
+    + crate::matmul::Element
 {
     fn of(x: f64) -> Self;
     fn sqrt(self) -> Self;
@@ -43,13 +43,10 @@ pub(crate) trait Real:
     fn fast_exp(self) -> Self;
     fn values(storage: &CpuStorage) -> Option<&[Self]>;
     fn storage(values: Vec<Self>) -> CpuStorage;
-    /// `a b` for row-major `a` `[m, k]` and `b` `[k, n]` through gemm on this thread, where
-    /// this type has it (f32); `None` otherwise.
-    fn gemm_product(a: &[Self], b: &[Self], sizes: (usize, usize, usize)) -> Option<Vec<Self>>;
 }
 
 macro_rules! real {
-    ($t:ty, $variant:ident, $fast_exp:expr, $gemm_product:expr) => {
+    ($t:ty, $variant:ident, $fast_exp:expr) => {
         impl Real for $t {
             fn of(x: f64) -> Self {
                 x as $t
@@ -74,21 +71,12 @@ macro_rules! real {
             fn storage(values: Vec<Self>) -> CpuStorage {
                 CpuStorage::$variant(values)
             }
-            fn gemm_product(
-                a: &[Self],
-                b: &[Self],
-                sizes: (usize, usize, usize),
-            ) -> Option<Vec<Self>> {
-                $gemm_product(a, b, sizes)
-            }
         }
     };
 }
 
-real!(f32, F32, crate::fused::exp, |a: &[f32], b: &[f32], (m, k, n)| Some(
-    crate::matmul::in_row_group(|| crate::matmul::product(a, b, m, k, n))
-));
-real!(f64, F64, f64::exp, |_: &[f64], _: &[f64], _| None);
+real!(f32, F32, crate::fused::exp);
+real!(f64, F64, f64::exp);
 
 /// Runs `kernel` compiled for the widest SIMD the CPU has (pulp's runtime dispatch: AVX2 or
 /// AVX-512 with FMA on x86-64), so that the loops inlined into it are vectorised for it; the

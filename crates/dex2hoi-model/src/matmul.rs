@@ -43,18 +43,43 @@ pub(crate) fn in_row_group<R>(work: impl FnOnce() -> R) -> R {
     work()
 }
 
+/// The element types [`product_into`] takes: those gemm has kernels for that the model uses
+/// (gemm panics on any other type; the trait is sealed so that no other can be named).
+pub(crate) trait Element: Copy + 'static + sealed::Sealed {
+    /// `0` (the value of an empty sum).
+    const ZERO: Self;
+    /// `1` (the factor of an accumulated output).
+    const ONE: Self;
+}
+
+mod sealed {
+    pub trait Sealed {}
+    impl Sealed for f32 {}
+    impl Sealed for f64 {}
+}
+
+impl Element for f32 {
+    const ZERO: Self = 0.0;
+    const ONE: Self = 1.0;
+}
+
+impl Element for f64 {
+    const ZERO: Self = 0.0;
+    const ONE: Self = 1.0;
+}
+
 /// A matrix read in place from a slice: element `(r, c)` at `r * row_stride + c * column_stride`
 /// (a head's columns of a projection, or a transposed view, without copying).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Strided<'a> {
-    pub data: &'a [f32],
+pub(crate) struct Strided<'a, T = f32> {
+    pub data: &'a [T],
     pub rows: usize,
     pub columns: usize,
     pub row_stride: usize,
     pub column_stride: usize,
 }
 
-impl Strided<'_> {
+impl<T> Strided<'_, T> {
     /// Whether every element's index is inside `data` (overflow-checked); empty views always
     /// are.
     fn fits(&self) -> bool {
@@ -72,17 +97,18 @@ impl Strided<'_> {
 /// `out = scale * lhs @ rhs`, or with `accumulate` `out += scale * lhs @ rhs`, on the calling
 /// thread: `lhs` is `[rows, inner]`, `rhs` `[inner, columns]`, both read in place; `out` holds
 /// row `r` at `r * out_row_stride..` (`out_row_stride >= columns`, so that no two elements
-/// share a place). The attention's per-head products (`crate::fused::Attention`).
+/// share a place). The attentions' per-head products (`crate::fused::Attention` and the
+/// training attention, in f64 too for its gradient checks).
 ///
 /// # Panics
 /// If the inner sizes differ, a view reaches past its slice, `out` is too short or its row
 /// stride below `columns`, or a size overflows `usize`.
-pub(crate) fn product_into(
-    out: &mut [f32],
+pub(crate) fn product_into<T: Element>(
+    out: &mut [T],
     out_row_stride: usize,
-    lhs: Strided<'_>,
-    rhs: Strided<'_>,
-    scale: f32,
+    lhs: Strided<'_, T>,
+    rhs: Strided<'_, T>,
+    scale: T,
     accumulate: bool,
 ) {
     let (rows, inner, columns) = (lhs.rows, lhs.columns, rhs.columns);
@@ -101,7 +127,7 @@ pub(crate) fn product_into(
         // An empty sum is zero: no call with empty or dangling pointers.
         if !accumulate {
             for row in out.chunks_mut(out_row_stride).take(rows) {
-                row[..columns].fill(0.0);
+                row[..columns].fill(T::ZERO);
             }
         }
         return;
@@ -113,7 +139,8 @@ pub(crate) fn product_into(
     // `(r, c)` at `r * out_row_stride + c < out_end <= out.len()`, each at its own index (row
     // stride at least `columns`, column stride 1). The slices are live for the whole call and
     // `out` is borrowed mutably, apart from the inputs. `Parallelism::None`: gemm writes from
-    // this thread only. With `read_dst` false gemm only writes `out` (alpha unused).
+    // this thread only. With `read_dst` false gemm only writes `out` (alpha unused). `T` is f32
+    // or f64 (`Element` is sealed), types gemm has kernels for.
     unsafe {
         gemm::gemm(
             rows,
@@ -129,7 +156,7 @@ pub(crate) fn product_into(
             rhs.data.as_ptr(),
             stride(rhs.column_stride),
             stride(rhs.row_stride),
-            1.0,
+            T::ONE,
             scale,
             false,
             false,

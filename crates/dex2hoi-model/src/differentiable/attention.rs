@@ -9,6 +9,7 @@ use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::{Real, dot, op_error, simd, values};
+use crate::matmul::{Strided, product_into};
 
 /// What the composite adds to the scores of a masked key (`(mask - 1) * 1e9`).
 const MASKED: f64 = -1e9;
@@ -60,137 +61,54 @@ impl Attention {
     }
 }
 
-/// Rows of the register tile of [`product`].
-const TILE_ROWS: usize = 4;
-/// Columns of the register tile of [`product`] (two AVX registers of f32).
-const TILE_COLUMNS: usize = 16;
-
-/// `c = a b` for row-major `a` `[m, k]`, `b` `[k, n]` and `c` `[m, n]`: the small products of
-/// one head (at most a few hundred rows and columns). In f32 through gemm on this thread (the
-/// sequences are already spread over the threads): 1.65x faster for the forward pass of a
-/// `small` batch's attention than the loop below (session 17). In f64 (the gradient checks)
-/// register-blocked in tiles of
-/// [`TILE_ROWS`] x [`TILE_COLUMNS`] whose sums stay in registers while the rows of `b` stream
-/// past (vectorised under [`simd`]).
-#[inline(always)]
-fn product<T: Real>(a: &[T], b: &[T], c: &mut [T], (m, k, n): (usize, usize, usize)) {
-    if let Some(out) = T::gemm_product(a, b, (m, k, n)) {
-        c.copy_from_slice(&out);
-        return;
-    }
-    for i in (0..m).step_by(TILE_ROWS) {
-        let rows = TILE_ROWS.min(m - i);
-        for j in (0..n).step_by(TILE_COLUMNS) {
-            let columns = TILE_COLUMNS.min(n - j);
-            if rows == TILE_ROWS && columns == TILE_COLUMNS {
-                let mut sums = [[T::default(); TILE_COLUMNS]; TILE_ROWS];
-                for p in 0..k {
-                    let b_row = &b[p * n + j..][..TILE_COLUMNS];
-                    for (r, sums) in sums.iter_mut().enumerate() {
-                        let a = a[(i + r) * k + p];
-                        for (s, &b) in sums.iter_mut().zip(b_row) {
-                            *s = a.mul_add(b, *s);
-                        }
-                    }
-                }
-                for (r, sums) in sums.iter().enumerate() {
-                    c[(i + r) * n + j..][..TILE_COLUMNS].copy_from_slice(sums);
-                }
-            } else {
-                for r in i..i + rows {
-                    let c_row = &mut c[r * n + j..][..columns];
-                    c_row.fill(T::default());
-                    for p in 0..k {
-                        let a = a[r * k + p];
-                        for (s, &b) in c_row.iter_mut().zip(&b[p * n + j..][..columns]) {
-                            *s = a.mul_add(b, *s);
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// `out = x^T` for row-major `x` `[rows, columns]`.
-#[inline(always)]
-fn transpose<T: Real>(x: &[T], out: &mut [T], (rows, columns): (usize, usize)) {
-    for (r, row) in x.chunks_exact(columns).take(rows).enumerate() {
-        for (c, &v) in row.iter().enumerate() {
-            out[c * rows + r] = v;
-        }
-    }
-}
-
-/// Copies columns `column..column + out_width` of every row of `source` (rows of `width`)
-/// into the rows of `out`.
-#[inline(always)]
-fn gather<T: Real>(source: &[T], width: usize, column: usize, out: &mut [T]) {
-    let out_width = out.len() / (source.len() / width.max(1)).max(1);
-    for (o, row) in out.chunks_exact_mut(out_width.max(1)).zip(source.chunks_exact(width.max(1))) {
-        o.copy_from_slice(&row[column..column + out_width]);
-    }
-}
-
-/// Writes the rows of `x` into columns `column..` of the rows of `out` (rows of `width`).
-/// Each head writes its own columns once, so nothing is added and the output is never read:
-/// its freshly allocated pages are faulted in once, by the write. Added into, they were read
-/// first, which maps the shared zero page, and written after, which faults again and flushes
-/// the other cores' TLBs; the backward pass of a `small` batch's attention took 53 ms that
-/// way and 35 ms this way (2 threads, session 17).
-#[inline(always)]
-fn scatter<T: Real>(x: &[T], out: &mut [T], width: usize, column: usize) {
-    let x_width = x.len() / (out.len() / width.max(1)).max(1);
-    for (o, row) in out.chunks_exact_mut(width.max(1)).zip(x.chunks_exact(x_width.max(1))) {
-        o[column..column + x_width].copy_from_slice(row);
-    }
-}
-
-/// One sequence's buffers for one head at a time: its queries, keys and values copied out of
-/// the projections' rows, and the products of the forward and backward passes.
-struct Head<T> {
+/// One sequence's views of its projections (`queries` `[Tq, latent]`, `keys_values`
+/// `[Tk, 2 latent]`), head by head, read in place by [`product_into`]; and the attention
+/// weights of the head last loaded.
+struct Head<'a, T> {
     s: Sizes,
-    /// `[Tq, head]`, `[Tk, head]`, `[Tk, head]`.
-    queries: Vec<T>,
-    keys: Vec<T>,
-    values: Vec<T>,
-    /// `[head, Tk]`: keys (then values) transposed.
-    transposed: Vec<T>,
+    queries: &'a [T],
+    keys_values: &'a [T],
+    mask: &'a [T],
     /// `[Tq, Tk]`: the attention weights.
     weights: Vec<T>,
-    /// `[Tq, head]`: the output (forward), the output's gradient (backward).
-    out: Vec<T>,
 }
 
-impl<T: Real> Head<T> {
-    fn new(s: Sizes) -> Self {
-        let (q, k, d) = (s.query_frames, s.key_frames, s.head);
-        Self {
-            s,
-            queries: vec![T::default(); q * d],
-            keys: vec![T::default(); k * d],
-            values: vec![T::default(); k * d],
-            transposed: vec![T::default(); d * k],
-            weights: vec![T::default(); q * k],
-            out: vec![T::default(); q * d],
-        }
+impl<'a, T: Real> Head<'a, T> {
+    fn new(s: Sizes, queries: &'a [T], keys_values: &'a [T], mask: &'a [T]) -> Self {
+        let weights = vec![T::default(); s.query_frames * s.key_frames];
+        Self { s, queries, keys_values, mask, weights }
     }
 
-    /// Loads head `h` of one sequence (`queries` `[Tq, latent]`, `keys_values`
-    /// `[Tk, 2 latent]`) and computes its attention weights under `mask` (`[Tk]`).
+    /// Head `h`'s queries, `[Tq, head]`.
+    fn queries(&self, h: usize) -> Strided<'a, T> {
+        let Sizes { query_frames, latent, head, .. } = self.s;
+        let data = &self.queries[h * head..];
+        Strided { data, rows: query_frames, columns: head, row_stride: latent, column_stride: 1 }
+    }
+
+    /// Head `h`'s keys (`values` false) or values, `[Tk, head]`.
+    fn keys_or_values(&self, h: usize, values: bool) -> Strided<'a, T> {
+        let Sizes { key_frames, latent, head, .. } = self.s;
+        let data = &self.keys_values[usize::from(values) * latent + h * head..];
+        Strided { data, rows: key_frames, columns: head, row_stride: 2 * latent, column_stride: 1 }
+    }
+
+    /// The attention weights, `[Tq, Tk]`.
+    fn weights(&self) -> Strided<'_, T> {
+        let (rows, columns) = (self.s.query_frames, self.s.key_frames);
+        Strided { data: &self.weights, rows, columns, row_stride: columns, column_stride: 1 }
+    }
+
+    /// Computes head `h`'s attention weights under the mask.
     #[inline(always)]
-    fn load(&mut self, h: usize, queries: &[T], keys_values: &[T], mask: &[T]) {
-        let Sizes { query_frames, key_frames, latent, head } = self.s;
-        gather(queries, latent, h * head, &mut self.queries);
-        gather(keys_values, 2 * latent, h * head, &mut self.keys);
-        gather(keys_values, 2 * latent, latent + h * head, &mut self.values);
-        transpose(&self.keys, &mut self.transposed, (key_frames, head));
-        let sizes = (query_frames, head, key_frames);
-        product(&self.queries, &self.transposed, &mut self.weights, sizes);
+    fn load(&mut self, h: usize) {
+        let Sizes { key_frames, head, .. } = self.s;
         let scale = T::of(1.0 / (head as f64).sqrt());
+        let (queries, keys) = (self.queries(h), self.keys_or_values(h, false));
+        product_into(&mut self.weights, key_frames, queries, transposed(keys), scale, false);
         for row in self.weights.chunks_exact_mut(key_frames) {
-            for (r, &m) in row.iter_mut().zip(mask) {
-                *r = r.mul_add(scale, (m - T::of(1.0)) * T::of(-MASKED));
+            for (r, &m) in row.iter_mut().zip(self.mask) {
+                *r = *r + (m - T::of(1.0)) * T::of(-MASKED);
             }
             let largest = row.iter().copied().fold(row[0], |a, b| if b > a { b } else { a });
             for r in row.iter_mut() {
@@ -202,6 +120,22 @@ impl<T: Real> Head<T> {
             }
         }
     }
+}
+
+/// `x^T`, read in place.
+fn transposed<T>(x: Strided<'_, T>) -> Strided<'_, T> {
+    Strided {
+        rows: x.columns,
+        columns: x.rows,
+        row_stride: x.column_stride,
+        column_stride: x.row_stride,
+        ..x
+    }
+}
+
+/// A `[rows, columns]` matrix in a buffer of rows of `row_stride`.
+fn matrix<T>(data: &[T], rows: usize, columns: usize, row_stride: usize) -> Strided<'_, T> {
+    Strided { data, rows, columns, row_stride, column_stride: 1 }
 }
 
 fn forward<T: Real>(
@@ -224,15 +158,15 @@ fn forward<T: Real>(
             let queries = &queries[n * query_rows..][..query_rows];
             let keys_values = &keys_values[n * key_rows..][..key_rows];
             let mask = &mask[n * s.key_frames..][..s.key_frames];
-            let mut head = Head::new(s);
+            let mut head = Head::new(s, queries, keys_values, mask);
             simd(
                 #[inline(always)]
                 || {
                     for h in 0..op.heads {
-                        head.load(h, queries, keys_values, mask);
-                        let sizes = (s.query_frames, s.key_frames, s.head);
-                        product(&head.weights, &head.values, &mut head.out, sizes);
-                        scatter(&head.out, out, s.latent, h * s.head);
+                        head.load(h);
+                        let values = head.keys_or_values(h, true);
+                        let out = &mut out[h * s.head..];
+                        product_into(out, s.latent, head.weights(), values, T::of(1.0), false);
                     }
                 },
             )
@@ -327,23 +261,24 @@ fn backward<T: Real>(
                 let keys_values = &keys_values[n * key_rows..][..key_rows];
                 let grad = &grad[n * query_rows..][..query_rows];
                 let mask = &mask[n * tk..][..tk];
-                let mut head = Head::new(s);
+                let mut head = Head::new(s, queries, keys_values, mask);
                 let mut grad_scores = vec![T::default(); tq * tk];
-                let mut transposed = vec![T::default(); tk * tq];
-                let mut result = vec![T::default(); tq.max(tk) * d];
+                let one = T::of(1.0);
                 simd(
                     #[inline(always)]
                     || {
                         for h in 0..op.attention.heads {
-                            head.load(h, queries, keys_values, mask);
-                            gather(grad, s.latent, h * d, &mut head.out);
+                            head.load(h);
+                            let output_grad = matrix(&grad[h * d..], tq, d, s.latent);
+                            let (keys, values) =
+                                (head.keys_or_values(h, false), head.keys_or_values(h, true));
                             // dV = P^T G.
-                            transpose(&head.weights, &mut transposed, (tq, tk));
-                            product(&transposed, &head.out, &mut result[..tk * d], (tk, tq, d));
-                            scatter(&result[..tk * d], grad_kv, 2 * s.latent, s.latent + h * d);
+                            let weights = transposed(head.weights());
+                            let into = &mut grad_kv[s.latent + h * d..];
+                            product_into(into, 2 * s.latent, weights, output_grad, one, false);
                             // dP = G V^T, then dS = P (dP - rowsum(dP P)), scaled by c.
-                            transpose(&head.values, &mut head.transposed, (tk, d));
-                            product(&head.out, &head.transposed, &mut grad_scores, (tq, d, tk));
+                            let values = transposed(values);
+                            product_into(&mut grad_scores, tk, output_grad, values, one, false);
                             let rows = grad_scores.chunks_exact_mut(tk);
                             for (ds, p) in rows.zip(head.weights.chunks_exact(tk)) {
                                 let weighted = dot(ds, Some(p));
@@ -352,11 +287,12 @@ fn backward<T: Real>(
                                 }
                             }
                             // dQ = c dS K, dK = c dS^T Q.
-                            product(&grad_scores, &head.keys, &mut result[..tq * d], (tq, tk, d));
-                            scatter(&result[..tq * d], grad_q, s.latent, h * d);
-                            transpose(&grad_scores, &mut transposed, (tq, tk));
-                            product(&transposed, &head.queries, &mut result[..tk * d], (tk, tq, d));
-                            scatter(&result[..tk * d], grad_kv, 2 * s.latent, h * d);
+                            let scores_grad = matrix(&grad_scores, tq, tk, tk);
+                            let into = &mut grad_q[h * d..];
+                            product_into(into, s.latent, scores_grad, keys, one, false);
+                            let (scores_grad, queries) = (transposed(scores_grad), head.queries(h));
+                            let into = &mut grad_kv[h * d..];
+                            product_into(into, 2 * s.latent, scores_grad, queries, one, false);
                         }
                     },
                 )
