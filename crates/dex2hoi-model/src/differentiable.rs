@@ -325,7 +325,8 @@ pub fn linear(
 ) -> candle_core::Result<Tensor> {
     let input = weight.dim(0)?;
     let rows = x.elem_count() / input.max(1);
-    let product = x.detach().contiguous()?.reshape((rows, input))?.matmul(&weight.detach())?;
+    let x_rows = x.detach().contiguous()?.reshape((rows, input))?;
+    let product = linear::product(&x_rows, &weight.detach(), false, false)?;
     x.apply_op3(weight, &bias.contiguous()?, linear::Linear { product, activation })
 }
 

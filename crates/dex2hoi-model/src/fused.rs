@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use crate::differentiable::{ROWS_PER_TASK, op_error, simd};
 use crate::layers::LAYER_NORM_EPS;
-use crate::matmul::{Strided, product_into};
+use crate::matmul::{Strided, Threads, product_into};
 
 /// The values of a contiguous f32 tensor.
 fn values<'a>(
@@ -471,13 +471,7 @@ impl CustomOp3 for Attention {
                     column_stride: 1,
                 };
                 // The keys transposed, read in place: `[head, Tk]`.
-                let keys_t = Strided {
-                    rows: head,
-                    columns: key_frames,
-                    row_stride: 1,
-                    column_stride: kv_width,
-                    ..keys
-                };
+                let keys_t = keys.transposed();
                 let query_bias = &query_bias[h * head..][..head];
                 simd(
                     #[inline(always)]
@@ -491,7 +485,14 @@ impl CustomOp3 for Attention {
                         }
                     },
                 );
-                product_into(&mut scores, key_frames, query, keys_t, scale, true);
+                product_into(
+                    &mut scores,
+                    key_frames,
+                    (query, keys_t),
+                    scale,
+                    true,
+                    Threads::Calling,
+                );
                 simd(
                     #[inline(always)]
                     || {
@@ -505,15 +506,9 @@ impl CustomOp3 for Attention {
                         }
                     },
                 );
-                let weights = Strided {
-                    data: &scores,
-                    rows: query_frames,
-                    columns: key_frames,
-                    row_stride: key_frames,
-                    column_stride: 1,
-                };
+                let weights = Strided::row_major(&scores, query_frames, key_frames);
                 let heads_out = &mut out[h * head..];
-                product_into(heads_out, l, weights, values, 1.0, false);
+                product_into(heads_out, l, (weights, values), 1.0, false, Threads::Calling);
                 let value_bias = &value_bias[h * head..][..head];
                 simd(
                     #[inline(always)]

@@ -79,7 +79,23 @@ pub(crate) struct Strided<'a, T = f32> {
     pub column_stride: usize,
 }
 
-impl<T> Strided<'_, T> {
+impl<'a, T> Strided<'a, T> {
+    /// A `[rows, columns]` matrix stored row after row.
+    pub(crate) fn row_major(data: &'a [T], rows: usize, columns: usize) -> Self {
+        Self { data, rows, columns, row_stride: columns, column_stride: 1 }
+    }
+
+    /// The transposed matrix, read in place.
+    pub(crate) fn transposed(self) -> Self {
+        Self {
+            rows: self.columns,
+            columns: self.rows,
+            row_stride: self.column_stride,
+            column_stride: self.row_stride,
+            ..self
+        }
+    }
+
     /// Whether every element's index is inside `data` (overflow-checked); empty views always
     /// are.
     fn fits(&self) -> bool {
@@ -94,11 +110,35 @@ impl<T> Strided<'_, T> {
     }
 }
 
-/// `out = scale * lhs @ rhs`, or with `accumulate` `out += scale * lhs @ rhs`, on the calling
-/// thread: `lhs` is `[rows, inner]`, `rhs` `[inner, columns]`, both read in place; `out` holds
-/// row `r` at `r * out_row_stride..` (`out_row_stride >= columns`, so that no two elements
-/// share a place). The attentions' per-head products (`crate::fused::Attention` and the
-/// training attention, in f64 too for its gradient checks).
+/// The threads a product runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Threads {
+    /// The calling thread (products small enough, or callers already spread over the pool).
+    Calling,
+    /// Every thread of the current rayon pool; the calling thread alone inside a row group
+    /// ([`in_row_group`]), whose neighbours already have work.
+    Pool,
+}
+
+impl Threads {
+    fn parallelism(self) -> Parallelism {
+        let threads = match self {
+            Self::Pool if !IN_ROW_GROUP.with(Cell::get) => rayon::current_num_threads(),
+            _ => 1,
+        };
+        match threads {
+            1 => Parallelism::None,
+            threads => Parallelism::Rayon(threads),
+        }
+    }
+}
+
+/// `out = scale * lhs @ rhs`, or with `accumulate` `out += scale * lhs @ rhs`: `lhs` is
+/// `[rows, inner]`, `rhs` `[inner, columns]`, both read in place; `out` holds row `r` at
+/// `r * out_row_stride..` (`out_row_stride >= columns`, so that no two elements share a
+/// place). The attentions' per-head products (`crate::fused::Attention` and the training
+/// attention, in f64 too for its gradient checks) on the calling thread, the training linear
+/// layers' on the pool.
 ///
 /// # Panics
 /// If the inner sizes differ, a view reaches past its slice, `out` is too short or its row
@@ -106,10 +146,10 @@ impl<T> Strided<'_, T> {
 pub(crate) fn product_into<T: Element>(
     out: &mut [T],
     out_row_stride: usize,
-    lhs: Strided<'_, T>,
-    rhs: Strided<'_, T>,
+    (lhs, rhs): (Strided<'_, T>, Strided<'_, T>),
     scale: T,
     accumulate: bool,
+    threads: Threads,
 ) {
     let (rows, inner, columns) = (lhs.rows, lhs.columns, rhs.columns);
     assert_eq!(rhs.rows, inner, "lhs is [{rows}, {inner}], rhs has {} rows", rhs.rows);
@@ -137,10 +177,11 @@ pub(crate) fn product_into<T: Element>(
     // `r * lhs.row_stride + i * lhs.column_stride` for `r < rows`, `i < inner`, and `rhs`
     // element `(i, c)` likewise, are at most the last index checked by `fits`; `out` element
     // `(r, c)` at `r * out_row_stride + c < out_end <= out.len()`, each at its own index (row
-    // stride at least `columns`, column stride 1). The slices are live for the whole call and
-    // `out` is borrowed mutably, apart from the inputs. `Parallelism::None`: gemm writes from
-    // this thread only. With `read_dst` false gemm only writes `out` (alpha unused). `T` is f32
-    // or f64 (`Element` is sealed), types gemm has kernels for.
+    // stride at least `columns`, column stride 1), so threads that gemm spreads the work over
+    // write disjoint elements; gemm joins them before it returns. The slices are live for the
+    // whole call and `out` is borrowed mutably, apart from the inputs. With `read_dst` false
+    // gemm only writes `out` (alpha unused). `T` is f32 or f64 (`Element` is sealed), types
+    // gemm has kernels for.
     unsafe {
         gemm::gemm(
             rows,
@@ -161,7 +202,7 @@ pub(crate) fn product_into<T: Element>(
             false,
             false,
             false,
-            Parallelism::None,
+            threads.parallelism(),
         );
     }
 }
@@ -183,45 +224,8 @@ pub(crate) fn product(
     assert_eq!(lhs.len(), size(rows, inner), "lhs is not [{rows}, {inner}]");
     assert_eq!(rhs.len(), size(inner, columns), "rhs is not [{inner}, {columns}]");
     let mut out = vec![0f32; size(rows, columns)];
-    if out.is_empty() || inner == 0 {
-        // Nothing to read (an empty sum is zero): no call with empty or dangling pointers.
-        return out;
-    }
-    let threads = if IN_ROW_GROUP.with(Cell::get) { 1 } else { rayon::current_num_threads() };
-    let parallelism = match threads {
-        1 => Parallelism::None,
-        threads => Parallelism::Rayon(threads),
-    };
-    let (inner_stride, columns_stride) = (inner as isize, columns as isize);
-    // SAFETY: `out` holds `rows * columns` values, row `r`, column `c` at `r * columns + c`
-    // (row stride `columns`, column stride 1); `lhs` holds `rows * inner` values at
-    // `r * inner + i`; `rhs` holds `inner * columns` values at `i * columns + c` (lengths
-    // checked above, every index below them). All three are live for the whole call and `out`
-    // is borrowed mutably, apart from the inputs. With `read_dst` false gemm only writes
-    // `out` (`out = 1 * lhs @ rhs`; alpha, the factor of the old `out`, is unused).
-    unsafe {
-        gemm::gemm(
-            rows,
-            columns,
-            inner,
-            out.as_mut_ptr(),
-            1,
-            columns_stride,
-            false,
-            lhs.as_ptr(),
-            1,
-            inner_stride,
-            rhs.as_ptr(),
-            1,
-            columns_stride,
-            0.0,
-            1.0,
-            false,
-            false,
-            false,
-            parallelism,
-        );
-    }
+    let views = (Strided::row_major(lhs, rows, inner), Strided::row_major(rhs, inner, columns));
+    product_into(&mut out, columns, views, 1.0, false, Threads::Pool);
     out
 }
 
@@ -230,7 +234,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    use super::{Strided, product_into};
+    use super::{Strided, Threads, product_into};
 
     /// Element `(r, c)` of a view, read by index.
     fn at(view: &Strided<'_>, r: usize, c: usize) -> f32 {
@@ -238,18 +242,26 @@ mod tests {
     }
 
     /// `product_into` against a plain triple loop: row-major, transposed and padded views,
-    /// odd sizes, accumulating or not, the output's padding left alone.
+    /// odd sizes, accumulating or not, on the calling thread or split over a pool of two, the
+    /// output's padding left alone.
     #[test]
     fn product_into_equals_the_plain_sum_on_strided_views() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        for (rows, inner, columns) in
-            [(1, 1, 1), (7, 3, 5), (60, 64, 60), (60, 60, 64), (17, 33, 129), (3, 0, 4)]
-        {
-            for (transposed_lhs, transposed_rhs, accumulate) in [
-                (false, false, false),
-                (true, false, true),
-                (false, true, false),
-                (true, true, true),
+        let pair = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("a pool");
+        for (rows, inner, columns) in [
+            (1, 1, 1),
+            (7, 3, 5),
+            (60, 64, 60),
+            (60, 60, 64),
+            (17, 33, 129),
+            (3, 0, 4),
+            (300, 200, 150),
+        ] {
+            for (transposed_lhs, transposed_rhs, accumulate, threads) in [
+                (false, false, false, Threads::Calling),
+                (true, false, true, Threads::Pool),
+                (false, true, false, Threads::Pool),
+                (true, true, true, Threads::Calling),
             ] {
                 // Each operand sits inside a wider buffer, possibly transposed.
                 let view = |data, rows, columns, transposed: bool, pad: usize| {
@@ -270,7 +282,9 @@ mod tests {
                 let start: Vec<f32> =
                     (0..rows * out_stride).map(|_| rng.random_range(-1.0..1.0)).collect();
                 let mut out = start.clone();
-                product_into(&mut out, out_stride, lhs, rhs, 0.5, accumulate);
+                pair.install(|| {
+                    product_into(&mut out, out_stride, (lhs, rhs), 0.5, accumulate, threads);
+                });
                 for r in 0..rows {
                     for c in 0..out_stride {
                         let old = start[r * out_stride + c];
@@ -295,7 +309,7 @@ mod tests {
         let empty = Strided { data: &[], rows: 0, columns: 4, row_stride: 4, column_stride: 1 };
         let rhs =
             Strided { data: &[1.0; 12], rows: 4, columns: 3, row_stride: 3, column_stride: 1 };
-        product_into(&mut out, 3, empty, rhs, 1.0, false);
+        product_into(&mut out, 3, (empty, rhs), 1.0, false, Threads::Calling);
         assert_eq!(out, [7.0; 3]);
     }
 
@@ -314,7 +328,7 @@ mod tests {
         let attempt = |out_len: usize, out_stride, lhs, rhs| {
             std::panic::catch_unwind(move || {
                 let mut out = vec![0f32; out_len];
-                product_into(&mut out, out_stride, lhs, rhs, 1.0, false);
+                product_into(&mut out, out_stride, (lhs, rhs), 1.0, false, Threads::Calling);
             })
             .is_err()
         };

@@ -9,7 +9,7 @@ use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::{Real, dot, op_error, simd, values};
-use crate::matmul::{Strided, product_into};
+use crate::matmul::{Strided, Threads, product_into};
 
 /// What the composite adds to the scores of a masked key (`(mask - 1) * 1e9`).
 const MASKED: f64 = -1e9;
@@ -105,7 +105,8 @@ impl<'a, T: Real> Head<'a, T> {
         let Sizes { key_frames, head, .. } = self.s;
         let scale = T::of(1.0 / (head as f64).sqrt());
         let (queries, keys) = (self.queries(h), self.keys_or_values(h, false));
-        product_into(&mut self.weights, key_frames, queries, transposed(keys), scale, false);
+        let views = (queries, keys.transposed());
+        product_into(&mut self.weights, key_frames, views, scale, false, Threads::Calling);
         for row in self.weights.chunks_exact_mut(key_frames) {
             for (r, &m) in row.iter_mut().zip(self.mask) {
                 *r = *r + (m - T::of(1.0)) * T::of(-MASKED);
@@ -119,17 +120,6 @@ impl<'a, T: Real> Head<'a, T> {
                 *r = *r * inverse;
             }
         }
-    }
-}
-
-/// `x^T`, read in place.
-fn transposed<T>(x: Strided<'_, T>) -> Strided<'_, T> {
-    Strided {
-        rows: x.columns,
-        columns: x.rows,
-        row_stride: x.column_stride,
-        column_stride: x.row_stride,
-        ..x
     }
 }
 
@@ -166,7 +156,8 @@ fn forward<T: Real>(
                         head.load(h);
                         let values = head.keys_or_values(h, true);
                         let out = &mut out[h * s.head..];
-                        product_into(out, s.latent, head.weights(), values, T::of(1.0), false);
+                        let views = (head.weights(), values);
+                        product_into(out, s.latent, views, T::of(1.0), false, Threads::Calling);
                     }
                 },
             )
@@ -273,12 +264,12 @@ fn backward<T: Real>(
                             let (keys, values) =
                                 (head.keys_or_values(h, false), head.keys_or_values(h, true));
                             // dV = P^T G.
-                            let weights = transposed(head.weights());
+                            let views = (head.weights().transposed(), output_grad);
                             let into = &mut grad_kv[s.latent + h * d..];
-                            product_into(into, 2 * s.latent, weights, output_grad, one, false);
+                            product_into(into, 2 * s.latent, views, one, false, Threads::Calling);
                             // dP = G V^T, then dS = P (dP - rowsum(dP P)), scaled by c.
-                            let values = transposed(values);
-                            product_into(&mut grad_scores, tk, output_grad, values, one, false);
+                            let views = (output_grad, values.transposed());
+                            product_into(&mut grad_scores, tk, views, one, false, Threads::Calling);
                             let rows = grad_scores.chunks_exact_mut(tk);
                             for (ds, p) in rows.zip(head.weights.chunks_exact(tk)) {
                                 let weighted = dot(ds, Some(p));
@@ -289,10 +280,17 @@ fn backward<T: Real>(
                             // dQ = c dS K, dK = c dS^T Q.
                             let scores_grad = matrix(&grad_scores, tq, tk, tk);
                             let into = &mut grad_q[h * d..];
-                            product_into(into, s.latent, scores_grad, keys, one, false);
-                            let (scores_grad, queries) = (transposed(scores_grad), head.queries(h));
+                            product_into(
+                                into,
+                                s.latent,
+                                (scores_grad, keys),
+                                one,
+                                false,
+                                Threads::Calling,
+                            );
+                            let views = (scores_grad.transposed(), head.queries(h));
                             let into = &mut grad_kv[h * d..];
-                            product_into(into, 2 * s.latent, scores_grad, queries, one, false);
+                            product_into(into, 2 * s.latent, views, one, false, Threads::Calling);
                         }
                     },
                 )
