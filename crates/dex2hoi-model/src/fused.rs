@@ -8,12 +8,14 @@
 //! path uses the composite model on any other device or dtype. Each is tested equal to the
 //! composite operations it replaces (`tests/fused.rs`).
 
+use std::sync::Arc;
+
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
 use crate::differentiable::{ROWS_PER_TASK, op_error, simd};
 use crate::layers::LAYER_NORM_EPS;
-use crate::matmul::{Strided, Threads, product_into};
+use crate::matmul::{Packed, Strided, Threads, packed_product, product_into};
 
 /// The values of a contiguous f32 tensor.
 fn values<'a>(
@@ -212,16 +214,36 @@ impl CustomOp2 for AdaLn {
     }
 }
 
+/// A linear layer's weight `[input, output]`, rearranged once for [`product`] (panels of
+/// columns in the layout gemm's microkernel reads; `crate::matmul::Packed`).
+#[derive(Debug, Clone)]
+pub struct PackedMatrix(Arc<Packed>);
+
+impl PackedMatrix {
+    /// Rearranges a 2-D f32 `weight` (any layout: it is read as its values say).
+    pub fn new(weight: &Tensor) -> candle_core::Result<Self> {
+        let (input, output) = weight.dims2()?;
+        let values = weight.flatten_all()?.to_vec1::<f32>()?;
+        Ok(Self(Arc::new(Packed::new(&values, input, output))))
+    }
+
+    /// `(input, output)`.
+    pub fn dims(&self) -> (usize, usize) {
+        self.0.dims()
+    }
+}
+
 /// A linear layer's product, `x @ weight` over the last dimension of `x`, through
-/// [`crate::matmul::product`] (no thread count read from `/proc/cpuinfo` per call, one thread
-/// inside a row group of the inference model).
+/// [`crate::matmul::packed_product`] (no thread count read from `/proc/cpuinfo` per call as
+/// `Tensor::matmul` does, no copy of the weights per call as gemm makes, one thread inside a
+/// row group of the inference model).
 ///
 /// # Shapes
-/// - `x`: `[..., input]`; `weight`: `[input, output]`; output `[..., output]`
-#[derive(Debug, Clone, Copy)]
-pub struct Product;
+/// - input `[..., input]`; output `[..., output]`
+#[derive(Debug, Clone)]
+struct Product(PackedMatrix);
 
-impl CustomOp2 for Product {
+impl CustomOp1 for Product {
     fn name(&self) -> &'static str {
         "fused-product"
     }
@@ -230,11 +252,8 @@ impl CustomOp2 for Product {
         &self,
         x_storage: &CpuStorage,
         x_layout: &Layout,
-        weight_storage: &CpuStorage,
-        weight_layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let x = values(self.name(), x_storage, x_layout)?;
-        let weight = values(self.name(), weight_storage, weight_layout)?;
         let Some((&input, leading)) = x_layout.dims().split_last() else {
             return Err(op_error(self.name(), "a non-scalar input"));
         };
@@ -243,16 +262,14 @@ impl CustomOp2 for Product {
             .iter()
             .try_fold(1usize, |rows, &d| rows.checked_mul(d))
             .ok_or_else(|| op_error(self.name(), "a row count that fits in usize"))?;
-        let &[weight_input, output] = weight_layout.dims() else {
-            return Err(op_error(self.name(), "a weight of two dimensions"));
-        };
+        let (weight_input, output) = self.0.dims();
         if weight_input != input {
             return Err(op_error(
                 self.name(),
                 format!("a weight of {input} rows, got {weight_input}"),
             ));
         }
-        let out = crate::matmul::product(x, weight, rows, input, output);
+        let out = packed_product(x, rows, &self.0.0, Threads::Pool);
         Ok((CpuStorage::F32(out), Shape::from([leading, &[output]].concat())))
     }
 }
@@ -555,9 +572,9 @@ pub fn adaln(
     x.apply_op2_no_bwd(table, &AdaLn { column, swap_halves })
 }
 
-/// `x @ weight` over the last dimension of `x`.
-pub fn product(x: &Tensor, weight: &Tensor) -> candle_core::Result<Tensor> {
-    x.apply_op2_no_bwd(weight, &Product)
+/// `x @ weight` over the last dimension of `x` (contiguous).
+pub fn product(x: &Tensor, weight: &PackedMatrix) -> candle_core::Result<Tensor> {
+    x.apply_op1_no_bwd(&Product(weight.clone()))
 }
 
 /// `y + bias`, then SiLU when `silu`.

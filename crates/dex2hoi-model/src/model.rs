@@ -99,20 +99,22 @@ impl Conditioning {
     /// # Shapes
     /// - `timesteps`: `[batch]`; returns `[batch, latent]`
     fn time(&self, timesteps: &Tensor, dtype: DType) -> Result<Tensor> {
-        self.time_with(timesteps, dtype, Dense::forward)
+        let (time_in, time_out) =
+            (|x: &Tensor| self.time_in.forward(x), |x: &Tensor| self.time_out.forward(x));
+        self.time_with(timesteps, dtype, time_in, time_out)
     }
 
-    /// [`Self::time`] with its linear layers applied by `project` (the inference path's
-    /// products).
+    /// [`Self::time`] with its two linear layers given (the inference path's products).
     fn time_with(
         &self,
         timesteps: &Tensor,
         dtype: DType,
-        project: impl Fn(&Dense, &Tensor) -> Result<Tensor>,
+        time_in: impl Fn(&Tensor) -> Result<Tensor>,
+        time_out: impl Fn(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
         let device = self.time_in.weight.device();
         let time = timestep_embedding(timesteps, self.latent, dtype, device)?;
-        project(&self.time_out, &project(&self.time_in, &time)?.silu()?)
+        time_out(&time_in(&time)?.silu()?)
     }
 }
 
@@ -328,6 +330,14 @@ struct FusionNetwork {
     output: Dense,
 }
 
+/// The layers of a [`FusionNetwork`] pass: the input projection, the trunk (blocks and final
+/// norm) and the output projection.
+struct FusionLayers<I, E, O> {
+    input: I,
+    encode: E,
+    output: O,
+}
+
 impl FusionNetwork {
     fn new(cfg: &ModelConfig, vb: VarBuilder<'_>) -> Result<Self> {
         let l = cfg.latent;
@@ -354,29 +364,37 @@ impl FusionNetwork {
         presence_b: &Tensor,
         rng: Option<&mut ChaCha8Rng>,
     ) -> Result<Tensor> {
-        let encode = |x: &Tensor| self.layers.forward(x, None, rng);
-        self.fuse(body_a, body_b, presence_b, Dense::forward, encode)
+        let layers = FusionLayers {
+            input: |x: &Tensor| self.input.forward(x),
+            encode: |x: &Tensor| self.layers.forward(x, None, rng),
+            output: |x: &Tensor| self.output.forward(x),
+        };
+        self.fuse(body_a, body_b, presence_b, layers)
     }
 
-    /// [`Self::forward`] with the input and output layers applied by `project` and the trunk
-    /// (blocks and final norm) given by `encode`: the inference path runs its products and
-    /// fused blocks there.
-    fn fuse(
+    /// [`Self::forward`] with its layers given (the inference path's products and fused
+    /// blocks).
+    fn fuse<I, E, O>(
         &self,
         body_a: &Tensor,
         body_b: &Tensor,
         presence_b: &Tensor,
-        project: impl Fn(&Dense, &Tensor) -> Result<Tensor>,
-        encode: impl FnOnce(&Tensor) -> Result<Tensor>,
-    ) -> Result<Tensor> {
+        layers: FusionLayers<I, E, O>,
+    ) -> Result<Tensor>
+    where
+        I: Fn(&Tensor) -> Result<Tensor>,
+        E: FnOnce(&Tensor) -> Result<Tensor>,
+        O: Fn(&Tensor) -> Result<Tensor>,
+    {
+        let FusionLayers { input, encode, output } = layers;
         let (batch, frames, _) = body_a.dims3()?;
         let present = presence_b.reshape((batch, 1, 1))?;
         let masked_b = body_b.broadcast_mul(&present)?;
         let flag = present.broadcast_as((batch, frames, 1))?.contiguous()?;
         let average = body_average(body_a, &masked_b, &present)?;
-        let tokens = project(&self.input, &Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
+        let tokens = input(&Tensor::cat(&[body_a, &masked_b, &flag], D::Minus1)?)?;
         let x = tokens.broadcast_add(&self.positions.narrow(0, 0, frames)?)?;
-        Ok((average + project(&self.output, &encode(&x)?)?)?)
+        Ok((average + output(&encode(&x)?)?)?)
     }
 }
 

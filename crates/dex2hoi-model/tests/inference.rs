@@ -90,16 +90,19 @@ fn product_equals_candles_matmul_on_and_off_the_pool_and_at_odd_sizes() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let pair = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    // Whole and partial panels of 64 columns, whole and partial chunks of 48 rows.
     for (rows, inner, columns) in
-        [(1, 1, 1), (17, 37, 5), (70, 256, 768), (3, 129, 33), (240, 64, 1)]
+        [(1, 1, 1), (17, 37, 5), (70, 256, 768), (3, 129, 33), (240, 64, 1), (120, 512, 200)]
     {
         let x = random(&[rows, inner], &mut rng);
         let w = random(&[inner, columns], &mut rng);
         let expected = x.matmul(&w).unwrap();
+        let packed = fused::PackedMatrix::new(&w).unwrap();
+        assert_eq!(packed.dims(), (inner, columns));
         // On the global pool's threads, on a pool of two, on a pool of one.
-        let outside = fused::product(&x, &w).unwrap();
-        let inside = pair.install(|| fused::product(&x, &w).unwrap());
-        let alone = single.install(|| fused::product(&x, &w).unwrap());
+        let outside = fused::product(&x, &packed).unwrap();
+        let inside = pair.install(|| fused::product(&x, &packed).unwrap());
+        let alone = single.install(|| fused::product(&x, &packed).unwrap());
         for got in [outside, inside, alone] {
             assert!(max_difference(&got, &expected) < 1e-4, "{rows} x {inner} x {columns}");
         }
@@ -107,23 +110,27 @@ fn product_equals_candles_matmul_on_and_off_the_pool_and_at_odd_sizes() {
     // Leading dimensions are rows; empty products are zeros or empty.
     let x = random(&[2, 3, 7], &mut rng);
     let w = random(&[7, 4], &mut rng);
+    let packed = |w: &Tensor| fused::PackedMatrix::new(w).unwrap();
     let expected = x.reshape((6, 7)).unwrap().matmul(&w).unwrap().reshape((2, 3, 4)).unwrap();
-    assert!(max_difference(&fused::product(&x, &w).unwrap(), &expected) < 1e-5);
+    assert!(max_difference(&fused::product(&x, &packed(&w)).unwrap(), &expected) < 1e-5);
     let none = Tensor::zeros((4, 0), DType::F32, &Device::Cpu).unwrap();
-    let zeros =
-        fused::product(&none, &Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap()).unwrap();
+    let no_inner = packed(&Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap());
+    let zeros = fused::product(&none, &no_inner).unwrap();
     assert_eq!(zeros.dims(), [4, 3]);
     assert_eq!(zeros.abs().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap(), 0.0);
-    let no_columns = Tensor::zeros((7, 0), DType::F32, &Device::Cpu).unwrap();
+    let no_columns = packed(&Tensor::zeros((7, 0), DType::F32, &Device::Cpu).unwrap());
     assert_eq!(fused::product(&x, &no_columns).unwrap().dims(), [2, 3, 0]);
     let empty = Tensor::zeros((0, 7), DType::F32, &Device::Cpu).unwrap();
-    assert_eq!(fused::product(&empty, &w).unwrap().dims(), [0, 4]);
-    // A weight of the wrong height, or strided, is refused rather than misread.
-    assert!(fused::product(&x, &random(&[6, 4], &mut rng)).is_err());
-    assert!(
-        fused::product(&random(&[4, 7], &mut rng), &random(&[4, 7], &mut rng).t().unwrap())
-            .is_err()
-    );
+    assert_eq!(fused::product(&empty, &packed(&w)).unwrap().dims(), [0, 4]);
+    // A weight of the wrong height is refused rather than misread; a strided weight is packed
+    // as the matrix it is (here a transposed one), and a strided input is refused.
+    assert!(fused::product(&x, &packed(&random(&[6, 4], &mut rng))).is_err());
+    let wt = random(&[4, 7], &mut rng);
+    let x2 = random(&[5, 7], &mut rng);
+    let expected = x2.matmul(&wt.t().unwrap().contiguous().unwrap()).unwrap();
+    let got = fused::product(&x2, &packed(&wt.t().unwrap())).unwrap();
+    assert!(max_difference(&got, &expected) < 1e-5);
+    assert!(fused::product(&x2.t().unwrap(), &packed(&random(&[5, 3], &mut rng))).is_err());
 }
 
 /// The composite attention on already projected queries, keys and values.

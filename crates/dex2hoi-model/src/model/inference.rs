@@ -16,10 +16,10 @@
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 
-use super::{Denoiser, DualStream, Fusion, Layout, Model, ModelInput, SingleStream};
+use super::{Denoiser, DualStream, Fusion, FusionLayers, Layout, Model, ModelInput, SingleStream};
 use super::{present_average, streams_into_batch};
 use crate::error::Result;
-use crate::fused;
+use crate::fused::{self, PackedMatrix};
 use crate::layers::{Dense, Modulation};
 use crate::transformer::{PreNorm, TransformerBlock};
 
@@ -27,29 +27,20 @@ use crate::transformer::{PreNorm, TransformerBlock};
 ///
 /// # Shapes
 /// - `x`: `[..., input]`; `weight`: `[input, output]`; returns `[..., output]`
-fn product(x: &Tensor, weight: &Tensor) -> Result<Tensor> {
-    Ok(fused::product(&x.contiguous()?, &weight.contiguous()?)?)
+fn product(x: &Tensor, weight: &PackedMatrix) -> Result<Tensor> {
+    Ok(fused::product(&x.contiguous()?, weight)?)
 }
 
-/// `dense.forward(x)` through [`product`] (the composite model's layers that the inference
-/// path uses as they are).
-///
-/// # Shapes
-/// - `x`: `[..., input]`; returns `[..., output]`
-fn project(dense: &Dense, x: &Tensor) -> Result<Tensor> {
-    Linear::of(dense).forward(x)
-}
-
-/// A linear layer's parameters, detached from the autograd graph.
+/// A linear layer's parameters, detached from the autograd graph, the weight packed.
 #[derive(Debug, Clone)]
 struct Linear {
-    weight: Tensor,
+    weight: PackedMatrix,
     bias: Tensor,
 }
 
 impl Linear {
-    fn of(dense: &Dense) -> Self {
-        Self { weight: dense.weight.detach(), bias: dense.bias.detach() }
+    fn of(dense: &Dense) -> Result<Self> {
+        Ok(Self { weight: PackedMatrix::new(&dense.weight)?, bias: dense.bias.detach() })
     }
 
     /// Parameters of layers that read the same input, side by side (their outputs
@@ -58,7 +49,7 @@ impl Linear {
         let weights: Vec<&Tensor> = layers.iter().map(|d| &d.weight).collect();
         let biases: Vec<&Tensor> = layers.iter().map(|d| &d.bias).collect();
         Ok(Self {
-            weight: Tensor::cat(&weights, 1)?.detach(),
+            weight: PackedMatrix::new(&Tensor::cat(&weights, 1)?)?,
             bias: Tensor::cat(&biases, 0)?.detach(),
         })
     }
@@ -137,8 +128,8 @@ impl Norm {
 struct Cross {
     norm: Norm,
     other_norm: Norm,
-    query: Tensor,
-    key_value: Tensor,
+    query: PackedMatrix,
+    key_value: PackedMatrix,
     /// Query, key and value biases, `[3 latent]`.
     bias: Tensor,
     out: Linear,
@@ -168,25 +159,25 @@ impl Block {
             Some(cross) => Some(Cross {
                 norm: table.norm(&cross.norm),
                 other_norm: table.norm(&cross.other_norm),
-                query: cross.attention.query.weight.detach(),
-                key_value: cross.attention.key_value.weight.detach(),
+                query: PackedMatrix::new(&cross.attention.query.weight)?,
+                key_value: PackedMatrix::new(&cross.attention.key_value.weight)?,
                 bias: Tensor::cat(
                     &[&cross.attention.query.bias, &cross.attention.key_value.bias],
                     0,
                 )?
                 .detach(),
-                out: Linear::of(&cross.attention.out),
+                out: Linear::of(&cross.attention.out)?,
             }),
             None => None,
         };
         Ok(Self {
             self_norm,
             qkv: Linear::side_by_side(&[&attention.query, &attention.key_value])?,
-            self_out: Linear::of(&attention.out),
+            self_out: Linear::of(&attention.out)?,
             cross,
             ff_norm: table.norm(&block.ff_norm),
-            up: Linear::of(&block.feed_forward.up),
-            down: Linear::of(&block.feed_forward.down),
+            up: Linear::of(&block.feed_forward.up)?,
+            down: Linear::of(&block.feed_forward.down)?,
             heads: attention.heads,
             latent,
         })
@@ -240,7 +231,7 @@ impl Block {
 /// The denoiser for inference (see [`Denoiser`]).
 #[derive(Debug, Clone)]
 struct FastDenoiser {
-    input: Tensor,
+    input: PackedMatrix,
     /// The input bias, positions and prefix/noisy types of each frame, `[T, latent]`.
     tokens: Tensor,
     channel_mask: Option<Tensor>,
@@ -262,13 +253,13 @@ impl FastDenoiser {
         let final_column = table.add(&denoiser.final_modulation);
         let modulations = table.finish()?.expect("the final modulation at least");
         Ok(Self {
-            input: denoiser.input.weight.detach(),
+            input: PackedMatrix::new(&denoiser.input.weight)?,
             tokens,
             channel_mask: denoiser.channel_mask.as_ref().map(Tensor::detach),
             blocks,
             modulations,
             final_column,
-            head: Linear::of(&denoiser.head),
+            head: Linear::of(&denoiser.head)?,
             prefix_frames: denoiser.prefix_frames,
             predicted_frames: denoiser.predicted_frames,
         })
@@ -301,7 +292,7 @@ impl FastDenoiser {
 /// input and output layers, and the average, are the model's own.
 #[derive(Debug, Clone)]
 enum FastFusion {
-    Network(Vec<Block>),
+    Network { input: Linear, blocks: Vec<Block>, output: Linear },
     Average,
 }
 
@@ -311,7 +302,11 @@ impl FastFusion {
             Fusion::Network(network) => {
                 let mut table = TableBuilder::default();
                 let blocks = network.layers.blocks.iter().map(|b| Block::new(b, &mut table));
-                Self::Network(blocks.collect::<Result<_>>()?)
+                Self::Network {
+                    input: Linear::of(&network.input)?,
+                    blocks: blocks.collect::<Result<_>>()?,
+                    output: Linear::of(&network.output)?,
+                }
             }
             Fusion::Average => Self::Average,
         })
@@ -328,14 +323,19 @@ impl FastFusion {
         presence_b: &Tensor,
     ) -> Result<Tensor> {
         match (self, fusion) {
-            (Self::Network(blocks), Fusion::Network(network)) => {
-                network.fuse(body_a, body_b, presence_b, project, |x| {
-                    let mut x = x.clone();
-                    for block in blocks {
-                        x = block.forward(&x, None, None)?;
-                    }
-                    Ok(fused::layer_norm(&x)?)
-                })
+            (Self::Network { input, blocks, output }, Fusion::Network(network)) => {
+                let layers = FusionLayers {
+                    input: |x: &Tensor| input.forward(x),
+                    encode: |x: &Tensor| {
+                        let mut x = x.clone();
+                        for block in blocks {
+                            x = block.forward(&x, None, None)?;
+                        }
+                        Ok(fused::layer_norm(&x)?)
+                    },
+                    output: |x: &Tensor| output.forward(x),
+                };
+                network.fuse(body_a, body_b, presence_b, layers)
             }
             _ => present_average(body_a, body_b, presence_b),
         }
@@ -391,7 +391,15 @@ impl PreparedCondition {
 pub struct InferenceModel {
     model: Model,
     /// `None` where the fused operations do not apply (another device or dtype).
-    fast: Option<FastLayout>,
+    fast: Option<Fast>,
+}
+
+/// The inference path's layers: the layout's and the timestep MLP's.
+#[derive(Debug, Clone)]
+struct Fast {
+    layout: FastLayout,
+    time_in: Linear,
+    time_out: Linear,
 }
 
 impl InferenceModel {
@@ -399,14 +407,19 @@ impl InferenceModel {
     pub fn new(model: &Model) -> Result<Self> {
         let on_cpu = matches!(model.device(), Device::Cpu) && model.dtype() == DType::F32;
         let fast = if on_cpu {
-            Some(match &model.layout {
-                Layout::Dual(DualStream { denoiser, fusion, .. }) => FastLayout::Dual {
-                    denoiser: FastDenoiser::new(denoiser)?,
-                    fusion: FastFusion::new(fusion)?,
-                },
-                Layout::Single(SingleStream { denoiser, .. }) => {
-                    FastLayout::Single { denoiser: FastDenoiser::new(denoiser)? }
+            let (layout, conditioning) = match &model.layout {
+                Layout::Dual(DualStream { denoiser, fusion, conditioning, .. }) => {
+                    let denoiser = FastDenoiser::new(denoiser)?;
+                    (FastLayout::Dual { denoiser, fusion: FastFusion::new(fusion)? }, conditioning)
                 }
+                Layout::Single(SingleStream { denoiser, conditioning, .. }) => {
+                    (FastLayout::Single { denoiser: FastDenoiser::new(denoiser)? }, conditioning)
+                }
+            };
+            Some(Fast {
+                layout,
+                time_in: Linear::of(&conditioning.time_in)?,
+                time_out: Linear::of(&conditioning.time_out)?,
             })
         } else {
             None
@@ -531,11 +544,13 @@ impl InferenceModel {
         let input = self.input(prefix, noisy, timesteps, condition);
         let dtype = self.model.dtype();
         let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
-        let head = match (fast, &self.model.layout) {
+        let time_in = |x: &Tensor| fast.time_in.forward(x);
+        let time_out = |x: &Tensor| fast.time_out.forward(x);
+        let head = match (&fast.layout, &self.model.layout) {
             (FastLayout::Dual { denoiser, fusion }, Layout::Dual(dual)) => {
                 let frames = streams_into_batch(&Tensor::cat(&[prefix, noisy], 2)?)?;
                 let timesteps = Tensor::cat(&[timesteps, timesteps], 0)?;
-                let time = dual.conditioning.time_with(&timesteps, dtype, project)?;
+                let time = dual.conditioning.time_with(&timesteps, dtype, time_in, time_out)?;
                 let out = denoiser.forward(&frames, &(time + &condition.fixed)?)?;
                 dual.assemble(&out, &condition.presence, |a, b, presence_b| {
                     fusion.forward(&dual.fusion, a, b, presence_b)
@@ -543,7 +558,7 @@ impl InferenceModel {
             }
             (FastLayout::Single { denoiser }, Layout::Single(single)) => {
                 let frames = single.frames(prefix, noisy)?;
-                let time = single.conditioning.time_with(timesteps, dtype, project)?;
+                let time = single.conditioning.time_with(timesteps, dtype, time_in, time_out)?;
                 single.split(&denoiser.forward(&frames, &(time + &condition.fixed)?)?)
             }
             _ => unreachable!("the inference layout is built from the model's"),
