@@ -1,12 +1,12 @@
-//! Row-major f32 matrix products on the CPU, straight through `gemm` (the crate candle's CPU
-//! backend calls for `Tensor::matmul`): the inference path's, and the per-head products of the
-//! training attention (`differentiable::attention`, on the calling thread), and [`product_into`]
-//! on views read in place (the inference attention's per-head products). One of the two
-//! modules of the workspace that use `unsafe` (the workspace denies it everywhere else; a tidy
-//! test keeps it to them; the other sets an environment variable, `dex2hoi-cli`'s
+//! f32 and f64 matrix products on the CPU, straight through `gemm` (the crate candle's CPU
+//! backend calls for `Tensor::matmul`): [`product_into`] on strided views read in place (the
+//! attentions' per-head products, the training linear layers' products, and under
+//! [`packed_product`] the inference path's, on weights packed once at load, [`Packed`]). One
+//! of the two modules of the workspace that use `unsafe` (the workspace denies it everywhere
+//! else; a tidy test keeps it to them; the other sets an environment variable, `dex2hoi-cli`'s
 //! `candle_threads`).
 //!
-//! Why not `Tensor::matmul` on the inference path: candle asks for its thread count on every
+//! Why not `Tensor::matmul`: candle asks for its thread count on every
 //! product (`candle_core::utils::get_num_threads`), which on Linux reads and parses
 //! `/proc/cpuinfo` each time unless `RAYON_NUM_THREADS` is set: tens of microseconds per call,
 //! against a few hundred for a product of a `small` sample, and about 8% of its time in
@@ -16,8 +16,9 @@
 //! and on every thread of the pool elsewhere.
 //!
 //! Why `unsafe`: `gemm::gemm` takes raw pointers and strides, and safe Rust cannot call it.
-//! [`product`] and [`product_into`] check every length and stride (with overflow-checked
-//! sizes) before the call, so that safe callers cannot make them read or write out of bounds.
+//! [`product_into`], the one function that calls it, checks every length and stride (with
+//! overflow-checked sizes) and that no two output elements share a place before the call, so
+//! that safe callers cannot make it read or write out of bounds or race.
 #![allow(unsafe_code)]
 
 use std::cell::Cell;
