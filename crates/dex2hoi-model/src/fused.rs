@@ -6,7 +6,7 @@
 //! operation that trains has a backward pass; only the no-grad inference path may use
 //! forward-only fused operations). They accept contiguous f32 tensors on the CPU; the inference
 //! path uses the composite model on any other device or dtype. Each is tested equal to the
-//! composite operations it replaces (`tests/fused.rs`).
+//! composite operations it replaces (`tests/inference.rs`).
 
 use std::sync::Arc;
 
@@ -269,6 +269,9 @@ impl CustomOp1 for Product {
                 format!("a weight of {input} rows, got {weight_input}"),
             ));
         }
+        if rows.checked_mul(output).is_none() {
+            return Err(op_error(self.name(), "an output size that fits in usize"));
+        }
         let out = packed_product(x, rows, &self.0.0, Threads::Pool);
         Ok((CpuStorage::F32(out), Shape::from([leading, &[output]].concat())))
     }
@@ -441,17 +444,18 @@ impl CustomOp3 for Attention {
             || !l.is_multiple_of(self.heads)
             || kv_sequences != sequences
             || key_frames == 0
-            || self.query_column + l > query_width
-            || self.key_column + 2 * l > kv_width
-            || bias.len() != 3 * l
+            || self.query_column.checked_add(l).is_none_or(|end| end > query_width)
+            || l.checked_mul(2)
+                .and_then(|width| self.key_column.checked_add(width))
+                .is_none_or(|end| end > kv_width)
+            || l.checked_mul(3) != Some(bias.len())
         {
             return Err(op_error(
                 self.name(),
                 format!(
-                    "queries [N, Tq, >= {}], keys and values [N, Tk >= 1, >= {}], a bias of {} and heads dividing {l}; got {:?}, {:?}, {}",
-                    self.query_column + l,
-                    self.key_column + 2 * l,
-                    3 * l,
+                    "queries [N, Tq, >= {} + {l}], keys and values [N, Tk >= 1, >= {} + 2 x {l}], a bias of 3 x {l} and heads dividing {l}; got {:?}, {:?}, {}",
+                    self.query_column,
+                    self.key_column,
                     q_layout.dims(),
                     kv_layout.dims(),
                     bias.len()
@@ -462,82 +466,93 @@ impl CustomOp3 for Attention {
         let scale = 1.0 / (head as f32).sqrt();
         let (query_bias, value_bias) = (&bias[..l], &bias[2 * l..]);
         let mut out = vec![0f32; sequences * query_frames * l];
-        // One task per sequence: its heads one after the other on one thread.
+        // One task per block of a sequence's query rows, its heads one after the other: a whole
+        // sequence per task where there are enough sequences for the threads (always inside a
+        // row group), shorter blocks where there are not (a many-core machine).
+        let threads = Threads::Pool.count();
+        let per_sequence =
+            if sequences >= threads { 1 } else { threads.div_ceil(sequences.max(1)) };
+        let block = query_frames.div_ceil(per_sequence).max(1);
         out.par_chunks_mut((query_frames * l).max(1)).enumerate().for_each(|(n, out)| {
-            let queries = &queries[n * query_frames * query_width..][..query_frames * query_width];
-            let keys_values = &keys_values[n * key_frames * kv_width..][..key_frames * kv_width];
-            let mut scores = vec![0f32; query_frames * key_frames];
-            let mut key_scores = vec![0f32; key_frames];
-            let mut inverse = vec![0f32; query_frames];
-            for h in 0..self.heads {
-                let (query_column, key_column) =
-                    (self.query_column + h * head, self.key_column + h * head);
-                let key_view = |column: usize| Strided {
-                    data: &keys_values[column..],
-                    rows: key_frames,
-                    columns: head,
-                    row_stride: kv_width,
-                    column_stride: 1,
-                };
-                let (keys, values) = (key_view(key_column), key_view(key_column + l));
-                let query = Strided {
-                    data: &queries[query_column..],
-                    rows: query_frames,
-                    columns: head,
-                    row_stride: query_width,
-                    column_stride: 1,
-                };
-                // The keys transposed, read in place: `[head, Tk]`.
-                let keys_t = keys.transposed();
-                let query_bias = &query_bias[h * head..][..head];
-                simd(
-                    #[inline(always)]
-                    || {
-                        for (j, score) in key_scores.iter_mut().enumerate() {
-                            let key = &keys_values[j * kv_width + key_column..][..head];
-                            *score = scale * dot(query_bias, key);
-                        }
-                        for row in scores.chunks_exact_mut(key_frames) {
-                            row.copy_from_slice(&key_scores);
-                        }
-                    },
-                );
-                product_into(
-                    &mut scores,
-                    key_frames,
-                    (query, keys_t),
-                    scale,
-                    true,
-                    Threads::Calling,
-                );
-                simd(
-                    #[inline(always)]
-                    || {
-                        let rows = scores.chunks_exact_mut(key_frames);
-                        for (row, inverse) in rows.zip(inverse.iter_mut()) {
-                            let largest = max(row);
-                            for s in row.iter_mut() {
-                                *s = exp(*s - largest);
+            out.par_chunks_mut((block * l).max(1)).enumerate().for_each(|(b, out)| {
+                let rows = out.len() / l.max(1);
+                let queries =
+                    &queries[(n * query_frames + b * block) * query_width..][..rows * query_width];
+                let keys_values =
+                    &keys_values[n * key_frames * kv_width..][..key_frames * kv_width];
+                let mut scores = vec![0f32; rows * key_frames];
+                let mut key_scores = vec![0f32; key_frames];
+                let mut inverse = vec![0f32; rows];
+                for h in 0..self.heads {
+                    let (query_column, key_column) =
+                        (self.query_column + h * head, self.key_column + h * head);
+                    let key_view = |column: usize| Strided {
+                        data: &keys_values[column..],
+                        rows: key_frames,
+                        columns: head,
+                        row_stride: kv_width,
+                        column_stride: 1,
+                    };
+                    let (keys, values) = (key_view(key_column), key_view(key_column + l));
+                    let query = Strided {
+                        data: &queries[query_column..],
+                        rows,
+                        columns: head,
+                        row_stride: query_width,
+                        column_stride: 1,
+                    };
+                    // The keys transposed, read in place: `[head, Tk]`.
+                    let keys_t = keys.transposed();
+                    let query_bias = &query_bias[h * head..][..head];
+                    simd(
+                        #[inline(always)]
+                        || {
+                            for (j, score) in key_scores.iter_mut().enumerate() {
+                                let key = &keys_values[j * kv_width + key_column..][..head];
+                                *score = scale * dot(query_bias, key);
                             }
-                            *inverse = 1.0 / sum(row, |s| s);
-                        }
-                    },
-                );
-                let weights = Strided::row_major(&scores, query_frames, key_frames);
-                let heads_out = &mut out[h * head..];
-                product_into(heads_out, l, (weights, values), 1.0, false, Threads::Calling);
-                let value_bias = &value_bias[h * head..][..head];
-                simd(
-                    #[inline(always)]
-                    || {
-                        for (row, &inverse) in heads_out.chunks_mut(l).zip(&inverse) {
-                            for (o, &b) in row[..head].iter_mut().zip(value_bias) {
-                                *o = o.mul_add(inverse, b);
+                            for row in scores.chunks_exact_mut(key_frames) {
+                                row.copy_from_slice(&key_scores);
                             }
-                        }
-                    },
-                );
-            }
+                        },
+                    );
+                    product_into(
+                        &mut scores,
+                        key_frames,
+                        (query, keys_t),
+                        scale,
+                        true,
+                        Threads::Calling,
+                    );
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let rows = scores.chunks_exact_mut(key_frames);
+                            for (row, inverse) in rows.zip(inverse.iter_mut()) {
+                                let largest = max(row);
+                                for s in row.iter_mut() {
+                                    *s = exp(*s - largest);
+                                }
+                                *inverse = 1.0 / sum(row, |s| s);
+                            }
+                        },
+                    );
+                    let weights = Strided::row_major(&scores, rows, key_frames);
+                    let heads_out = &mut out[h * head..];
+                    product_into(heads_out, l, (weights, values), 1.0, false, Threads::Calling);
+                    let value_bias = &value_bias[h * head..][..head];
+                    simd(
+                        #[inline(always)]
+                        || {
+                            for (row, &inverse) in heads_out.chunks_mut(l).zip(&inverse) {
+                                for (o, &b) in row[..head].iter_mut().zip(value_bias) {
+                                    *o = o.mul_add(inverse, b);
+                                }
+                            }
+                        },
+                    );
+                }
+            });
         });
         Ok((CpuStorage::F32(out), Shape::from((sequences, query_frames, l))))
     }

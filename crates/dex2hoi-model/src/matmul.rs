@@ -12,8 +12,8 @@
 //! against a few hundred for a product of a `small` sample, and about 8% of its time in
 //! system calls (perf, session 16). It also always splits the product over every thread, also
 //! inside a row group of [`crate::InferenceModel::forward`] whose neighbours already have
-//! work. Called here, the product runs on one thread inside a row group ([`in_row_group`])
-//! and on every thread of the pool elsewhere.
+//! work. Called here, a product runs on one thread inside a row group ([`in_row_group`]) and
+//! as its caller chooses elsewhere ([`Threads`]).
 //!
 //! Why `unsafe`: `gemm::gemm` takes raw pointers and strides, and safe Rust cannot call it.
 //! [`product_into`], the one function that calls it, checks every length and stride (with
@@ -31,8 +31,8 @@ thread_local! {
     static IN_ROW_GROUP: Cell<bool> = const { Cell::new(false) };
 }
 
-/// Runs `work` as one row group: every [`product`] it makes runs on this thread alone (the
-/// pool's other threads run the other groups).
+/// Runs `work` as one row group: every product it makes ([`product_into`], [`packed_product`])
+/// runs on this thread alone (the pool's other threads run the other groups).
 pub(crate) fn in_row_group<R>(work: impl FnOnce() -> R) -> R {
     /// Restores the flag however `work` ends (a panic unwinding through a rayon task too).
     struct Restore(bool);
@@ -123,12 +123,16 @@ pub(crate) enum Threads {
 }
 
 impl Threads {
-    fn parallelism(self) -> Parallelism {
-        let threads = match self {
-            Self::Pool if !IN_ROW_GROUP.with(Cell::get) => rayon::current_num_threads(),
+    /// How many threads the work may spread over.
+    pub(crate) fn count(self) -> usize {
+        match self {
+            Self::Pool if !IN_ROW_GROUP.with(Cell::get) => rayon::current_num_threads().max(1),
             _ => 1,
-        };
-        match threads {
+        }
+    }
+
+    fn parallelism(self) -> Parallelism {
+        match self.count() {
             1 => Parallelism::None,
             threads => Parallelism::Rayon(threads),
         }
@@ -272,8 +276,8 @@ impl Packed {
 }
 
 /// `x @ weight` for a row-major `[rows, inner]` `x`: the row-major `[rows, columns]` product,
-/// [`ROW_CHUNK`] rows by [`PANEL`] columns per gemm call. On the calling thread with
-/// [`Threads::Calling`] or inside a row group; the chunks of rows spread over the pool
+/// at most [`ROW_CHUNK`] rows by [`PANEL`] columns per gemm call. On the calling thread with
+/// [`Threads::Calling`] or inside a row group; the chunks of rows spread evenly over the pool
 /// otherwise.
 ///
 /// # Panics
@@ -291,19 +295,21 @@ pub(crate) fn packed_product(
     if out.is_empty() {
         return out;
     }
+    // Outside a row group the chunks spread over the pool: as many per thread (at most
+    // ROW_CHUNK rows each), so that every thread has work on a many-core machine too.
+    let threads = threads.count();
+    let per_thread = rows.div_ceil(threads * ROW_CHUNK);
+    let chunk_rows = ROW_CHUNK.min(rows.div_ceil(threads * per_thread)).max(1);
     let chunk = |(index, out): (usize, &mut [f32])| {
-        let chunk_rows = out.len() / columns;
-        let lhs = Strided::row_major(
-            &x[index * ROW_CHUNK * inner..][..chunk_rows * inner],
-            chunk_rows,
-            inner,
-        );
+        let rows_here = out.len() / columns;
+        let x = &x[index * chunk_rows * inner..][..rows_here * inner];
+        let lhs = Strided::row_major(x, rows_here, inner);
         for (start, panel) in weight.panels() {
             product_into(&mut out[start..], columns, (lhs, panel), 1.0, false, Threads::Calling);
         }
     };
-    let chunks = ROW_CHUNK * columns;
-    if matches!(threads.parallelism(), Parallelism::None) {
+    let chunks = chunk_rows * columns;
+    if threads == 1 {
         out.chunks_mut(chunks).enumerate().for_each(chunk);
     } else {
         out.par_chunks_mut(chunks).enumerate().for_each(chunk);
@@ -316,7 +322,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    use super::{Strided, Threads, product_into};
+    use super::{Packed, Strided, Threads, packed_product, product_into};
 
     /// Element `(r, c)` of a view, read by index.
     fn at(view: &Strided<'_>, r: usize, c: usize) -> f32 {
@@ -393,6 +399,35 @@ mod tests {
             Strided { data: &[1.0; 12], rows: 4, columns: 3, row_stride: 3, column_stride: 1 };
         product_into(&mut out, 3, (empty, rhs), 1.0, false, Threads::Calling);
         assert_eq!(out, [7.0; 3]);
+    }
+
+    /// The thread count changes who computes which part of a product, not its sums: the same
+    /// bits on pools of one and four threads (training relies on it to resume bit for bit).
+    #[test]
+    fn products_on_the_pool_do_not_depend_on_its_thread_count() {
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        let (rows, inner, columns) = (300, 200, 150);
+        let mut values =
+            |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
+        let (lhs, rhs) = (values(rows * inner), values(inner * columns));
+        let product = |threads: usize| {
+            let pool =
+                rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("a pool");
+            let mut out = vec![0f32; rows * columns];
+            let views = (
+                Strided::row_major(&lhs[..], rows, inner),
+                Strided::row_major(&rhs[..], inner, columns),
+            );
+            pool.install(|| product_into(&mut out, columns, views, 1.0, false, Threads::Pool));
+            let packed = Packed::new(&rhs, inner, columns);
+            let packed_out = pool.install(|| packed_product(&lhs, rows, &packed, Threads::Pool));
+            (out, packed_out)
+        };
+        let (one, four) = (product(1), product(4));
+        assert_eq!(one.0, four.0);
+        assert_eq!(one.1, four.1);
+        let largest = one.0.iter().zip(&one.1).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(largest < 1e-3, "packed and plain products differ by {largest}");
     }
 
     /// Views past their slice, a short output and overlapping output rows are refused before

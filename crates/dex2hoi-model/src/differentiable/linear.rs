@@ -98,7 +98,11 @@ fn product_op<T: Real>(
             format!("[{}, {}] @ [{}, {}]", lhs.rows, lhs.columns, rhs.rows, rhs.columns),
         ));
     }
-    let mut out = vec![T::default(); lhs.rows * rhs.columns];
+    let size = lhs
+        .rows
+        .checked_mul(rhs.columns)
+        .ok_or_else(|| op_error(name, "a size that fits in usize"))?;
+    let mut out = vec![T::default(); size];
     product_into(&mut out, rhs.columns, (lhs, rhs), T::of(1.0), false, Threads::Pool);
     Ok((T::storage(out), Shape::from((lhs.rows, rhs.columns))))
 }

@@ -6,7 +6,10 @@
 //! - every AdaLN modulation of the denoiser (four per block and the final one) in one
 //!   `[latent, columns]` product per diffusion step;
 //! - the part of the condition that does not depend on the timestep (text, BPS and presence
-//!   projections) computed once per sample ([`InferenceModel::prepare`]).
+//!   projections) computed once per sample ([`InferenceModel::prepare`]);
+//! - every weight packed for the products ([`PackedMatrix`]).
+//!
+//! The last denoiser block computes only the predicted frames, the only ones the head reads.
 //!
 //! Stored parameter names do not change: the rearranged tensors are built from the modules
 //! that [`Model::new`] made. An [`InferenceModel`] is a snapshot: build it after the weights
