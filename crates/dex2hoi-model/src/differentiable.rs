@@ -325,9 +325,15 @@ pub fn linear(
 ) -> candle_core::Result<Tensor> {
     let input = weight.dim(0)?;
     let rows = x.elem_count() / input.max(1);
-    let x_rows = x.detach().contiguous()?.reshape((rows, input))?;
-    let product = linear::product(&x_rows, &weight.detach(), false, false)?;
-    x.apply_op3(weight, &bias.contiguous()?, linear::Linear { product, activation })
+    let product = match activation {
+        Activation::Silu => {
+            let x_rows = x.detach().contiguous()?.reshape((rows, input))?;
+            Some(linear::product(&x_rows, &weight.detach(), false, false)?)
+        }
+        Activation::Identity => None,
+    };
+    let op = linear::Linear { product, activation };
+    x.contiguous()?.apply_op3(&weight.contiguous()?, &bias.contiguous()?, op)
 }
 
 /// AdaLN, `norm(x) * (1 + scale) + shift` with `(shift, scale)` the halves of each sequence's

@@ -55,6 +55,12 @@ fn forward<T: Real>(
     Ok((T::storage(out), y_layout.shape().clone()))
 }
 
+/// The product of the leading dimensions of `x`'s shape: its rows (also when the last
+/// dimension is 0).
+fn leading_rows(dims: &[usize]) -> usize {
+    dims.split_last().map_or(1, |(_, leading)| leading.iter().product())
+}
+
 /// The gradient with respect to `z = y + bias` of `act(z)`, given the output's.
 fn grad_before_activation(
     activation: Activation,
@@ -137,14 +143,44 @@ pub(super) fn product(
 }
 
 /// A linear layer `act(x W + bias)` over the last dimension of `x`, `W` stored
-/// `[input, output]`. The product is computed before the operation ([`product`], on tensors
-/// detached from the graph) and handed to it: it is also the input of the SiLU's backward
-/// pass.
+/// `[input, output]`. With SiLU the product is computed before the operation ([`product`], on
+/// tensors detached from the graph) and handed to it: it is also the input of the SiLU's
+/// backward pass. Without an activation the operation computes `x W + bias` itself, the bias
+/// written first and the product added to it by gemm, with no separate pass over the output.
 #[derive(Debug, Clone)]
 pub(super) struct Linear {
-    /// `x W`, `[rows, output]` (rows: `x`'s leading dimensions flattened).
-    pub(super) product: Tensor,
+    /// `x W`, `[rows, output]` (rows: `x`'s leading dimensions flattened), with SiLU only.
+    pub(super) product: Option<Tensor>,
     pub(super) activation: Activation,
+}
+
+/// `x W + bias` for `x` `[rows, input]` and `W` `[input, output]`: each output row starts as
+/// the bias and gemm adds the product to it.
+fn biased_product<T: Real>(
+    (x, x_layout): (&CpuStorage, &Layout),
+    (w, w_layout): (&CpuStorage, &Layout),
+    (bias, bias_layout): (&CpuStorage, &Layout),
+    rows: usize,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let name = "linear";
+    let (x, w, bias) = (
+        values::<T>(name, x, x_layout)?,
+        values::<T>(name, w, w_layout)?,
+        values::<T>(name, bias, bias_layout)?,
+    );
+    let (input, output) = w_layout.shape().dims2()?;
+    if bias.len() != output {
+        return Err(op_error(name, format!("a bias of {output}, got {}", bias.len())));
+    }
+    let size =
+        rows.checked_mul(output).ok_or_else(|| op_error(name, "a size that fits in usize"))?;
+    let mut out = Vec::with_capacity(size);
+    for _ in 0..rows {
+        out.extend_from_slice(bias);
+    }
+    let views = (Strided::row_major(x, rows, input), Strided::row_major(w, input, output));
+    product_into(&mut out, output, views, T::of(1.0), true, Threads::Pool);
+    Ok((T::storage(out), Shape::from((rows, output))))
 }
 
 impl CustomOp3 for Linear {
@@ -154,34 +190,43 @@ impl CustomOp3 for Linear {
 
     fn cpu_fwd(
         &self,
-        _: &CpuStorage,
+        x: &CpuStorage,
         x_layout: &Layout,
-        _: &CpuStorage,
+        w: &CpuStorage,
         w_layout: &Layout,
         bias: &CpuStorage,
         bias_layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let (input, output) = w_layout.shape().dims2()?;
         let x_dims = x_layout.dims();
-        let rows = x_layout.shape().elem_count() / input.max(1);
-        if x_dims.last() != Some(&input) || self.product.dims() != [rows, output] {
+        let rows = leading_rows(x_dims);
+        let product_dims = self.product.as_ref().map(Tensor::dims);
+        if x_dims.last() != Some(&input) || product_dims.is_some_and(|d| d != [rows, output]) {
             return Err(op_error(
                 self.name(),
                 format!(
-                    "x [..., {input}] and its product [{rows}, {output}]; got {x_dims:?} and {:?}",
-                    self.product.dims()
+                    "x [..., {input}] and its product [{rows}, {output}]; got {x_dims:?} and {product_dims:?}"
                 ),
             ));
         }
-        let (storage, product_layout) = self.product.storage_and_layout();
-        let Storage::Cpu(product) = &*storage else {
-            return Err(op_error(self.name(), "a product on the CPU"));
+        let (out, _) = match &self.product {
+            None => by_dtype!(
+                self.name(),
+                x,
+                biased_product((x, x_layout), (w, w_layout), (bias, bias_layout), rows)
+            )?,
+            Some(product) => {
+                let (storage, product_layout) = product.storage_and_layout();
+                let Storage::Cpu(product) = &*storage else {
+                    return Err(op_error(self.name(), "a product on the CPU"));
+                };
+                by_dtype!(
+                    self.name(),
+                    product,
+                    forward(self.activation, (product, product_layout), (bias, bias_layout))
+                )?
+            }
         };
-        let (out, _) = by_dtype!(
-            self.name(),
-            product,
-            forward(self.activation, (product, product_layout), (bias, bias_layout))
-        )?;
         let mut shape = x_dims.to_vec();
         *shape.last_mut().expect("x has the input dimension") = output;
         Ok((out, Shape::from(shape)))
@@ -196,9 +241,12 @@ impl CustomOp3 for Linear {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (input, output) = w.dims2()?;
-        let rows = self.product.dim(0)?;
+        let rows = leading_rows(x.dims());
         let grad = grad.reshape((rows, output))?;
-        let grad_z = grad_before_activation(self.activation, &self.product, bias, &grad)?;
+        let grad_z = match &self.product {
+            Some(product) => grad_before_activation(self.activation, product, bias, &grad)?,
+            None => grad.contiguous()?,
+        };
         let grad_x = product(&grad_z, &w.detach(), false, true)?.reshape(x.shape())?;
         let x = x.detach().contiguous()?.reshape((rows, input))?;
         let grad_w = product(&x, &grad_z, true, false)?;
