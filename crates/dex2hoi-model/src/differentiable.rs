@@ -89,6 +89,18 @@ pub(crate) fn simd<R>(kernel: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(kernel)
 }
 
+/// The product of a shape's leading dimensions (the rows of its last dimension, also when that
+/// is 0); `None` if it overflows `usize`.
+pub(crate) fn leading_rows(dims: &[usize]) -> Option<usize> {
+    let leading = dims.split_last().map_or(&[][..], |(_, leading)| leading);
+    leading.iter().try_fold(1usize, |rows, &d| rows.checked_mul(d))
+}
+
+/// [`leading_rows`], an error of `op` when it overflows.
+fn rows_of(op: &str, dims: &[usize]) -> candle_core::Result<usize> {
+    leading_rows(dims).ok_or_else(|| op_error(op, "a row count that fits in usize"))
+}
+
 pub(crate) fn op_error(op: &str, message: impl std::fmt::Display) -> candle_core::Error {
     candle_core::Error::Msg(format!("{op}: {message}"))
 }
@@ -324,10 +336,9 @@ pub fn linear(
     activation: Activation,
 ) -> candle_core::Result<Tensor> {
     let input = weight.dim(0)?;
-    let rows = x.elem_count() / input.max(1);
     let product = match activation {
         Activation::Silu => {
-            let x_rows = x.detach().contiguous()?.reshape((rows, input))?;
+            let x_rows = x.detach().contiguous()?.reshape((rows_of("linear", x.dims())?, input))?;
             Some(linear::product(&x_rows, &weight.detach(), false, false)?)
         }
         Activation::Identity => None,

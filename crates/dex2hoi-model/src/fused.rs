@@ -13,7 +13,7 @@ use std::sync::Arc;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::differentiable::{ROWS_PER_TASK, op_error, simd};
+use crate::differentiable::{ROWS_PER_TASK, leading_rows, op_error, simd};
 use crate::layers::LAYER_NORM_EPS;
 use crate::matmul::{Packed, Strided, Threads, packed_product, product_into};
 
@@ -257,10 +257,7 @@ impl CustomOp1 for Product {
         let Some((&input, leading)) = x_layout.dims().split_last() else {
             return Err(op_error(self.name(), "a non-scalar input"));
         };
-        // Counted from the leading dimensions: with `input` zero the element count says nothing.
-        let rows = leading
-            .iter()
-            .try_fold(1usize, |rows, &d| rows.checked_mul(d))
+        let rows = leading_rows(x_layout.dims())
             .ok_or_else(|| op_error(self.name(), "a row count that fits in usize"))?;
         let (weight_input, output) = self.0.dims();
         if weight_input != input {
@@ -486,21 +483,12 @@ impl CustomOp3 for Attention {
                 for h in 0..self.heads {
                     let (query_column, key_column) =
                         (self.query_column + h * head, self.key_column + h * head);
-                    let key_view = |column: usize| Strided {
-                        data: &keys_values[column..],
-                        rows: key_frames,
-                        columns: head,
-                        row_stride: kv_width,
-                        column_stride: 1,
+                    let key_view = |column: usize| {
+                        Strided::rows_apart(&keys_values[column..], key_frames, head, kv_width)
                     };
                     let (keys, values) = (key_view(key_column), key_view(key_column + l));
-                    let query = Strided {
-                        data: &queries[query_column..],
-                        rows,
-                        columns: head,
-                        row_stride: query_width,
-                        column_stride: 1,
-                    };
+                    let query =
+                        Strided::rows_apart(&queries[query_column..], rows, head, query_width);
                     // The keys transposed, read in place: `[head, Tk]`.
                     let keys_t = keys.transposed();
                     let query_bias = &query_bias[h * head..][..head];

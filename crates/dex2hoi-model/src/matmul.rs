@@ -84,7 +84,18 @@ pub(crate) struct Strided<'a, T = f32> {
 impl<'a, T> Strided<'a, T> {
     /// A `[rows, columns]` matrix stored row after row.
     pub(crate) fn row_major(data: &'a [T], rows: usize, columns: usize) -> Self {
-        Self { data, rows, columns, row_stride: columns, column_stride: 1 }
+        Self::rows_apart(data, rows, columns, columns)
+    }
+
+    /// A `[rows, columns]` matrix whose rows start `row_stride` values apart (the first
+    /// columns of wider rows, such as one head's columns of a projection).
+    pub(crate) fn rows_apart(
+        data: &'a [T],
+        rows: usize,
+        columns: usize,
+        row_stride: usize,
+    ) -> Self {
+        Self { data, rows, columns, row_stride, column_stride: 1 }
     }
 
     /// The transposed matrix, read in place.

@@ -83,20 +83,20 @@ impl<'a, T: Real> Head<'a, T> {
     fn queries(&self, h: usize) -> Strided<'a, T> {
         let Sizes { query_frames, latent, head, .. } = self.s;
         let data = &self.queries[h * head..];
-        Strided { data, rows: query_frames, columns: head, row_stride: latent, column_stride: 1 }
+        Strided::rows_apart(data, query_frames, head, latent)
     }
 
     /// Head `h`'s keys (`values` false) or values, `[Tk, head]`.
     fn keys_or_values(&self, h: usize, values: bool) -> Strided<'a, T> {
         let Sizes { key_frames, latent, head, .. } = self.s;
         let data = &self.keys_values[usize::from(values) * latent + h * head..];
-        Strided { data, rows: key_frames, columns: head, row_stride: 2 * latent, column_stride: 1 }
+        Strided::rows_apart(data, key_frames, head, 2 * latent)
     }
 
     /// The attention weights, `[Tq, Tk]`.
     fn weights(&self) -> Strided<'_, T> {
         let (rows, columns) = (self.s.query_frames, self.s.key_frames);
-        Strided { data: &self.weights, rows, columns, row_stride: columns, column_stride: 1 }
+        Strided::row_major(&self.weights, rows, columns)
     }
 
     /// Computes head `h`'s attention weights under the mask.
@@ -121,11 +121,6 @@ impl<'a, T: Real> Head<'a, T> {
             }
         }
     }
-}
-
-/// A `[rows, columns]` matrix in a buffer of rows of `row_stride`.
-fn matrix<T>(data: &[T], rows: usize, columns: usize, row_stride: usize) -> Strided<'_, T> {
-    Strided { data, rows, columns, row_stride, column_stride: 1 }
 }
 
 fn forward<T: Real>(
@@ -260,7 +255,7 @@ fn backward<T: Real>(
                     || {
                         for h in 0..op.attention.heads {
                             head.load(h);
-                            let output_grad = matrix(&grad[h * d..], tq, d, s.latent);
+                            let output_grad = Strided::rows_apart(&grad[h * d..], tq, d, s.latent);
                             let (keys, values) =
                                 (head.keys_or_values(h, false), head.keys_or_values(h, true));
                             // dV = P^T G.
@@ -278,7 +273,7 @@ fn backward<T: Real>(
                                 }
                             }
                             // dQ = c dS K, dK = c dS^T Q.
-                            let scores_grad = matrix(&grad_scores, tq, tk, tk);
+                            let scores_grad = Strided::row_major(&grad_scores, tq, tk);
                             let into = &mut grad_q[h * d..];
                             product_into(
                                 into,

@@ -8,7 +8,7 @@
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Storage, Tensor};
 use rayon::prelude::*;
 
-use super::{ROWS_PER_TASK, Real, map_rows, op_error, simd, values};
+use super::{ROWS_PER_TASK, Real, map_rows, op_error, rows_of, simd, values};
 use crate::matmul::{Strided, Threads, product_into};
 
 /// The activation after a bias.
@@ -53,12 +53,6 @@ fn forward<T: Real>(
         },
     );
     Ok((T::storage(out), y_layout.shape().clone()))
-}
-
-/// The product of the leading dimensions of `x`'s shape: its rows (also when the last
-/// dimension is 0).
-fn leading_rows(dims: &[usize]) -> usize {
-    dims.split_last().map_or(1, |(_, leading)| leading.iter().product())
 }
 
 /// The gradient with respect to `z = y + bias` of `act(z)`, given the output's.
@@ -199,7 +193,7 @@ impl CustomOp3 for Linear {
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let (input, output) = w_layout.shape().dims2()?;
         let x_dims = x_layout.dims();
-        let rows = leading_rows(x_dims);
+        let rows = rows_of(self.name(), x_dims)?;
         let product_dims = self.product.as_ref().map(Tensor::dims);
         if x_dims.last() != Some(&input) || product_dims.is_some_and(|d| d != [rows, output]) {
             return Err(op_error(
@@ -241,7 +235,7 @@ impl CustomOp3 for Linear {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (input, output) = w.dims2()?;
-        let rows = leading_rows(x.dims());
+        let rows = rows_of(self.name(), x.dims())?;
         let grad = grad.reshape((rows, output))?;
         let grad_z = match &self.product {
             Some(product) => grad_before_activation(self.activation, product, bias, &grad)?,
