@@ -70,6 +70,8 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(
         objects[0].contains("Start jump")
             && objects[0].contains("Untouched")
+            && objects[0].contains("Start turn")
+            && objects[0].contains("Untouched turning")
             && objects[0].contains("Sinking"),
         "{report}"
     );
@@ -92,6 +94,19 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert_eq!(fid, 0.0, "the ground truth against itself");
     assert!(json["rows"][1]["fid"]["mean"].as_f64().unwrap() > 0.0);
     assert_eq!(json["instruction"][0]["group"], "all");
+    // The "all" group's R-precision is the overall one, for the run and for the ground truth.
+    for (row, column) in [(1, "r_precision_top3"), (0, "truth_r_precision_top3")] {
+        assert_eq!(
+            json["instruction"][0][column]["mean"], json["rows"][row]["r_precision"][2]["mean"],
+            "{column}"
+        );
+    }
+    assert!(instruction[0].contains("R-prec. top-3"), "{report}");
+    let turn = &json["rows"][0]["physical"]["object_start_turn_deg"];
+    assert!(
+        turn["mean"].as_f64().unwrap() < 0.5,
+        "the ground truth does not turn at its start: {turn}"
+    );
     assert_eq!(json["instruction"].as_array().unwrap().len(), instruction.len() - 2);
     let physical = &json["rows"][1]["physical"];
     assert!(physical["fingertip_error_mm"]["mean"].as_f64().unwrap() > 0.0, "{physical}");
@@ -99,6 +114,11 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
     let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();
     assert_eq!(&npz[..2], b"PK");
+    // The clips are there too, as `[N, T, J, 3]` joints for 4 clips.
+    let names = String::from_utf8_lossy(&npz);
+    for array in ["generated_joints.npy", "ground_truth_object_rotations.npy", "actions.npy"] {
+        assert!(names.contains(array), "{array} in embeddings.npz");
+    }
     // The setup: the weights' steps and the sampler, in the JSON and the markdown.
     let setup = &json["setup"];
     assert_eq!(setup["model_step"], 3, "{setup}");

@@ -38,7 +38,7 @@ use crate::metrics;
 
 use embedding::{DistributionFeatures, EmbeddedMotions, embed_prompts};
 use generation::{Generator, Progress, replication_prompts};
-use physical::{ObjectMeshes, Physical, Window, instruction_rows, physical_row};
+use physical::{GroupScores, ObjectMeshes, Physical, Window, instruction_rows, physical_row};
 use scores::DistributionScores;
 
 pub use report::{
@@ -181,7 +181,8 @@ pub fn evaluate(
     let truth =
         GroundTruth::measure(&chosen, evaluator, features, (&run.skeleton, &meshes), window, fps)?;
 
-    let mut embeddings = Embeddings::of_ground_truth(&truth.embedded);
+    let actions: Vec<Option<&str>> = chosen.iter().map(|s| s.action.as_deref()).collect();
+    let mut embeddings = Embeddings::of_ground_truth(&truth.embedded, &truth.clips, &actions);
     let mut all = Replications::default();
     for replication in 0..options.replications {
         let prompts = replication_prompts(&chosen, replication);
@@ -222,7 +223,7 @@ pub fn evaluate(
             seed,
         )?);
         all.truth.push(DistributionScores::of_ground_truth(&truth.embedded, &texts, seed)?);
-        embeddings.set_replication(embedded, texts, prompts);
+        embeddings.set_replication((embedded, clips), texts, prompts);
     }
     let report = Report {
         setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),
@@ -242,7 +243,8 @@ pub fn evaluate(
         ],
         instruction: instruction_rows(
             &all.model_physical,
-            &chosen.iter().map(|s| s.action.as_deref()).collect::<Vec<_>>(),
+            &actions,
+            GroupScores { generated: &all.model, truth: &all.truth },
         ),
         samples: chosen.len(),
         skipped,

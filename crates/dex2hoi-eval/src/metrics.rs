@@ -55,11 +55,13 @@ pub use grasp::fingertip_distances;
 pub use instruction::{
     Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, SINK_TOLERANCE_M, Side,
     Sinking, UNTOUCHED_DISTANCE_M, instruction_following, median, object_sinking,
-    object_start_jumps, untouched_object_speeds,
+    object_start_jumps, object_start_turns, turn_degrees, untouched_object_speeds,
+    untouched_object_turn_rates,
 };
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use matching::{
-    R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_with,
+    R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_of_ranks,
+    r_precision_with, retrieval_ranks, top_k_shares,
 };
 pub use mixture::{mixture_agreement, mixture_agreement_counts, mixture_weights_from_features};
 pub use penetration::{PENETRATION_TOLERANCE_M, Penetration, penetration};

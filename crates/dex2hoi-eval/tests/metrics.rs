@@ -7,7 +7,8 @@ use dex2hoi_eval::metrics::{
     diversity, fid, fid_from_statistics, fingertip_distances, foot_sliding, hand_contact,
     hand_object_distances, matching_distance, mean_interval, mixture_agreement,
     mixture_agreement_counts, mixture_weights_from_features, multimodality, penetration, quantile,
-    r_precision, r_precision_with, runtime, symmetric_eigen,
+    r_precision, r_precision_of_ranks, r_precision_with, retrieval_ranks, runtime, symmetric_eigen,
+    top_k_shares,
 };
 use dex2hoi_repr::mesh::box_mesh;
 use dex2hoi_repr::{MeshQuery, Skeleton};
@@ -313,6 +314,38 @@ fn r_precision_directions_differ_as_computed_by_hand() {
     assert_eq!(r_precision(&motion, &text, 3, 0).unwrap(), t2m, "T2M's direction by default");
     let m2t = r_precision_with(&motion, &text, 3, 0, Retrieval::MotionToText).unwrap();
     assert_eq!(m2t, [1.0; 3]);
+}
+
+#[test]
+fn retrieval_ranks_by_hand_and_per_subset() {
+    // The hand-computed case above: text 0 has motion 1 nearer than its own (rank 1), texts 1
+    // and 2 retrieve their own first.
+    let motion = vec![vec![0.0f32], vec![1.0], vec![10.0]];
+    let text = vec![vec![0.9f32], vec![1.0], vec![10.0]];
+    let ranks = retrieval_ranks(&motion, &text, 3, 0, Retrieval::TextToMotion).unwrap();
+    assert_eq!(ranks, vec![Some(1), Some(0), Some(0)]);
+    // A subset's shares: texts 0 and 1 only, then text 0 alone.
+    assert_eq!(top_k_shares([1, 0]), Some([0.5, 1.0, 1.0]));
+    assert_eq!(top_k_shares([1]), Some([0.0, 1.0, 1.0]));
+    assert_eq!(top_k_shares([3, 2]), Some([0.0, 0.0, 0.5]));
+    assert_eq!(top_k_shares(std::iter::empty()), None);
+    assert!(r_precision_of_ranks(&[None, None]).is_err(), "nothing ranked");
+}
+
+#[test]
+fn retrieval_ranks_leave_out_the_dropped_remainder_and_give_r_precision() {
+    // 70 pairs in batches of 32: 64 ranked, 6 left out; their shares are R-precision itself.
+    let motion = line(70, 0.0);
+    let text = line(70, 0.6);
+    for seed in 0..3 {
+        let ranks = retrieval_ranks(&motion, &text, 32, seed, Retrieval::TextToMotion).unwrap();
+        assert_eq!(ranks.iter().filter(|r| r.is_none()).count(), 6);
+        assert!(ranks.iter().flatten().all(|&r| r <= 1), "own motion first or second");
+        assert_eq!(
+            r_precision_of_ranks(&ranks).unwrap(),
+            r_precision(&motion, &text, 32, seed).unwrap()
+        );
+    }
 }
 
 #[test]
@@ -762,7 +795,8 @@ impl Scene {
 #[test]
 fn instruction_following_by_hand() {
     use dex2hoi_eval::metrics::{
-        instruction_following, median, object_sinking, object_start_jumps, untouched_object_speeds,
+        instruction_following, median, object_sinking, object_start_jumps, object_start_turns,
+        turn_degrees, untouched_object_speeds, untouched_object_turn_rates,
     };
     let skeleton = Skeleton::smplx();
     let query = MeshQuery::new(&box_mesh(Vec3::splat(0.04))).unwrap();
@@ -839,6 +873,32 @@ fn instruction_following_by_hand() {
     );
     assert_eq!((sinking.frames_below, sinking.frames), (5, 6));
     assert!(object_sinking(&sunk, [Vec3::ZERO, Vec3::NAN]).is_err());
+    // Turns: the generated object 1, untouched, also turns 2 degrees per frame about the
+    // vertical, 40 degrees per second at 20 fps; the ground truth's stands still.
+    let row_major = |m: Mat3| m.transpose().to_cols_array();
+    let mut turning = generated.object_rotations.to_vec();
+    for t in 0..frames {
+        let r = (t * 2 + 1) * 9;
+        let turn = Mat3::from_rotation_y((2.0 * t as f32).to_radians());
+        turning[r..r + 9].copy_from_slice(&row_major(turn));
+    }
+    let turned = MotionSample { object_rotations: &turning, ..generated };
+    let rates = untouched_object_turn_rates(&turned, 20.0).unwrap();
+    assert_eq!(rates.len(), 5);
+    assert!(rates.iter().all(|v| (v - 40.0).abs() < 1e-2), "{rates:?}");
+    assert_eq!(untouched_object_turn_rates(&truth, 20.0).unwrap(), vec![0.0; 5]);
+    // Start turns from the last prefix rotations: 10 degrees about X for object 0, none for
+    // object 1 (its first frame is unturned).
+    let prefix = [Mat3::from_rotation_x(10f32.to_radians()), Mat3::IDENTITY];
+    let turns = object_start_turns(&turned, prefix).unwrap();
+    assert!((turns[0].unwrap() - 10.0).abs() < 1e-3 && turns[1] == Some(0.0), "{turns:?}");
+    assert!(object_start_turns(&turned, [Mat3::NAN, Mat3::IDENTITY]).is_err());
+    assert!(untouched_object_turn_rates(&truth, f32::NAN).is_err());
+    let quarter = turn_degrees(Mat3::IDENTITY, Mat3::from_rotation_z(std::f32::consts::FRAC_PI_2));
+    assert!((quarter - 90.0).abs() < 1e-4, "{quarter}");
+    let half =
+        turn_degrees(Mat3::from_rotation_x(0.3), Mat3::from_rotation_x(0.3 + std::f32::consts::PI));
+    assert!((half - 180.0).abs() < 0.1, "{half}");
     assert_eq!(median(&[3.0, 1.0, 2.0, 10.0]), Some(2.5));
     assert_eq!(median(&[]), None);
 

@@ -8,13 +8,14 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_repr::{MeshQuery, Skeleton};
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 
 use crate::error::Result;
 use crate::evaluator::MotionClip;
 use crate::metrics;
 
 use super::report::{Estimate, InstructionRow, PhysicalRow};
+use super::scores::DistributionScores;
 
 /// Where an evaluated clip sits in its test sequence: after the `start` prefix frames,
 /// `frames` long.
@@ -62,6 +63,11 @@ pub(super) struct Physical {
     start_jumps_m: Vec<f64>,
     /// Object speeds on untouched frames, m/s.
     untouched_speeds: Vec<f64>,
+    /// Each present object's turn from its last prefix rotation to the clip's first frame,
+    /// degrees.
+    start_turns_deg: Vec<f64>,
+    /// Object turning rates on untouched frames, degrees per second.
+    untouched_turns_deg_s: Vec<f64>,
     /// How far the objects go below their resting heights.
     sinking: metrics::Sinking,
     /// Fingertip-object signed distances on the ground truth's contact frames, m
@@ -79,6 +85,15 @@ fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX
     std::array::from_fn(|slot| {
         let base = (frame * MAX_OBJECTS + slot) * 3;
         Vec3::from_slice(&sequence.object_positions[base..base + 3])
+    })
+}
+
+/// Each object's rotation on frame `frame` of the sequence (stored row-major).
+fn object_rotations_at(sequence: &ProcessedSequence, frame: usize) -> [Mat3; MAX_OBJECTS] {
+    std::array::from_fn(|slot| {
+        let base = (frame * MAX_OBJECTS + slot) * 9;
+        let rows: [f32; 9] = std::array::from_fn(|k| sequence.object_rotations[base + k]);
+        Mat3::from_cols_array(&rows).transpose()
     })
 }
 
@@ -109,6 +124,14 @@ fn measure(
             .flatten()
             .collect();
     let untouched_speeds = metrics::untouched_object_speeds(sample, fps)?;
+    let start_turns_deg = metrics::object_start_turns(
+        sample,
+        object_rotations_at(sequence, window.start.saturating_sub(1)),
+    )?
+    .into_iter()
+    .flatten()
+    .collect();
+    let untouched_turns_deg_s = metrics::untouched_object_turn_rates(sample, fps)?;
     // Objects rest on the sequence's first frame, before anything moves them (the prefix
     // starts there).
     let sinking = metrics::object_sinking(sample, object_positions_at(sequence, 0))?;
@@ -125,6 +148,8 @@ fn measure(
         agreement,
         start_jumps_m,
         untouched_speeds,
+        start_turns_deg,
+        untouched_turns_deg_s,
         sinking,
         fingertips_m,
         fingertip_errors_m,
@@ -204,6 +229,8 @@ struct Pooled {
     agreement: (usize, usize),
     start_jump_m: Option<f64>,
     untouched_speed: Option<f64>,
+    start_turn_deg: Option<f64>,
+    untouched_turn_deg_s: Option<f64>,
     sink_depth_m: Option<f64>,
     sink_frames: (usize, usize),
     /// 5th percentile and median of the fingertip distances, m.
@@ -237,6 +264,15 @@ impl Pooled {
             ),
             untouched_speed: metrics::median(
                 &clips.iter().flat_map(|p| p.untouched_speeds.iter().copied()).collect::<Vec<_>>(),
+            ),
+            start_turn_deg: metrics::median(
+                &clips.iter().flat_map(|p| p.start_turns_deg.iter().copied()).collect::<Vec<_>>(),
+            ),
+            untouched_turn_deg_s: metrics::median(
+                &clips
+                    .iter()
+                    .flat_map(|p| p.untouched_turns_deg_s.iter().copied())
+                    .collect::<Vec<_>>(),
             ),
             sink_depth_m: metrics::median(
                 &clips.iter().flat_map(|p| p.sinking.deepest_m.iter().copied()).collect::<Vec<_>>(),
@@ -283,6 +319,8 @@ pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> Phys
         untouched_speed_cm_s: estimate_all(
             pooled.iter().map(|p| p.untouched_speed.map(|v| 100.0 * v)),
         ),
+        object_start_turn_deg: estimate_all(pooled.iter().map(|p| p.start_turn_deg)),
+        untouched_turn_deg_s: estimate_all(pooled.iter().map(|p| p.untouched_turn_deg_s)),
         sinking_depth_cm: estimate_all(pooled.iter().map(|p| p.sink_depth_m.map(|m| 100.0 * m))),
         sinking_frames_percent: estimate_all(pooled.iter().map(|p| {
             (p.sink_frames.1 > 0).then(|| 100.0 * p.sink_frames.0 as f64 / p.sink_frames.1 as f64)
@@ -297,15 +335,28 @@ pub(super) fn physical_row(samples: &[Physical], per_replication: usize) -> Phys
     }
 }
 
+/// The replications' distribution scores behind [`instruction_rows`]' R-precision columns.
+#[derive(Clone, Copy)]
+pub(super) struct GroupScores<'a> {
+    /// The generated clips', one per replication.
+    pub generated: &'a [DistributionScores],
+    /// The ground truth's, one per replication.
+    pub truth: &'a [DistributionScores],
+}
+
 /// The instruction-following rows of generated clips: all clips, then each action (task
 /// family) of the sequences in turn, each pooled per replication (`per_replication`
-/// consecutive clips, in the order of `actions`) and estimated over replications.
+/// consecutive clips, in the order of `actions`) and estimated over replications; with each
+/// group's R-precision top-3 from the replications' `scores` of the generated clips and of the
+/// ground truth.
 ///
 /// # Shapes
-/// - `samples`: `[replications * per_replication]`; `actions`: `[per_replication]`
+/// - `samples`: `[replications * per_replication]`; `actions`: `[per_replication]`;
+///   `scores`: `[replications]` each
 pub(super) fn instruction_rows(
     samples: &[Physical],
     actions: &[Option<&str>],
+    scores: GroupScores<'_>,
 ) -> Vec<InstructionRow> {
     let per_replication = actions.len().max(1);
     let mut groups: Vec<&str> = actions.iter().flatten().copied().collect();
@@ -327,6 +378,10 @@ pub(super) fn instruction_rows(
         let percent = |share: fn(&metrics::InstructionCounts) -> Option<f64>| {
             estimate_all(pooled.iter().map(|c| share(c).map(|v| 100.0 * v)))
         };
+        let in_group = |clip: usize| group.is_none() || actions.get(clip) == Some(&group);
+        let top3 = |scores: &[DistributionScores]| {
+            estimate_all(scores.iter().map(|s| s.top3_of(in_group)))
+        };
         InstructionRow {
             group: group.unwrap_or("all").to_string(),
             clips: actions.iter().filter(|a| group.is_none() || **a == group).count(),
@@ -337,6 +392,8 @@ pub(super) fn instruction_rows(
             end_distance_cm: estimate_all(
                 pooled.iter().map(|c| c.median_end_distance_m().map(|m| 100.0 * m)),
             ),
+            r_precision_top3: top3(scores.generated),
+            truth_r_precision_top3: top3(scores.truth),
         }
     })
     .collect()

@@ -10,6 +10,8 @@ use crate::metrics;
 
 use super::embedding::EmbeddedMotions;
 use super::scores::DistributionScores;
+use crate::evaluator::MotionClip;
+use dex2hoi_data::MAX_OBJECTS;
 
 /// A value over replications: the mean and the half-width of its 95% interval.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -149,6 +151,13 @@ pub struct PhysicalRow {
     pub object_start_jump_cm: Option<Estimate>,
     /// Median speed of objects no hand is near, cm/s (`None` when no frame qualifies).
     pub untouched_speed_cm_s: Option<Estimate>,
+    /// Median turn of the objects from their last prefix rotation to the first clip frame,
+    /// degrees (`None` without objects; absent in reports written before session 19).
+    #[serde(default)]
+    pub object_start_turn_deg: Option<Estimate>,
+    /// Median turning rate of objects on untouched frames, degrees per second (likewise).
+    #[serde(default)]
+    pub untouched_turn_deg_s: Option<Estimate>,
     /// Median over objects of the deepest drop below the height the object rested at, cm
     /// (`None` without objects; absent in reports of older versions).
     #[serde(default)]
@@ -186,6 +195,13 @@ pub struct InstructionRow {
     pub same_side_percent: Option<Estimate>,
     /// Median distance between the final positions of moved objects, cm.
     pub end_distance_cm: Option<Estimate>,
+    /// R-precision top-3 of the group's prompts ranking the generated clips (in the batches of
+    /// every group); absent in reports written before it was measured.
+    #[serde(default)]
+    pub r_precision_top3: Option<Estimate>,
+    /// The same for the ground truth's clips.
+    #[serde(default)]
+    pub truth_r_precision_top3: Option<Estimate>,
 }
 
 /// The whole report.
@@ -211,7 +227,7 @@ pub struct Report {
     pub multimodality_protocol: [usize; 3],
 }
 
-/// Embeddings of the last replication, for `--dump-embeddings`.
+/// Embeddings of the last replication and the clips they embed, for `--dump-embeddings`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Embeddings {
     /// Generated motions' contrastive embeddings.
@@ -226,6 +242,12 @@ pub struct Embeddings {
     pub generated_action: Vec<Vec<f32>>,
     /// Action features of the ground truth.
     pub ground_truth_action: Vec<Vec<f32>>,
+    /// The generated clips.
+    pub generated_clips: Vec<MotionClip>,
+    /// The ground truth's clips.
+    pub ground_truth_clips: Vec<MotionClip>,
+    /// The test sequences' actions (task families; empty where a sequence has none).
+    pub actions: Vec<String>,
 }
 
 impl ReportRow {
@@ -322,15 +344,17 @@ impl Report {
             self.setup.describe(),
         ));
         out.push_str(
-            "\n## Objects\n\n| Method | Start jump (cm, median) ↓ | Untouched object speed (cm/s, median) ↓ | Sinking (cm, median deepest) ↓ | Frames sunk (%) ↓ |\n|---|---|---|---|---|\n",
+            "\n## Objects\n\n| Method | Start jump (cm, median) ↓ | Untouched object speed (cm/s, median) ↓ | Start turn (°, median) ↓ | Untouched turning (°/s, median) ↓ | Sinking (cm, median deepest) ↓ | Frames sunk (%) ↓ |\n|---|---|---|---|---|---|---|\n",
         );
         for row in &self.rows {
             let p = &row.physical;
             out.push_str(&format!(
-                "| {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} | {} |\n",
                 row.name,
                 optional_cell(p.object_start_jump_cm.as_ref(), 2),
                 optional_cell(p.untouched_speed_cm_s.as_ref(), 2),
+                optional_cell(p.object_start_turn_deg.as_ref(), 2),
+                optional_cell(p.untouched_turn_deg_s.as_ref(), 2),
                 optional_cell(p.sinking_depth_cm.as_ref(), 2),
                 optional_cell(p.sinking_frames_percent.as_ref(), 1),
             ));
@@ -338,7 +362,9 @@ impl Report {
         out.push_str(
             "\nStart jump: from each object's last prefix position to its first clip position \
              (the ground truth's is one frame of its own motion). Untouched: frames where every \
-             hand joint is more than 15 cm from the object's surface. Sinking: how far an \
+             hand joint is more than 15 cm from the object's surface. Start turn and untouched \
+             turning: the same for the object's orientation (the angle between consecutive \
+             rotations). Sinking: how far an \
              object's origin goes below the height it rested at on the sequence's first frame \
              (through the table it stood on); frames sunk: frames with an object more than 1 cm \
              below it.\n",
@@ -364,11 +390,11 @@ impl Report {
              penetration count starts 5 mm inside.\n",
         );
         out.push_str(
-            "\n## Instruction following (generated vs ground truth after the same prefix)\n\n| Group | Clips | Objects moved (%) ↑ | Unasked moves (%) ↓ | Holding hand (%) ↑ | Same side (%) ↑ | End distance (cm, median) ↓ |\n|---|---|---|---|---|---|---|\n",
+            "\n## Instruction following (generated vs ground truth after the same prefix)\n\n| Group | Clips | Objects moved (%) ↑ | Unasked moves (%) ↓ | Holding hand (%) ↑ | Same side (%) ↑ | End distance (cm, median) ↓ | R-prec. top-3 ↑ | Ground truth's R-prec. top-3 |\n|---|---|---|---|---|---|---|---|---|\n",
         );
         for row in &self.instruction {
             out.push_str(&format!(
-                "| {} | {} | {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
                 row.group,
                 row.clips,
                 optional_cell(row.objects_moved_percent.as_ref(), 1),
@@ -376,6 +402,8 @@ impl Report {
                 optional_cell(row.holding_hand_percent.as_ref(), 1),
                 optional_cell(row.same_side_percent.as_ref(), 1),
                 optional_cell(row.end_distance_cm.as_ref(), 1),
+                optional_cell(row.r_precision_top3.as_ref(), 3),
+                optional_cell(row.truth_r_precision_top3.as_ref(), 3),
             ));
         }
         out.push_str(
@@ -385,7 +413,9 @@ impl Report {
              Unasked: of those it leaves, those the clip moves. Holding hand: of the frames \
              where the ground truth holds an object, those where the clip holds it with the same \
              hands. Same side / end distance: where the moved objects end, across the body \
-             (left, centre within 5 cm, right) and in cm. \"-\" where nothing qualifies.\n",
+             (left, centre within 5 cm, right) and in cm. R-prec. top-3: of the group's prompts, \
+             those whose own clip is among the 3 nearest of its batch of 32 (batches mix the \
+             groups, as in the table above). \"-\" where nothing qualifies.\n",
         );
         out
     }
@@ -394,7 +424,11 @@ impl Report {
 impl Embeddings {
     /// The ground truth's embeddings, with the generated side still empty (filled by
     /// [`Embeddings::set_replication`]).
-    pub(super) fn of_ground_truth(truth: &EmbeddedMotions) -> Self {
+    pub(super) fn of_ground_truth(
+        truth: &EmbeddedMotions,
+        clips: &[MotionClip],
+        actions: &[Option<&str>],
+    ) -> Self {
         Self {
             generated: Vec::new(),
             ground_truth: truth.contrastive.clone(),
@@ -402,6 +436,9 @@ impl Embeddings {
             prompts: Vec::new(),
             generated_action: Vec::new(),
             ground_truth_action: truth.action.clone(),
+            generated_clips: Vec::new(),
+            ground_truth_clips: clips.to_vec(),
+            actions: actions.iter().map(|a| a.unwrap_or_default().to_string()).collect(),
         }
     }
 
@@ -409,17 +446,21 @@ impl Embeddings {
     /// the previous one's, so the last one is dumped).
     pub(super) fn set_replication(
         &mut self,
-        generated: EmbeddedMotions,
+        (generated, clips): (EmbeddedMotions, Vec<MotionClip>),
         texts: Vec<Vec<f32>>,
         prompts: Vec<String>,
     ) {
+        self.generated_clips = clips;
         self.generated = generated.contrastive;
         self.generated_action = generated.action;
         self.texts = texts;
         self.prompts = prompts;
     }
 
-    /// The embeddings as an `.npz` archive (float32 arrays and the prompts as strings).
+    /// The embeddings as an `.npz` archive (float32 arrays and the prompts as strings), with the
+    /// clips: per side (`generated_`, `ground_truth_`) `joints` `[N, T, J, 3]`,
+    /// `object_rotations` `[N, T, 2, 3, 3]` (row-major) and `object_positions` `[N, T, 2, 3]`
+    /// in metres, the canonical frame; `object_present` `[N, 2]` (0 or 1) and the `actions`.
     pub fn npz(&self) -> Result<Vec<u8>> {
         use dex2hoi_data::npz::{NpyArray, encode_npz};
         let matrix = |name: &str, rows: &[Vec<f32>]| {
@@ -436,8 +477,51 @@ impl Embeddings {
             arrays.push(matrix("generated_action", &self.generated_action));
             arrays.push(matrix("ground_truth_action", &self.ground_truth_action));
         }
+        for (side, clips) in
+            [("generated", &self.generated_clips), ("ground_truth", &self.ground_truth_clips)]
+        {
+            arrays.extend(clip_arrays(side, clips)?);
+        }
+        arrays.push(NpyArray::text("actions", &[self.actions.len()], self.actions.clone()));
         Ok(encode_npz(&arrays)?)
     }
+}
+
+/// The `.npz` arrays of a side's clips (see [`Embeddings::npz`]).
+///
+/// # Errors
+/// Clips of different lengths or skeletons, which cannot share an array.
+fn clip_arrays(side: &str, clips: &[MotionClip]) -> Result<Vec<dex2hoi_data::npz::NpyArray>> {
+    use dex2hoi_data::npz::NpyArray;
+    let frames = clips.first().map_or(0, MotionClip::frames);
+    let joints = clips.first().map_or(0, |c| c.joints.len() / (3 * frames.max(1)));
+    if let Some(other) =
+        clips.iter().find(|c| c.frames() != frames || c.joints.len() != frames * joints * 3)
+    {
+        return Err(crate::error::EvalError::invalid(
+            format!("{side} clips"),
+            format!("{frames} frames of {joints} joints each, as the first"),
+            format!("{} frames of {} joint numbers", other.frames(), other.joints.len()),
+        ));
+    }
+    let n = clips.len();
+    let gather = |part: fn(&MotionClip) -> &[f32]| clips.iter().flat_map(part).copied().collect();
+    let present =
+        clips.iter().flat_map(|c| c.present.map(|p| if p { 1.0f32 } else { 0.0 })).collect();
+    Ok(vec![
+        NpyArray::f32(format!("{side}_joints"), &[n, frames, joints, 3], gather(|c| &c.joints)),
+        NpyArray::f32(
+            format!("{side}_object_rotations"),
+            &[n, frames, MAX_OBJECTS, 3, 3],
+            gather(|c| &c.object_rotations),
+        ),
+        NpyArray::f32(
+            format!("{side}_object_positions"),
+            &[n, frames, MAX_OBJECTS, 3],
+            gather(|c| &c.object_positions),
+        ),
+        NpyArray::f32(format!("{side}_object_present"), &[n, MAX_OBJECTS], present),
+    ])
 }
 
 #[cfg(test)]
@@ -462,6 +546,8 @@ mod tests {
             mixture_agreement_percent: None,
             object_start_jump_cm: Some(estimate(0.7)),
             untouched_speed_cm_s: None,
+            object_start_turn_deg: Some(estimate(3.0)),
+            untouched_turn_deg_s: None,
             sinking_depth_cm: Some(estimate(0.2)),
             sinking_frames_percent: None,
             fingertip_low_mm: Some(estimate(-1.0)),
@@ -490,6 +576,8 @@ mod tests {
                 holding_hand_percent: Some(estimate(f64::NAN)),
                 same_side_percent: None,
                 end_distance_cm: None,
+                r_precision_top3: Some(estimate(0.4)),
+                truth_r_precision_top3: None,
             }],
             samples: 4,
             skipped: 1,
@@ -510,11 +598,25 @@ mod tests {
         assert!(runtime == 1.5 && std.is_nan());
         assert_eq!(read.fid, row.fid);
         assert_eq!(read.physical.object_start_jump_cm, row.physical.object_start_jump_cm);
+        assert_eq!(read.physical.object_start_turn_deg, row.physical.object_start_turn_deg);
         assert!(back.instruction[0].holding_hand_percent.unwrap().mean.is_nan());
         assert_eq!(
             back.instruction[0].objects_moved_percent,
             report.instruction[0].objects_moved_percent
         );
+        assert_eq!(back.instruction[0].r_precision_top3, report.instruction[0].r_precision_top3);
+        // A report written before session 19's measures (per-group R-precision, object
+        // turns) reads back without them.
+        let mut older: serde_json::Value = serde_json::from_str(&json).unwrap();
+        let group = older["instruction"][0].as_object_mut().unwrap();
+        assert!(group.remove("r_precision_top3").is_some());
+        assert!(group.remove("truth_r_precision_top3").is_some());
+        let physical = older["rows"][0]["physical"].as_object_mut().unwrap();
+        assert!(physical.remove("object_start_turn_deg").is_some());
+        assert!(physical.remove("untouched_turn_deg_s").is_some());
+        let older: Report = serde_json::from_value(older).unwrap();
+        assert_eq!(older.instruction[0].r_precision_top3, None);
+        assert_eq!(older.rows[0].physical.object_start_turn_deg, None);
         assert_eq!(
             (back.samples, back.skipped, back.replications, back.clip_frames),
             (4, 1, 2, 60)

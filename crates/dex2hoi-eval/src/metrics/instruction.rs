@@ -18,9 +18,12 @@
 //! - **Untouched speed**: the speed of objects on frames where every hand joint is more than
 //!   [`UNTOUCHED_DISTANCE_M`] from them (and was on the frame before): in the data they stand
 //!   still.
+//! - **Start turn** and **untouched turning**: the same two for the object's orientation, the
+//!   angle between consecutive rotations (degrees, and degrees per second).
 
 use dex2hoi_data::MAX_OBJECTS;
-use glam::Vec3;
+use dex2hoi_repr::ObjectPose;
+use glam::{Mat3, Vec3};
 
 use crate::error::{EvalError, Result};
 
@@ -321,6 +324,28 @@ pub fn object_sinking(sample: &MotionSample<'_>, resting: [Vec3; MAX_OBJECTS]) -
 /// # Errors
 /// A sample that fails [`MotionSample::frames`], a frame rate that is not positive.
 pub fn untouched_object_speeds(sample: &MotionSample<'_>, fps: f32) -> Result<Vec<f64>> {
+    untouched_changes(sample, fps, |before, after| {
+        f64::from((after.position - before.position).length())
+    })
+}
+
+/// The turning rate (degrees per second) of every present object on every frame where it is
+/// untouched, by [`untouched_object_speeds`]' rule: the angle between its rotations on this
+/// frame and the one before, times `fps`.
+///
+/// # Errors
+/// As [`untouched_object_speeds`].
+pub fn untouched_object_turn_rates(sample: &MotionSample<'_>, fps: f32) -> Result<Vec<f64>> {
+    untouched_changes(sample, fps, |before, after| turn_degrees(before.rotation, after.rotation))
+}
+
+/// `change(before, after) * fps` for every present object on every frame where it and the
+/// frame before are untouched.
+fn untouched_changes(
+    sample: &MotionSample<'_>,
+    fps: f32,
+    change: impl Fn(ObjectPose, ObjectPose) -> f64,
+) -> Result<Vec<f64>> {
     if !(fps.is_finite() && fps > 0.0) {
         return Err(EvalError::invalid("frame rate", "a positive number", fps));
     }
@@ -329,15 +354,47 @@ pub fn untouched_object_speeds(sample: &MotionSample<'_>, fps: f32) -> Result<Ve
         let [l, r] = distances[t][slot];
         l.min(r) > UNTOUCHED_DISTANCE_M
     };
-    let mut speeds = Vec::new();
+    let mut rates = Vec::new();
     for t in 1..distances.len() {
         for slot in (0..MAX_OBJECTS).filter(|&s| sample.present[s]) {
             if untouched(t, slot) && untouched(t - 1, slot) {
-                let step =
-                    sample.object_pose(t, slot).position - sample.object_pose(t - 1, slot).position;
-                speeds.push(f64::from(step.length() * fps));
+                let step = change(sample.object_pose(t - 1, slot), sample.object_pose(t, slot));
+                rates.push(step * f64::from(fps));
             }
         }
     }
-    Ok(speeds)
+    Ok(rates)
+}
+
+/// The angle in degrees of the rotation taking `from` to `to` (from the trace of `to from^T`,
+/// in `f64`).
+pub fn turn_degrees(from: Mat3, to: Mat3) -> f64 {
+    let relative = to * from.transpose();
+    let trace =
+        f64::from(relative.x_axis.x) + f64::from(relative.y_axis.y) + f64::from(relative.z_axis.z);
+    ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// How far each present object turns between its last prefix rotation and the clip's first
+/// frame, degrees (`None` for an empty slot).
+///
+/// # Errors
+/// A sample that fails [`MotionSample::frames`], a non-finite prefix rotation.
+pub fn object_start_turns(
+    sample: &MotionSample<'_>,
+    prefix_last: [Mat3; MAX_OBJECTS],
+) -> Result<[Option<f64>; MAX_OBJECTS]> {
+    sample.frames()?;
+    if let Some(slot) = (0..MAX_OBJECTS).find(|&s| sample.present[s] && !prefix_last[s].is_finite())
+    {
+        return Err(EvalError::invalid(
+            "last prefix object rotation",
+            "finite numbers",
+            format!("{} in slot {slot}", prefix_last[slot]),
+        ));
+    }
+    Ok(std::array::from_fn(|slot| {
+        sample.present[slot]
+            .then(|| turn_degrees(prefix_last[slot], sample.object_pose(0, slot).rotation))
+    }))
 }

@@ -59,6 +59,35 @@ pub fn r_precision_with(
     seed: u64,
     retrieval: Retrieval,
 ) -> Result<[f64; 3]> {
+    r_precision_of_ranks(&retrieval_ranks(motion, text, batch, seed, retrieval)?)
+}
+
+/// R-precision top-1/2/3 from [`retrieval_ranks`]' output.
+///
+/// # Errors
+/// No ranked pair.
+pub fn r_precision_of_ranks(ranks: &[Option<usize>]) -> Result<[f64; 3]> {
+    top_k_shares(ranks.iter().flatten().copied())
+        .ok_or_else(|| EvalError::invalid("R-precision", "at least one ranked pair", "none"))
+}
+
+/// Each pair's rank in [`r_precision_with`]'s protocol: how many of its batch's candidates lie
+/// strictly nearer its query than its own match (0: retrieved first); `None` for the pairs of
+/// the dropped incomplete batch. [`top_k_shares`] of the ranks of any subset of pairs (a task
+/// family, say) is that subset's R-precision.
+///
+/// # Shapes
+/// - `motion`, `text`: `[N, D]`, row `i` of each is the same pair; returns `[N]`
+///
+/// # Errors
+/// As [`r_precision`].
+pub fn retrieval_ranks(
+    motion: &[Vec<f32>],
+    text: &[Vec<f32>],
+    batch: usize,
+    seed: u64,
+    retrieval: Retrieval,
+) -> Result<Vec<Option<usize>>> {
     let (motion, text, dim) = matched_pairs(motion, text)?;
     let count = motion.len() / dim;
     if batch == 0 || batch > count {
@@ -77,8 +106,7 @@ pub fn r_precision_with(
     }
     let mut order: Vec<usize> = (0..count).collect();
     order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    let mut hits = [0usize; 3];
-    let mut ranked = 0usize;
+    let mut ranks = vec![None; count];
     for members in order.chunks_exact(batch) {
         for &q in members {
             let query = row(queries, q, dim);
@@ -87,15 +115,26 @@ pub fn r_precision_with(
                 .iter()
                 .filter(|&&c| c != q && distance(query, row(candidates, c, dim)) < own)
                 .count();
-            for (k, hit) in hits.iter_mut().enumerate() {
-                if nearer <= k {
-                    *hit += 1;
-                }
-            }
-            ranked += 1;
+            ranks[q] = Some(nearer);
         }
     }
-    Ok(hits.map(|h| h as f64 / ranked as f64))
+    Ok(ranks)
+}
+
+/// Top-1/2/3 shares of ranks from [`retrieval_ranks`]: the share of ranks below 1, 2 and 3;
+/// `None` for no ranks.
+pub fn top_k_shares(ranks: impl IntoIterator<Item = usize>) -> Option<[f64; 3]> {
+    let mut hits = [0usize; 3];
+    let mut ranked = 0usize;
+    for rank in ranks {
+        for (k, hit) in hits.iter_mut().enumerate() {
+            if rank <= k {
+                *hit += 1;
+            }
+        }
+        ranked += 1;
+    }
+    (ranked > 0).then(|| hits.map(|h| h as f64 / ranked as f64))
 }
 
 /// Checks matched motion and text embeddings and returns them as `f64` matrices and the width.
