@@ -70,6 +70,15 @@ pub struct LossConfig {
     pub huber_delta_cm: f64,
     /// Approach radius `d_min` of `L_dist` in metres (default 0.10, the paper's).
     pub approach_radius: f64,
+    /// Whether the signed-distance terms (penetration, `L_dist`) reach the predicted object
+    /// rotation (default true, every model trained before session 19). Through it the model
+    /// can lower both terms by turning the object instead of placing the hand: the shipped
+    /// model's objects turned a median 6 degrees on the first generated frame even where the
+    /// ground truth leaves them still, and its held objects tilted 15-25 degrees where the data
+    /// carries them upright (`docs/results/shipped-model.md`, "Objects that turn"). False
+    /// stops that gradient, so the rotation channels learn from `L_diff` and `L_vel` only; the
+    /// terms still reach the joints and the object's position.
+    pub contact_turns_objects: bool,
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
     pub geometric_max_timestep: Option<usize>,
@@ -97,6 +106,7 @@ impl Default for LossConfig {
             distance: 1.0,
             huber_delta_cm: 1.0,
             approach_radius: 0.10,
+            contact_turns_objects: true,
             geometric_max_timestep: Some(700),
             mixture_supervision: true,
             distance_loss: true,

@@ -452,6 +452,11 @@ impl LossContext {
     ) -> Result<Tensor> {
         let (b, tf, joints) = (window.batch, window.tf, window.joints);
         let object_rotations = tensor_decode_rotation(objects)?; // [B, 2, T_f, 3, 3]
+        let object_rotations = if self.config.contact_turns_objects {
+            object_rotations
+        } else {
+            object_rotations.detach()
+        };
         let relative =
             body.positions.unsqueeze(1)?.broadcast_sub(&object_positions.unsqueeze(3)?)?; // [B, 2, T_f, J, 3]
         let local = rotate_inverse(&object_rotations.unsqueeze(3)?, &relative)?;

@@ -10,22 +10,46 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
 
+/// A `tiny` trainer on a small procedural set with the loss settings `adjust` makes, a batch of
+/// three windows and a prediction near its target (in f64), with a random stream for more.
+struct Setup {
+    config: TrainConfig,
+    trainer: Trainer,
+    batch: dex2hoi_train::batch::Batch,
+    start: Tensor,
+    rng: ChaCha8Rng,
+}
+
+impl Setup {
+    fn new(adjust: impl Fn(&mut TrainConfig)) -> Self {
+        let data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+        let mut config = TrainConfig::preset("tiny").unwrap();
+        adjust(&mut config);
+        let trainer =
+            Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
+        let device = Device::Cpu;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let options = BatchOptions { size: 3, swap_probability: 0.5, mirror_probability: 0.5 };
+        let batch = trainer.training_set().batch(&options, &mut rng, &device).unwrap();
+        let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
+        let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
+        let noise =
+            dex2hoi_diffusion::gaussian(target.dims(), &mut rng, DType::F64, &device).unwrap();
+        let start = (target + noise.affine(0.2, 0.0).unwrap()).unwrap();
+        Self { config, trainer, batch, start, rng }
+    }
+}
+
 #[test]
 fn every_term_has_the_gradient_of_its_finite_differences() {
-    let data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
-    let mut config = TrainConfig::preset("tiny").unwrap();
-    // The global branch's term is off by default; on here so that every term is checked.
-    config.loss.global = 0.01;
-    let trainer =
-        Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    // The global branch's term is off by default; on here so that every term is checked. The
+    // contact terms reach the object rotations too, so that their whole gradient is checked.
+    let Setup { config, trainer, batch, start, mut rng } = Setup::new(|config| {
+        config.loss.global = 0.01;
+        config.loss.contact_turns_objects = true;
+    });
     let device = Device::Cpu;
-    let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let options = BatchOptions { size: 3, swap_probability: 0.5, mirror_probability: 0.5 };
-    let batch = trainer.training_set().batch(&options, &mut rng, &device).unwrap();
-    let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
-    let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
-    let noise = dex2hoi_diffusion::gaussian(target.dims(), &mut rng, DType::F64, &device).unwrap();
-    let start = (target + noise.affine(0.2, 0.0).unwrap()).unwrap();
+    let tf = config.model.predicted_frames;
     let prediction = Var::from_tensor(&start).unwrap();
     let timesteps = vec![100; batch.size];
     let context = trainer.loss_context();
@@ -81,5 +105,48 @@ fn every_term_has_the_gradient_of_its_finite_differences() {
             checked += usize::from(numeric != 0.0);
         }
         assert!(checked > 0, "{}: no entry with a gradient was checked", term.name());
+    }
+}
+
+#[test]
+fn contact_terms_leave_object_rotations_alone_when_told_to() {
+    // The penetration and `L_dist` gradients on every object rotation channel: some nonzero by
+    // default, all exactly zero with `contact_turns_objects = false`.
+    let rotation_gradients = |turns: bool| -> Vec<(Term, Vec<f64>)> {
+        let Setup { config, trainer, batch, start, .. } =
+            Setup::new(|config| config.loss.contact_turns_objects = turns);
+        let body = 6 * config.model.joints + 3;
+        let width = start.dims()[3];
+        let prediction = Var::from_tensor(&start).unwrap();
+        let objective = trainer.loss_context().objective(
+            prediction.as_tensor(),
+            &batch,
+            &vec![100; batch.size],
+        );
+        let terms = objective.unwrap().terms;
+        [Term::Penetration, Term::Distance]
+            .into_iter()
+            .map(|term| {
+                let (_, value) = terms.iter().find(|(t, _)| *t == term).unwrap();
+                assert!(value.to_scalar::<f64>().unwrap() > 0.0, "{} is measured", term.name());
+                let gradient = value.backward().unwrap();
+                let all: Vec<f64> = gradient
+                    .get(prediction.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap();
+                let rotation =
+                    all.chunks(width).flat_map(|row| row[body..body + 6].iter().copied()).collect();
+                (term, rotation)
+            })
+            .collect()
+    };
+    for (term, gradient) in rotation_gradients(true) {
+        assert!(gradient.iter().any(|&g| g != 0.0), "{} turns objects by default", term.name());
+    }
+    for (term, gradient) in rotation_gradients(false) {
+        assert!(gradient.iter().all(|&g| g == 0.0), "{} leaves rotations alone", term.name());
     }
 }
