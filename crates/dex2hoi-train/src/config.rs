@@ -79,6 +79,14 @@ pub struct LossConfig {
     /// stops that gradient, so the rotation channels learn from `L_diff` and `L_vel` only; the
     /// terms still reach the joints and the object's position.
     pub contact_turns_objects: bool,
+    /// Whether the signed-distance terms reach the object channels that place the object (its
+    /// wrist offsets, global position and mixture logits; default true, every model trained
+    /// before session 19). False makes all the object's channels constants to those terms
+    /// (its rotation too, whatever `contact_turns_objects` says); its decoded position still
+    /// follows the predicted wrists, so a held object moves with its hand and the terms have to
+    /// move the fingers. Tried in session 19 against the sinking that came with
+    /// `contact_turns_objects = false` (`docs/results/shipped-model.md`, "Objects that turn").
+    pub contact_moves_objects: bool,
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
     pub geometric_max_timestep: Option<usize>,
@@ -107,6 +115,7 @@ impl Default for LossConfig {
             huber_delta_cm: 1.0,
             approach_radius: 0.10,
             contact_turns_objects: true,
+            contact_moves_objects: true,
             geometric_max_timestep: Some(700),
             mixture_supervision: true,
             distance_loss: true,

@@ -330,7 +330,16 @@ impl LossContext {
         if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
             return Ok(());
         }
-        let distances = self.signed_distances(window, &objects, &object_positions, &body)?;
+        // The contact terms see the object where the prediction puts it; without
+        // `contact_moves_objects` its channels are constants to them, so that only the joints
+        // (and, through the wrists, a held object with its hand) answer.
+        let distances = if self.config.contact_moves_objects {
+            self.signed_distances(window, &objects, &object_positions, &body)?
+        } else {
+            let fixed = objects.detach();
+            let positions = self.object_positions(&fixed, &body, b, tf)?;
+            self.signed_distances(window, &fixed, &positions, &body)?
+        };
         if self.active(Term::Penetration) {
             let joints = Mask {
                 weight: gated_slots.weight.clone(),

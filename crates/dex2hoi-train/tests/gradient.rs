@@ -109,12 +109,14 @@ fn every_term_has_the_gradient_of_its_finite_differences() {
 }
 
 #[test]
-fn contact_terms_leave_object_rotations_alone_when_told_to() {
-    // The penetration and `L_dist` gradients on every object rotation channel: some nonzero by
-    // default, all exactly zero with `contact_turns_objects = false`.
-    let rotation_gradients = |turns: bool| -> Vec<(Term, Vec<f64>)> {
-        let Setup { config, trainer, batch, start, .. } =
-            Setup::new(|config| config.loss.contact_turns_objects = turns);
+fn contact_terms_leave_the_object_channels_alone_when_told_to() {
+    // The penetration and `L_dist` gradients on the object channels: rotation (0..6) and the
+    // rest (6..18), and on the body's, for each setting of the two options.
+    let gradients = |turns: bool, moves: bool| -> Vec<(Term, [bool; 3])> {
+        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
+            config.loss.contact_turns_objects = turns;
+            config.loss.contact_moves_objects = moves;
+        });
         let body = 6 * config.model.joints + 3;
         let width = start.dims()[3];
         let prediction = Var::from_tensor(&start).unwrap();
@@ -137,16 +139,22 @@ fn contact_terms_leave_object_rotations_alone_when_told_to() {
                     .unwrap()
                     .to_vec1()
                     .unwrap();
-                let rotation =
-                    all.chunks(width).flat_map(|row| row[body..body + 6].iter().copied()).collect();
-                (term, rotation)
+                let reached = |range: std::ops::Range<usize>| {
+                    all.chunks(width).any(|row| row[range.clone()].iter().any(|&g| g != 0.0))
+                };
+                (term, [reached(body..body + 6), reached(body + 6..width), reached(0..body)])
             })
             .collect()
     };
-    for (term, gradient) in rotation_gradients(true) {
-        assert!(gradient.iter().any(|&g| g != 0.0), "{} turns objects by default", term.name());
-    }
-    for (term, gradient) in rotation_gradients(false) {
-        assert!(gradient.iter().all(|&g| g == 0.0), "{} leaves rotations alone", term.name());
+    // [rotation, the other object channels, the body] reached.
+    for (turns, moves, expected) in [
+        (true, true, [true, true, true]),
+        (false, true, [false, true, true]),
+        (true, false, [false, false, true]),
+        (false, false, [false, false, true]),
+    ] {
+        for (term, reached) in gradients(turns, moves) {
+            assert_eq!(reached, expected, "{} with turns {turns}, moves {moves}", term.name());
+        }
     }
 }
