@@ -85,7 +85,8 @@ pub struct LossConfig {
     /// (its rotation too, whatever `contact_turns_objects` says); its decoded position still
     /// follows the predicted wrists, so a held object moves with its hand and the terms have to
     /// move the fingers. Tried in session 19 against the sinking that came with
-    /// `contact_turns_objects = false` (`docs/results/shipped-model.md`, "Objects that turn").
+    /// `contact_turns_objects = false`: the objects sank more (`docs/results/shipped-model.md`,
+    /// "Objects that turn").
     pub contact_moves_objects: bool,
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
