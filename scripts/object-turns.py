@@ -30,7 +30,7 @@ def angle(a, b):
 
 def report(directory):
     z = np.load(directory + "/embeddings.npz")
-    actions = np.array([str(a) for a in z["actions"]])
+    actions = np.array([str(a) or "(none)" for a in z["actions"]])
     generated = z["generated_object_rotations"]  # [N, T, 2, 3, 3]
     truth = z["ground_truth_object_rotations"]
     present = z["ground_truth_object_present"] > 0.5  # [N, 2]
@@ -61,6 +61,9 @@ def report(directory):
         ("objects the ground truth leaves still", present & (travel <= STILL_METRES)),
         ("objects the ground truth moves", present & (travel > STILL_METRES)),
     ):
+        if not chosen.any():
+            print(f"  {name}: none")
+            continue
         values = np.median(error[chosen][:, frames], axis=0)
         print(f"  {name} ({chosen.sum()}):", " ".join(f"{v:5.1f}" for v in values))
 

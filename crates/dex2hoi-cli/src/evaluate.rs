@@ -54,7 +54,8 @@ pub struct EvaluateArgs {
     /// Seed of the noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Also write the embeddings (generated, ground truth, texts) to embeddings.npz.
+    /// Also write the last replication's embeddings (generated, ground truth, texts), the clips
+    /// they embed and the sequences' actions to embeddings.npz.
     #[arg(long)]
     dump_embeddings: bool,
     #[command(flatten)]

@@ -114,11 +114,17 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert!(runtime[0].as_f64().unwrap() > 0.0, "{runtime}");
     let npz = std::fs::read(dir.join("report/embeddings.npz")).unwrap();
     assert_eq!(&npz[..2], b"PK");
-    // The clips are there too, as `[N, T, J, 3]` joints for 4 clips.
-    let names = String::from_utf8_lossy(&npz);
-    for array in ["generated_joints.npy", "ground_truth_object_rotations.npy", "actions.npy"] {
-        assert!(names.contains(array), "{array} in embeddings.npz");
-    }
+    // The clips are there too: 4 clips of the evaluator's frames, 52 joints, 2 object slots.
+    let mut archive = npyz::npz::NpzArchive::new(std::io::Cursor::new(npz)).unwrap();
+    let shape = |archive: &mut npyz::npz::NpzArchive<_>, name: &str| -> Vec<u64> {
+        archive.by_name(name).unwrap().unwrap_or_else(|| panic!("{name}")).shape().to_vec()
+    };
+    let joints = shape(&mut archive, "generated_joints");
+    assert!(joints[0] == 4 && joints[1] > 0 && joints[2..] == [52, 3], "{joints:?}");
+    let frames = joints[1];
+    assert_eq!(shape(&mut archive, "ground_truth_object_rotations"), [4, frames, 2, 3, 3]);
+    assert_eq!(shape(&mut archive, "generated_object_positions"), [4, frames, 2, 3]);
+    assert_eq!(shape(&mut archive, "actions"), [4]);
     // The setup: the weights' steps and the sampler, in the JSON and the markdown.
     let setup = &json["setup"];
     assert_eq!(setup["model_step"], 3, "{setup}");

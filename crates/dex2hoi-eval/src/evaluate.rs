@@ -223,7 +223,7 @@ pub fn evaluate(
             seed,
         )?);
         all.truth.push(DistributionScores::of_ground_truth(&truth.embedded, &texts, seed)?);
-        embeddings.set_replication((embedded, clips), texts, prompts);
+        embeddings.set_replication(embedded, clips, texts, prompts);
     }
     let report = Report {
         setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),

@@ -2,8 +2,9 @@
 //! motions (paper Sec. 4.2; docs/CONVENTIONS.md, "Evaluation protocols").
 //!
 //! **Embedding metrics** follow the MDM / T2M evaluation protocol: [`fid`], [`diversity`],
-//! [`multimodality`], [`r_precision`] and [`matching_distance`] (MMdist), all computed in `f64`
-//! on rows of evaluator embeddings, and [`mean_interval`] for the mean and 95% interval over
+//! [`multimodality`], [`r_precision`] (from [`retrieval_ranks`], each pair's rank, so that a
+//! subset's share is [`top_k_shares`] of its ranks) and [`matching_distance`] (MMdist), all
+//! computed in `f64` on rows of evaluator embeddings, and [`mean_interval`] for the mean and 95% interval over
 //! replications. Random draws (pairs, shuffles) come from a seeded ChaCha8 generator, so a seed
 //! reproduces a number exactly.
 //!
@@ -12,8 +13,9 @@
 //! [`hand_contact`] and [`contact_scores`] (CHOIS), [`foot_sliding`] (MANN's weighted foot
 //! displacement), [`mixture_agreement`] (does the mixture of Eq. 4 pick the hand that holds the
 //! object?), [`instruction_following`] (does a clip move the objects its ground truth moves,
-//! with the same hands, to the same place?), [`object_start_jumps`] and
-//! [`untouched_object_speeds`] and [`object_sinking`] (do objects behave like objects?),
+//! with the same hands, to the same place?), [`object_start_jumps`], [`object_start_turns`],
+//! [`untouched_object_motion`] (speeds and turning rates; [`turn_degrees`] in `f64`) and
+//! [`object_sinking`] (do objects behave like objects?),
 //! [`fingertip_distances`] (how precisely the fingertips sit on a held object) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
 //! pooled ([`Penetration::pooled`], [`ContactCounts::merge`]).
 //!
@@ -55,8 +57,8 @@ pub use grasp::fingertip_distances;
 pub use instruction::{
     Holder, InstructionCounts, MOVED_RISE_M, MOVED_TRAVEL_M, SIDE_MARGIN_M, SINK_TOLERANCE_M, Side,
     Sinking, UNTOUCHED_DISTANCE_M, instruction_following, median, object_sinking,
-    object_start_jumps, object_start_turns, turn_degrees, untouched_object_speeds,
-    untouched_object_turn_rates,
+    object_start_jumps, object_start_turns, turn_degrees, untouched_object_motion,
+    untouched_object_speeds, untouched_object_turn_rates,
 };
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use matching::{

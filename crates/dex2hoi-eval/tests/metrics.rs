@@ -333,18 +333,17 @@ fn retrieval_ranks_by_hand_and_per_subset() {
 }
 
 #[test]
-fn retrieval_ranks_leave_out_the_dropped_remainder_and_give_r_precision() {
-    // 70 pairs in batches of 32: 64 ranked, 6 left out; their shares are R-precision itself.
+fn retrieval_ranks_leave_out_the_dropped_remainder() {
+    // 70 pairs in batches of 32: 64 ranked, 6 left out. A text's own motion is never worse than
+    // second (motion i + 1 may be nearer), and some texts find motion i + 1 in their batch.
     let motion = line(70, 0.0);
     let text = line(70, 0.6);
     for seed in 0..3 {
         let ranks = retrieval_ranks(&motion, &text, 32, seed, Retrieval::TextToMotion).unwrap();
         assert_eq!(ranks.iter().filter(|r| r.is_none()).count(), 6);
         assert!(ranks.iter().flatten().all(|&r| r <= 1), "own motion first or second");
-        assert_eq!(
-            r_precision_of_ranks(&ranks).unwrap(),
-            r_precision(&motion, &text, 32, seed).unwrap()
-        );
+        let shares = r_precision_of_ranks(&ranks).unwrap();
+        assert!(shares[0] < 1.0 && shares[1] == 1.0, "{shares:?}");
     }
 }
 

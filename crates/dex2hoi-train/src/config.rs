@@ -72,7 +72,7 @@ pub struct LossConfig {
     pub approach_radius: f64,
     /// Whether the signed-distance terms (penetration, `L_dist`) reach the predicted object
     /// rotation (default true, every model trained before session 19). Through it the model
-    /// can lower both terms by turning the object instead of placing the hand: the shipped
+    /// can lower both terms by turning the object instead of placing the hand: the 30140-step
     /// model's objects turned a median 6 degrees on the first generated frame even where the
     /// ground truth leaves them still, and its held objects tilted 15-25 degrees where the data
     /// carries them upright (`docs/results/shipped-model.md`, "Objects that turn"). False
@@ -82,9 +82,10 @@ pub struct LossConfig {
     /// Whether the signed-distance terms reach the object channels that place the object (its
     /// wrist offsets, global position and mixture logits; default true, every model trained
     /// before session 19). False makes all the object's channels constants to those terms
-    /// (its rotation too, whatever `contact_turns_objects` says); its decoded position still
-    /// follows the predicted wrists, so a held object moves with its hand and the terms have to
-    /// move the fingers. Tried in session 19 against the sinking that came with
+    /// (its rotation too, whatever `contact_turns_objects` says); with the hand-relative
+    /// representation its decoded position still follows the predicted wrists, so a held object
+    /// moves with its hand and the terms have to move the fingers (with `global_only` the terms
+    /// then reach no object channel at all). Tried in session 19 against the sinking that came with
     /// `contact_turns_objects = false`: the objects sank more (`docs/results/shipped-model.md`,
     /// "Objects that turn").
     pub contact_moves_objects: bool,

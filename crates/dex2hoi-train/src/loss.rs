@@ -15,7 +15,8 @@
 //! Signed distances of joints to the predicted-pose objects use the object's surface samples
 //! with normals: `d = n_k . (x - s_k)` for the nearest sample `s_k` of the joint `x` in the
 //! object frame. The choice of the nearest sample is not differentiated (it is piecewise
-//! constant); `d` is, in the joint, the object's rotation and its decoded position. Within the
+//! constant); `d` is, in the joint, the object's rotation and its decoded position (unless
+//! `contact_turns_objects` or `contact_moves_objects` makes those constants). Within the
 //! 10 cm of `L_dist` the samples (512 per object, about 1 cm apart on a mug) make this a close
 //! stand-in for the mesh's signed distance, and it needs no mesh queries in the loop.
 

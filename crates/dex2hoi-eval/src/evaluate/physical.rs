@@ -123,7 +123,8 @@ fn measure(
             .into_iter()
             .flatten()
             .collect();
-    let untouched_speeds = metrics::untouched_object_speeds(sample, fps)?;
+    let (untouched_speeds, untouched_turns_deg_s) =
+        metrics::untouched_object_motion(sample, fps)?.into_iter().unzip();
     let start_turns_deg = metrics::object_start_turns(
         sample,
         object_rotations_at(sequence, window.start.saturating_sub(1)),
@@ -131,7 +132,6 @@ fn measure(
     .into_iter()
     .flatten()
     .collect();
-    let untouched_turns_deg_s = metrics::untouched_object_turn_rates(sample, fps)?;
     // Objects rest on the sequence's first frame, before anything moves them (the prefix
     // starts there).
     let sinking = metrics::object_sinking(sample, object_positions_at(sequence, 0))?;
@@ -397,4 +397,70 @@ pub(super) fn instruction_rows(
         }
     })
     .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A clip with nothing measured but its (empty) instruction counts.
+    fn clip() -> Physical {
+        Physical {
+            penetration: metrics::Penetration {
+                mean_depth_mm: 0.0,
+                frame_share: 0.0,
+                mean_frame_depth_mm: 0.0,
+                penetrating_joint_frames: 0,
+                penetrating_frames: 0,
+                frames: 1,
+                depth_sum_mm: 0.0,
+                frame_depth_sum_mm: 0.0,
+            },
+            contact: metrics::ContactCounts::default(),
+            foot_sliding_mm: 0.0,
+            agreement: (0, 0),
+            start_jumps_m: Vec::new(),
+            untouched_speeds: Vec::new(),
+            start_turns_deg: Vec::new(),
+            untouched_turns_deg_s: Vec::new(),
+            sinking: metrics::Sinking::default(),
+            fingertips_m: Vec::new(),
+            fingertip_errors_m: Vec::new(),
+            instruction: Some(metrics::InstructionCounts::default()),
+        }
+    }
+
+    fn scores(ranks: Vec<Option<usize>>) -> DistributionScores {
+        DistributionScores {
+            r_precision: metrics::r_precision_of_ranks(&ranks).unwrap(),
+            ranks,
+            fid: 0.0,
+            mm_dist: 0.0,
+            diversity: 0.0,
+            multimodality: None,
+        }
+    }
+
+    #[test]
+    fn each_group_gets_the_r_precision_of_its_own_clips() {
+        // Clips of actions a, b, a, b: a's own motions rank 0 and 1 (both in the top 3), b's
+        // rank 5 and (dropped with the incomplete batch) none; the ground truth retrieves all.
+        let actions = [Some("a"), Some("b"), Some("a"), Some("b")];
+        let generated = [scores(vec![Some(0), Some(5), Some(1), None])];
+        let truth = [scores(vec![Some(0), Some(0), Some(2), None])];
+        let samples = vec![clip(); 4];
+        let rows = instruction_rows(
+            &samples,
+            &actions,
+            GroupScores { generated: &generated, truth: &truth },
+        );
+        let top3 = |group: &str| {
+            let row = rows.iter().find(|r| r.group == group).unwrap();
+            (row.r_precision_top3.unwrap().mean, row.truth_r_precision_top3.unwrap().mean)
+        };
+        assert_eq!(top3("all"), (2.0 / 3.0, 1.0));
+        assert_eq!(top3("a"), (1.0, 1.0));
+        assert_eq!(top3("b"), (0.0, 1.0));
+        assert_eq!(rows.iter().find(|r| r.group == "b").unwrap().clips, 2);
+    }
 }

@@ -3,15 +3,15 @@
 
 use serde::{Deserialize, Deserializer, Serialize};
 
+use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 
-use crate::error::Result;
+use crate::error::{EvalError, Result};
+use crate::evaluator::MotionClip;
 use crate::metrics;
 
 use super::embedding::EmbeddedMotions;
 use super::scores::DistributionScores;
-use crate::evaluator::MotionClip;
-use dex2hoi_data::MAX_OBJECTS;
 
 /// A value over replications: the mean and the half-width of its 95% interval.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -414,8 +414,10 @@ impl Report {
              where the ground truth holds an object, those where the clip holds it with the same \
              hands. Same side / end distance: where the moved objects end, across the body \
              (left, centre within 5 cm, right) and in cm. R-prec. top-3: of the group's prompts, \
-             those whose own clip is among the 3 nearest of its batch of 32 (batches mix the \
-             groups, as in the table above). \"-\" where nothing qualifies.\n",
+             those whose own clip is among the 3 nearest of its batch (the batches of the table \
+             above: 32 clips of every group in a seeded shuffle, fewer when the split is \
+             smaller, the incomplete last one left out; a group none of whose clips was ranked \
+             in some replication shows \"-\"). \"-\" where nothing qualifies.\n",
         );
         out
     }
@@ -446,7 +448,8 @@ impl Embeddings {
     /// the previous one's, so the last one is dumped).
     pub(super) fn set_replication(
         &mut self,
-        (generated, clips): (EmbeddedMotions, Vec<MotionClip>),
+        generated: EmbeddedMotions,
+        clips: Vec<MotionClip>,
         texts: Vec<Vec<f32>>,
         prompts: Vec<String>,
     ) {
@@ -498,7 +501,7 @@ fn clip_arrays(side: &str, clips: &[MotionClip]) -> Result<Vec<dex2hoi_data::npz
     if let Some(other) =
         clips.iter().find(|c| c.frames() != frames || c.joints.len() != frames * joints * 3)
     {
-        return Err(crate::error::EvalError::invalid(
+        return Err(EvalError::invalid(
             format!("{side} clips"),
             format!("{frames} frames of {joints} joints each, as the first"),
             format!("{} frames of {} joint numbers", other.frames(), other.joints.len()),

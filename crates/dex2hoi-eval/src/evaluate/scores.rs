@@ -59,7 +59,7 @@ impl DistributionScores {
     }
 
     /// R-precision top-3 of the clips `member` picks by index (their texts ranking the motions
-    /// of their batches, which hold every group); `None` when none of them was ranked.
+    /// of their batches, which mix the groups); `None` when none of them was ranked.
     pub(super) fn top3_of(&self, member: impl Fn(usize) -> bool) -> Option<f64> {
         let ranks = self.ranks.iter().enumerate().filter(|(i, _)| member(*i));
         metrics::top_k_shares(ranks.filter_map(|(_, rank)| *rank)).map(|shares| shares[2])

@@ -22,8 +22,7 @@
 //!   angle between consecutive rotations (degrees, and degrees per second).
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_repr::ObjectPose;
-use glam::{Mat3, Vec3};
+use glam::{DVec3, Mat3, Vec3};
 
 use crate::error::{EvalError, Result};
 
@@ -324,9 +323,7 @@ pub fn object_sinking(sample: &MotionSample<'_>, resting: [Vec3; MAX_OBJECTS]) -
 /// # Errors
 /// A sample that fails [`MotionSample::frames`], a frame rate that is not positive.
 pub fn untouched_object_speeds(sample: &MotionSample<'_>, fps: f32) -> Result<Vec<f64>> {
-    untouched_changes(sample, fps, |before, after| {
-        f64::from((after.position - before.position).length())
-    })
+    Ok(untouched_object_motion(sample, fps)?.into_iter().map(|(speed, _)| speed).collect())
 }
 
 /// The turning rate (degrees per second) of every present object on every frame where it is
@@ -336,16 +333,15 @@ pub fn untouched_object_speeds(sample: &MotionSample<'_>, fps: f32) -> Result<Ve
 /// # Errors
 /// As [`untouched_object_speeds`].
 pub fn untouched_object_turn_rates(sample: &MotionSample<'_>, fps: f32) -> Result<Vec<f64>> {
-    untouched_changes(sample, fps, |before, after| turn_degrees(before.rotation, after.rotation))
+    Ok(untouched_object_motion(sample, fps)?.into_iter().map(|(_, turn)| turn).collect())
 }
 
-/// `change(before, after) * fps` for every present object on every frame where it and the
-/// frame before are untouched.
-fn untouched_changes(
-    sample: &MotionSample<'_>,
-    fps: f32,
-    change: impl Fn(ObjectPose, ObjectPose) -> f64,
-) -> Result<Vec<f64>> {
+/// [`untouched_object_speeds`] and [`untouched_object_turn_rates`] together, from one search
+/// of the hand-object distances: `(m/s, degrees/s)` per untouched object and frame.
+///
+/// # Errors
+/// As [`untouched_object_speeds`].
+pub fn untouched_object_motion(sample: &MotionSample<'_>, fps: f32) -> Result<Vec<(f64, f64)>> {
     if !(fps.is_finite() && fps > 0.0) {
         return Err(EvalError::invalid("frame rate", "a positive number", fps));
     }
@@ -354,25 +350,32 @@ fn untouched_changes(
         let [l, r] = distances[t][slot];
         l.min(r) > UNTOUCHED_DISTANCE_M
     };
-    let mut rates = Vec::new();
+    let rate = f64::from(fps);
+    let mut motion = Vec::new();
     for t in 1..distances.len() {
         for slot in (0..MAX_OBJECTS).filter(|&s| sample.present[s]) {
             if untouched(t, slot) && untouched(t - 1, slot) {
-                let step = change(sample.object_pose(t - 1, slot), sample.object_pose(t, slot));
-                rates.push(step * f64::from(fps));
+                let (before, after) =
+                    (sample.object_pose(t - 1, slot), sample.object_pose(t, slot));
+                let travel = f64::from((after.position - before.position).length());
+                motion.push((travel * rate, turn_degrees(before.rotation, after.rotation) * rate));
             }
         }
     }
-    Ok(rates)
+    Ok(motion)
 }
 
-/// The angle in degrees of the rotation taking `from` to `to` (from the trace of `to from^T`,
-/// in `f64`).
+/// The angle in degrees of the rotation taking `from` to `to`: `atan2(sin, cos)` of the
+/// relative rotation `to from^T` in `f64`, its trace giving the cosine and its antisymmetric
+/// part the sine. (`acos` of the trace alone would read rounding as hundredths of a degree of
+/// turn: it is ill-conditioned near 0.)
 pub fn turn_degrees(from: Mat3, to: Mat3) -> f64 {
-    let relative = to * from.transpose();
-    let trace =
-        f64::from(relative.x_axis.x) + f64::from(relative.y_axis.y) + f64::from(relative.z_axis.z);
-    ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+    let relative = to.as_dmat3() * from.as_dmat3().transpose();
+    let (x, y, z) = (relative.x_axis, relative.y_axis, relative.z_axis);
+    let cos = (x.x + y.y + z.z - 1.0) / 2.0;
+    // Columns: `y.z` is row 2 of column 1, so this is (R21 - R12, R02 - R20, R10 - R01).
+    let sin = DVec3::new(y.z - z.y, z.x - x.z, x.y - y.x).length() / 2.0;
+    sin.atan2(cos).to_degrees()
 }
 
 /// How far each present object turns between its last prefix rotation and the clip's first
