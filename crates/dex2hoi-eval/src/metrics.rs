@@ -68,4 +68,5 @@ pub use matching::{
 pub use mixture::{mixture_agreement, mixture_agreement_counts, mixture_weights_from_features};
 pub use penetration::{PENETRATION_TOLERANCE_M, Penetration, penetration};
 pub use sample::MotionSample;
+pub(crate) use sample::rotation_from_rows;
 pub use statistics::{CONFIDENCE_Z, mean_interval, quantile, runtime};

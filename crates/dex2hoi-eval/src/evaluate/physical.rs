@@ -88,12 +88,11 @@ fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX
     })
 }
 
-/// Each object's rotation on frame `frame` of the sequence (stored row-major).
+/// Each object's rotation on frame `frame` of the sequence.
 fn object_rotations_at(sequence: &ProcessedSequence, frame: usize) -> [Mat3; MAX_OBJECTS] {
     std::array::from_fn(|slot| {
         let base = (frame * MAX_OBJECTS + slot) * 9;
-        let rows: [f32; 9] = std::array::from_fn(|k| sequence.object_rotations[base + k]);
-        Mat3::from_cols_array(&rows).transpose()
+        metrics::rotation_from_rows(&sequence.object_rotations[base..base + 9])
     })
 }
 
@@ -253,30 +252,23 @@ impl Pooled {
             .iter()
             .flat_map(|p| p.fingertip_errors_m.iter().map(|&e| f64::from(e).abs()))
             .collect();
+        // The median of one per-clip list over every clip of the replication.
+        let median_of = |values: fn(&Physical) -> &Vec<f64>| {
+            metrics::median(
+                &clips.iter().flat_map(|p| values(p).iter().copied()).collect::<Vec<_>>(),
+            )
+        };
         Self {
             penetration: metrics::Penetration::pooled(&penetrations),
             contact: metrics::ContactScores::from_counts(counts),
             foot_sliding_mm: clips.iter().map(|p| p.foot_sliding_mm).sum::<f64>()
                 / clips.len().max(1) as f64,
             agreement: clips.iter().fold((0, 0), |a, p| (a.0 + p.agreement.0, a.1 + p.agreement.1)),
-            start_jump_m: metrics::median(
-                &clips.iter().flat_map(|p| p.start_jumps_m.iter().copied()).collect::<Vec<_>>(),
-            ),
-            untouched_speed: metrics::median(
-                &clips.iter().flat_map(|p| p.untouched_speeds.iter().copied()).collect::<Vec<_>>(),
-            ),
-            start_turn_deg: metrics::median(
-                &clips.iter().flat_map(|p| p.start_turns_deg.iter().copied()).collect::<Vec<_>>(),
-            ),
-            untouched_turn_deg_s: metrics::median(
-                &clips
-                    .iter()
-                    .flat_map(|p| p.untouched_turns_deg_s.iter().copied())
-                    .collect::<Vec<_>>(),
-            ),
-            sink_depth_m: metrics::median(
-                &clips.iter().flat_map(|p| p.sinking.deepest_m.iter().copied()).collect::<Vec<_>>(),
-            ),
+            start_jump_m: median_of(|p| &p.start_jumps_m),
+            untouched_speed: median_of(|p| &p.untouched_speeds),
+            start_turn_deg: median_of(|p| &p.start_turns_deg),
+            untouched_turn_deg_s: median_of(|p| &p.untouched_turns_deg_s),
+            sink_depth_m: median_of(|p| &p.sinking.deepest_m),
             sink_frames: clips
                 .iter()
                 .fold((0, 0), |a, p| (a.0 + p.sinking.frames_below, a.1 + p.sinking.frames)),
@@ -364,13 +356,14 @@ pub(super) fn instruction_rows(
     groups.dedup();
     let all = std::iter::once(None).chain(groups.into_iter().map(Some));
     all.map(|group| {
+        let member = |action: &Option<&str>| group.is_none() || *action == group;
         let pooled: Vec<metrics::InstructionCounts> = samples
             .chunks(per_replication)
             .map(|replication| {
                 replication
                     .iter()
                     .zip(actions)
-                    .filter(|(_, action)| group.is_none() || **action == group)
+                    .filter(|(_, action)| member(action))
                     .filter_map(|(p, _)| p.instruction.as_ref())
                     .fold(metrics::InstructionCounts::default(), |a, c| a.merge(c))
             })
@@ -378,13 +371,14 @@ pub(super) fn instruction_rows(
         let percent = |share: fn(&metrics::InstructionCounts) -> Option<f64>| {
             estimate_all(pooled.iter().map(|c| share(c).map(|v| 100.0 * v)))
         };
-        let in_group = |clip: usize| group.is_none() || actions.get(clip) == Some(&group);
         let top3 = |scores: &[DistributionScores]| {
-            estimate_all(scores.iter().map(|s| s.top3_of(in_group)))
+            estimate_all(
+                scores.iter().map(|s| s.top3_of(|clip| actions.get(clip).is_some_and(member))),
+            )
         };
         InstructionRow {
             group: group.unwrap_or("all").to_string(),
-            clips: actions.iter().filter(|a| group.is_none() || **a == group).count(),
+            clips: actions.iter().filter(|a| member(a)).count(),
             objects_moved_percent: percent(metrics::InstructionCounts::moved_share),
             unasked_moves_percent: percent(metrics::InstructionCounts::unasked_share),
             holding_hand_percent: percent(metrics::InstructionCounts::holder_share),

@@ -67,12 +67,9 @@ impl MotionSample<'_> {
     /// The pose of slot `slot` at frame `t` (indices already checked).
     pub(super) fn object_pose(&self, t: usize, slot: usize) -> ObjectPose {
         let base = (t * MAX_OBJECTS + slot) * 9;
-        let rows: [f32; 9] = std::array::from_fn(|k| self.object_rotations[base + k]);
+        let rotation = rotation_from_rows(&self.object_rotations[base..base + 9]);
         let base = (t * MAX_OBJECTS + slot) * 3;
-        ObjectPose {
-            rotation: Mat3::from_cols_array(&rows).transpose(),
-            position: Vec3::from_slice(&self.object_positions[base..base + 3]),
-        }
+        ObjectPose { rotation, position: Vec3::from_slice(&self.object_positions[base..base + 3]) }
     }
 
     /// The present slots with their meshes.
@@ -117,4 +114,13 @@ pub(super) fn check_array(
         return Err(EvalError::invalid(what, "finite numbers", format!("{} at {i}", values[i])));
     }
     Ok(())
+}
+
+/// A rotation from its 9 numbers stored row-major, as object rotations are
+/// ([`ProcessedSequence`](dex2hoi_data::features::ProcessedSequence), [`MotionSample`]).
+///
+/// # Panics
+/// Fewer than 9 numbers (callers slice exactly 9).
+pub(crate) fn rotation_from_rows(rows: &[f32]) -> Mat3 {
+    Mat3::from_cols_slice(rows).transpose()
 }
