@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Trains several runs side by side on one GPU for a fixed time and sends their snapshots back
-# as packed models, for the training studies of docs/results/ (issue 17). Run on a machine
+# as packed models, for the training studies of docs/results/. Run on a machine
 # with an NVIDIA GPU from the repository root, with `target/cuda-pack/` made by
 # `cargo xtask build-cuda` carried along:
 #

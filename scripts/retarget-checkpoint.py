@@ -3,8 +3,9 @@
 `dex2hoi train --resume` continues a copy of a run under a changed setting, such as a loss
 weight: a continuation with another objective, no longer a bit-exact resume (which is why
 `train --resume` refuses a changed configuration). Used for the annealed continuations of
-docs/results/steps.md (session 10). Work on a copy of the run directory, and pass the same
-change in the `--config` file given to `train --resume`.
+docs/results/steps.md ("Continuations of the world run under other settings"). Work on a
+copy of the run directory, and pass the same change in the `--config` file given to
+`train --resume`.
 
 usage: scripts/retarget-checkpoint.py CHECKPOINT 'OLD LINE' 'NEW LINE'
    e.g. scripts/retarget-checkpoint.py runs/copy/checkpoint.safetensors 'distance = 1.0' 'distance = 3.0'
