@@ -6,17 +6,25 @@ use std::path::{Path, PathBuf};
 
 use dex2hoi_tests::workspace_root;
 
-/// The `dex2hoi-*` dependencies of each crate (docs/ARCHITECTURE.md, "Invariants"): exactly
-/// these, no more (a crate may not reach past its layer) and no fewer (the table allows no edge
-/// that nobody uses, so it stays a true picture of the graph).
-const LAYERING: [(&str, &[&str]); 11] = [
-    ("dex2hoi-repr", &[]),
-    ("dex2hoi-data", &["dex2hoi-repr"]),
-    ("dex2hoi-import", &["dex2hoi-repr", "dex2hoi-data"]),
-    ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"]),
-    ("dex2hoi-diffusion", &[]),
-    ("dex2hoi-optim", &[]),
-    ("dex2hoi-sample", &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"]),
+/// The `dex2hoi-*` dependencies of each crate (docs/ARCHITECTURE.md, "Invariants"): its library
+/// dependencies, then what its tests and benchmarks add. Exactly these, no more (a crate may not
+/// reach past its layer, and a crate above the generator links it only into tests) and no fewer
+/// (the table allows no edge that nobody uses, so it stays a true picture of the graph).
+const LAYERING: [(&str, &[&str], &[&str]); 14] = [
+    ("dex2hoi-repr", &[], &[]),
+    ("dex2hoi-data", &["dex2hoi-repr"], &[]),
+    ("dex2hoi-synth", &["dex2hoi-repr", "dex2hoi-data"], &[]),
+    ("dex2hoi-import", &["dex2hoi-repr", "dex2hoi-data"], &[]),
+    ("dex2hoi-model", &["dex2hoi-repr", "dex2hoi-data"], &[]),
+    ("dex2hoi-diffusion", &[], &[]),
+    ("dex2hoi-optim", &[], &[]),
+    ("dex2hoi-plot", &[], &[]),
+    ("dex2hoi-testkit", &[], &[]),
+    (
+        "dex2hoi-sample",
+        &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-model", "dex2hoi-diffusion"],
+        &["dex2hoi-testkit"],
+    ),
     (
         "dex2hoi-train",
         &[
@@ -26,8 +34,9 @@ const LAYERING: [(&str, &[&str]); 11] = [
             "dex2hoi-diffusion",
             "dex2hoi-optim",
             "dex2hoi-sample",
-            "dex2hoi-export",
+            "dex2hoi-plot",
         ],
+        &["dex2hoi-synth", "dex2hoi-testkit"],
     ),
     (
         "dex2hoi-eval",
@@ -39,19 +48,28 @@ const LAYERING: [(&str, &[&str]); 11] = [
             "dex2hoi-optim",
             "dex2hoi-sample",
         ],
+        &["dex2hoi-synth"],
     ),
-    ("dex2hoi-export", &["dex2hoi-repr", "dex2hoi-data"]),
+    (
+        "dex2hoi-export",
+        &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-plot"],
+        &["dex2hoi-synth", "dex2hoi-testkit"],
+    ),
     (
         "dex2hoi-cli",
         &[
             "dex2hoi-data",
+            "dex2hoi-synth",
             "dex2hoi-import",
+            "dex2hoi-model",
             "dex2hoi-diffusion",
             "dex2hoi-sample",
             "dex2hoi-train",
             "dex2hoi-eval",
             "dex2hoi-export",
+            "dex2hoi-plot",
         ],
+        &["dex2hoi-testkit"],
     ),
 ];
 
@@ -151,31 +169,45 @@ fn crate_dependencies_follow_the_layering() {
             }
             continue;
         }
-        let allowed = LAYERING
-            .iter()
-            .find(|(crate_name, _)| *crate_name == name)
-            .unwrap_or_else(|| {
+        let (_, library, tests_only) =
+            LAYERING.iter().find(|(crate_name, _, _)| *crate_name == name).unwrap_or_else(|| {
                 panic!("{name} is not in the layering table of tidy.rs and ARCHITECTURE.md")
-            })
-            .1;
-        let used: std::collections::BTreeSet<&str> = member
-            .dependency_tables()
-            .flat_map(|(_, table)| table.keys().map(String::as_str))
-            .filter(|k| k.starts_with("dex2hoi"))
+            });
+        let project_keys = |section: &str| -> std::collections::BTreeSet<&str> {
+            member
+                .dependency_tables()
+                .filter(|(s, _)| *s == section)
+                .flat_map(|(_, table)| table.keys().map(String::as_str))
+                .filter(|k| k.starts_with("dex2hoi"))
+                .collect()
+        };
+        let linked: std::collections::BTreeSet<&str> = project_keys("dependencies")
+            .union(&project_keys("build-dependencies"))
+            .copied()
             .collect();
-        for edge in allowed {
+        let dev = project_keys("dev-dependencies");
+        for edge in *library {
             assert!(
-                used.contains(edge),
+                linked.contains(edge),
                 "{name} does not use {edge}: remove the edge from the layering table"
             );
         }
+        for edge in *tests_only {
+            assert!(
+                dev.contains(edge) && !linked.contains(edge),
+                "{name}'s tests do not use {edge} (or its library does): fix the layering table"
+            );
+        }
+        for dep in &linked {
+            assert!(library.contains(dep), "{name} may not depend on {dep}");
+        }
+        for dep in &dev {
+            assert!(
+                library.contains(dep) || tests_only.contains(dep),
+                "{name} may not depend on {dep} ([dev-dependencies])"
+            );
+        }
         for (section, table) in member.dependency_tables() {
-            for dep in table.keys().filter(|k| k.starts_with("dex2hoi")) {
-                assert!(
-                    allowed.contains(&dep.as_str()),
-                    "{name} may not depend on {dep} ([{section}])"
-                );
-            }
             if !ANYHOW_ALLOWED.contains(&name) && section == "dependencies" {
                 assert!(
                     !table.contains_key("anyhow"),
@@ -230,7 +262,7 @@ fn no_stubs_or_ignored_tests() {
 /// (docs/ARCHITECTURE.md, the fused kernels' invariant): raw `gemm` calls, and setting the
 /// variable that keeps candle's elementwise operations on the calling thread.
 const UNSAFE_MODULES: [&str; 2] =
-    ["crates/dex2hoi-cli/src/candle_threads.rs", "crates/dex2hoi-model/src/matmul.rs"];
+    ["crates/dex2hoi-model/src/candle_threads.rs", "crates/dex2hoi-model/src/matmul.rs"];
 
 #[test]
 fn unsafe_stays_in_its_modules_with_a_safety_comment_per_use() {
@@ -371,4 +403,84 @@ fn readme_gives_the_ci_test_command() {
         readme.contains(command),
         "README.md must give the test command `{command}` that .ci/run runs"
     );
+}
+
+/// Every text file of the repository outside build outputs and dependencies.
+fn repository_text_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).expect("readable dir") {
+        let path = entry.expect("entry").path();
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        if path.is_dir() {
+            if !name.starts_with('.') && name != "target" && name != "node_modules" {
+                repository_text_files(&path, out);
+            }
+        } else if path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+            ["rs", "md", "py", "toml", "sh", "json", "yml", "yaml", "txt"].contains(&e)
+        }) {
+            out.push(path);
+        }
+    }
+}
+
+/// Where `text` names a development session by number (the word, an optional plural `s`,
+/// blanks, then a digit), as 1-based line numbers.
+fn development_history_lines(text: &str) -> Vec<usize> {
+    // Built from pieces so that this file does not match itself.
+    let word = concat!("sess", "ion");
+    let mut lines = Vec::new();
+    for (number, line) in text.lines().enumerate() {
+        let line = line.to_lowercase();
+        let mut rest = line.as_str();
+        while let Some(at) = rest.find(word) {
+            let after = &rest[at + word.len()..];
+            let after = after.strip_prefix('s').unwrap_or(after);
+            let digits = after.trim_start_matches([' ', '\t']);
+            if digits.len() < after.len() && digits.starts_with(|c: char| c.is_ascii_digit()) {
+                lines.push(number + 1);
+                break;
+            }
+            rest = after;
+        }
+    }
+    lines
+}
+
+#[test]
+fn the_history_detector_finds_what_it_should() {
+    let numbered = concat!("trained before sess", "ion 19");
+    let plural = concat!("Sess", "ions 15-18 measured");
+    assert_eq!(development_history_lines(numbered), [1]);
+    assert_eq!(development_history_lines(&format!("a\n{plural}")), [2]);
+    assert!(development_history_lines("a Unix process session, session-wide").is_empty());
+}
+
+/// The repository describes what dex2hoi is and does, not how it was built: no development
+/// sessions named in code, docs, configs or scripts (history goes in `CHANGELOG.md`, by date).
+#[test]
+fn no_development_history_in_the_repository() {
+    let root = workspace_root();
+    let mut files = Vec::new();
+    repository_text_files(&root, &mut files);
+    assert!(files.iter().any(|f| f.ends_with("README.md")), "the walk reaches the root");
+    let mut found = Vec::new();
+    for file in files {
+        let Ok(text) = std::fs::read_to_string(&file) else { continue };
+        for line in development_history_lines(&text) {
+            found.push(format!("{}:{line}", file.strip_prefix(&root).unwrap_or(&file).display()));
+        }
+    }
+    assert!(found.is_empty(), "development history named in: {}", found.join(", "));
+}
+
+/// Each crate compiles its own files only: shared code lives in a crate that the others depend
+/// on (`dex2hoi-testkit` for tests and benchmarks), never included by a `path` attribute.
+#[test]
+fn no_file_is_compiled_into_another_crate() {
+    let root = workspace_root();
+    // Built from pieces so that this file does not match itself.
+    let attribute = concat!("#[pa", "th");
+    for file in workspace_rust_files(&root) {
+        let text = std::fs::read_to_string(&file).expect("readable source");
+        assert!(!text.contains(attribute), "{}: includes a file by path", file.display());
+    }
 }

@@ -8,9 +8,9 @@ use std::str::FromStr;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
-use dex2hoi_data::dataset::write_atomically;
+use dex2hoi_data::files::write_atomically;
 use dex2hoi_eval::evaluate::{InstructionRow, Report, ReportRow};
-use dex2hoi_export::chart::{Chart, Panel, Scale, Series};
+use dex2hoi_plot::chart::{Chart, Panel, Scale, Series};
 
 /// One run's evaluations: `LABEL=DIR`.
 #[derive(Debug, Clone, PartialEq)]
@@ -219,20 +219,7 @@ struct Loaded {
 impl Loaded {
     fn read(path: &Path) -> Result<Self> {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let value: serde_json::Value = serde_json::from_slice(&bytes)
-            .with_context(|| format!("{}: not JSON", path.display()))?;
-        if !value.is_object() {
-            bail!("{}: expected a report of `dex2hoi evaluate` (a JSON object)", path.display());
-        }
-        if value.get("setup").is_none() {
-            bail!(
-                "{}: no `setup` (the evaluated step and sampler): written by an older dex2hoi; \
-                 run `dex2hoi evaluate` again",
-                path.display()
-            );
-        }
-        let report: Report = serde_json::from_value(value)
-            .with_context(|| format!("{}: not a report of `dex2hoi evaluate`", path.display()))?;
+        let report = Report::from_json(path, &bytes)?;
         Ok(Self { path: path.to_path_buf(), report })
     }
 

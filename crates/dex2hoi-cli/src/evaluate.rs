@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
-use dex2hoi_data::dataset::{Dataset, write_atomically};
+use dex2hoi_data::dataset::Dataset;
+use dex2hoi_data::files::write_atomically;
 use dex2hoi_eval::evaluate::{EvaluateOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;

@@ -30,7 +30,6 @@ use clap::{Parser, Subcommand};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod body;
-mod candle_threads;
 mod compare;
 mod device;
 mod evaluate;
@@ -113,7 +112,7 @@ enum DataCommand {
 
 fn main() -> std::process::ExitCode {
     // Before anything starts a thread: candle reads it once, when its pool starts.
-    candle_threads::run_inline();
+    dex2hoi_model::candle_threads::run_inline();
     match run(Cli::parse().command) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(error) => {
@@ -159,10 +158,9 @@ fn synth(out: &Path, sequences: usize, seed: u64, fps: f32) -> Result<()> {
         .context("progress bar template")?
         .progress_chars("=> "),
     );
-    let dataset = dex2hoi_data::synth::build_dataset(sequences, seed, fps, &|done| {
-        bar.set_position(done as u64)
-    })
-    .context("generating the procedural dataset")?;
+    let dataset =
+        dex2hoi_synth::build_dataset(sequences, seed, fps, &|done| bar.set_position(done as u64))
+            .context("generating the procedural dataset")?;
     bar.finish_and_clear();
     let generated = start.elapsed();
     dataset.save(out).with_context(|| format!("writing the dataset to {}", out.display()))?;

@@ -7,10 +7,6 @@ use std::path::Path;
 mod common;
 use common::dex2hoi;
 
-#[path = "../../dex2hoi-export/tests/common/smplx_fixture.rs"]
-#[allow(dead_code)] // the export tests use the spoiled variants
-mod smplx_fixture;
-
 fn ok(output: &std::process::Output) -> String {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -120,14 +116,7 @@ fn sample_exports_four_files_and_refuses_bad_input() {
 
     // With the user's SMPL-X model the GLB carries its skinned mesh on its skeleton.
     let model = dir.join("SMPLX_NEUTRAL.npz");
-    let skeleton = dex2hoi_data::synth::generate(0, 0, 20.0).unwrap().sequence.skeleton;
-    smplx_fixture::write_smplx_model(
-        &model,
-        &skeleton.rest_positions(),
-        skeleton.parents(),
-        &dex2hoi_export::body_mesh(&skeleton),
-        smplx_fixture::Spoil::None,
-    );
+    common::write_smplx_model(&model);
     let dressed = dir.join("dressed");
     ok(&dex2hoi(&[
         "sample",

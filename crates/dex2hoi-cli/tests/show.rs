@@ -10,10 +10,6 @@ use dex2hoi_data::dataset::Dataset;
 mod common;
 use common::dex2hoi;
 
-#[path = "../../dex2hoi-export/tests/common/smplx_fixture.rs"]
-#[allow(dead_code)] // the export tests use the spoiled variants
-mod smplx_fixture;
-
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("dex2hoi-cli-show-{name}-{}", std::process::id()));
     std::fs::remove_dir_all(&dir).ok();
@@ -209,14 +205,7 @@ fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
     // The fixture model, in the `smplx` package's layout `models/smplx/SMPLX_NEUTRAL.npz`.
     let models = temp_dir("smplx-models");
     std::fs::create_dir_all(models.join("smplx")).unwrap();
-    let skeleton = dex2hoi_data::synth::generate(0, 0, 20.0).unwrap().sequence.skeleton;
-    smplx_fixture::write_smplx_model(
-        &models.join("smplx/SMPLX_NEUTRAL.npz"),
-        &skeleton.rest_positions(),
-        skeleton.parents(),
-        &dex2hoi_export::body_mesh(&skeleton),
-        smplx_fixture::Spoil::None,
-    );
+    common::write_smplx_model(&models.join("smplx/SMPLX_NEUTRAL.npz"));
     let show = |out: &Path, extra: &[&str]| {
         let mut args = vec!["data", "show", data_arg, "--sequence", "0", "--out"];
         args.push(out.to_str().unwrap());

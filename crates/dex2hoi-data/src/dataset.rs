@@ -14,6 +14,7 @@ use dex2hoi_repr::{Mesh, SkeletonKind, SurfaceSamples};
 
 use crate::error::{DataError, Result};
 use crate::features::{ObjectAsset, ProcessedSequence};
+use crate::files::{io_error, temporary_path, write_atomically};
 use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
 
@@ -318,26 +319,6 @@ impl Manifest {
     pub fn builtin_skeleton(&self) -> Result<dex2hoi_repr::Skeleton> {
         Ok(dex2hoi_repr::Skeleton::builtin(SkeletonKind::from_name(&self.skeleton)?))
     }
-}
-
-fn io_error<'a>(
-    path: &'a Path,
-    action: &'static str,
-) -> impl FnOnce(std::io::Error) -> DataError + 'a {
-    move |source| DataError::Io { path: path.to_path_buf(), action, source }
-}
-
-/// Writes a file atomically: a temporary file beside it, then a rename.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let temporary = temporary_path(path);
-    std::fs::write(&temporary, bytes).map_err(io_error(&temporary, "writing"))?;
-    std::fs::rename(&temporary, path).map_err(io_error(path, "renaming into place"))
-}
-
-fn temporary_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
-    name.push(format!(".tmp-{}", std::process::id()));
-    path.with_file_name(name)
 }
 
 fn save_tensors(path: &Path, tensors: &HashMap<String, Tensor>) -> Result<()> {

@@ -13,9 +13,13 @@ pub enum DiffusionError {
         /// What was given.
         got: String,
     },
-    /// The model produced something unusable.
+    /// The [`Denoiser`](crate::Denoiser) failed: the model's own error, kept whole as the source
+    /// (`std::error::Error::source` gives it; downcast it to the implementor's error type).
+    #[error("the denoiser failed: {0}")]
+    Denoiser(#[source] Box<dyn std::error::Error + Send + Sync>),
+    /// The denoiser returned something unusable (a prediction of another shape than its input).
     #[error("the denoiser returned {got}, expected {expected}")]
-    Denoiser {
+    DenoiserOutput {
         /// What was expected.
         expected: String,
         /// What came back.
@@ -37,5 +41,11 @@ impl DiffusionError {
         got: impl std::fmt::Display,
     ) -> Self {
         Self::Invalid { what: what.into(), expected: expected.into(), got: got.to_string() }
+    }
+
+    /// A [`DiffusionError::Denoiser`] holding the model's error, for implementors of
+    /// [`Denoiser`](crate::Denoiser): `model.forward(..).map_err(DiffusionError::denoiser)`.
+    pub fn denoiser(error: impl std::error::Error + Send + Sync + 'static) -> Self {
+        Self::Denoiser(Box::new(error))
     }
 }

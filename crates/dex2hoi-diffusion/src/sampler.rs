@@ -9,12 +9,21 @@ use crate::error::{DiffusionError, Result};
 use crate::schedule::CosineSchedule;
 
 /// A model as the samplers see it.
+///
+/// Its errors are [`DiffusionError`]s, so that the samplers handle one error type: a model's
+/// own error goes in [`DiffusionError::Denoiser`] whole, as its typed source
+/// ([`DiffusionError::denoiser`]), and the samplers return it unchanged; this crate depends
+/// on no model crate.
 pub trait Denoiser {
     /// Predicts the clean samples.
     ///
     /// `null_condition[b]` asks for row `b` to be denoised under the null condition (the text
     /// zeroed, for classifier-free guidance); the samplers put the conditional and the
     /// unconditional rows of one step in the same batch, so one call serves both.
+    ///
+    /// # Errors
+    /// The model's failure as [`DiffusionError::Denoiser`]; a tensor operation's as
+    /// [`DiffusionError::Tensor`].
     ///
     /// # Shapes
     /// - `noisy`: `[batch, ...]`
@@ -53,7 +62,7 @@ pub struct SamplerConfig {
 }
 
 /// The default guidance scale: 2.0, below MDM's 2.5. On the shipped model's full evaluation
-/// (docs/results/shipped-model.md, "The guidance scale (session 15)") 2.5 puts a hand inside an
+/// (docs/results/shipped-model.md, "The guidance scale") 2.5 puts a hand inside an
 /// object on 7.4% of frames and 2.0 on 6.3%, with contact, the objects' start, drift and
 /// sinking and the instruction measures as good or better within noise, for 3 points of FID
 /// and 0.02 of R-precision top-3 (docs/CONVENTIONS.md, "Diffusion schedule").
@@ -107,7 +116,7 @@ fn guided_x0(
     // activations into one graph that lives until the end.
     let x0 = denoiser.predict_x0(&input, &timesteps, &null)?.detach();
     if x0.dims() != input.dims() {
-        return Err(DiffusionError::Denoiser {
+        return Err(DiffusionError::DenoiserOutput {
             expected: format!("shape {:?}", input.dims()),
             got: format!("shape {:?}", x0.dims()),
         });

@@ -208,7 +208,7 @@ fn bad_configurations_and_models_are_reported() {
         sample(&schedule, &Broken, shape, &config, rng, DType::F32, &Device::Cpu)
     };
     let error = run(SamplerConfig::default(), &[2, 3], &mut rng).unwrap_err();
-    assert!(matches!(error, DiffusionError::Denoiser { .. }), "{error}");
+    assert!(matches!(error, DiffusionError::DenoiserOutput { .. }), "{error}");
     assert!(
         run(
             SamplerConfig { kind: SamplerKind::Ddim { eta: 2.0 }, ..Default::default() },
@@ -223,4 +223,37 @@ fn bad_configurations_and_models_are_reported() {
             .is_err()
     );
     assert!(run(SamplerConfig::default(), &[0, 3], &mut rng).is_err());
+}
+
+/// A model's own error type, unknown to the samplers.
+#[derive(Debug)]
+struct OutOfWeights;
+
+impl std::fmt::Display for OutOfWeights {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("out of weights")
+    }
+}
+
+impl std::error::Error for OutOfWeights {}
+
+struct Failing;
+
+impl Denoiser for Failing {
+    fn predict_x0(&self, _: &Tensor, _: &Tensor, _: &[bool]) -> dex2hoi_diffusion::Result<Tensor> {
+        Err(DiffusionError::denoiser(OutOfWeights))
+    }
+}
+
+#[test]
+fn the_models_error_comes_back_as_the_typed_source() {
+    let schedule = CosineSchedule::new(1000).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let config = SamplerConfig::default();
+    let error = sample(&schedule, &Failing, &[2, 3], &config, &mut rng, DType::F32, &Device::Cpu)
+        .unwrap_err();
+    assert!(matches!(error, DiffusionError::Denoiser(_)), "{error}");
+    let source = std::error::Error::source(&error).expect("the model's error as the source");
+    assert!(source.downcast_ref::<OutOfWeights>().is_some(), "{source:?}");
+    assert_eq!(error.to_string(), "the denoiser failed: out of weights");
 }

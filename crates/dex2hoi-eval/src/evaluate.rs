@@ -42,8 +42,8 @@ use physical::{GroupScores, ObjectMeshes, Physical, Window, instruction_rows, ph
 use scores::DistributionScores;
 
 pub use report::{
-    Embeddings, Estimate, EvaluationSetup, InstructionRow, PhysicalRow, Report, ReportRow,
-    SamplerName,
+    Embeddings, Estimate, EvaluationSetup, InstructionRow, PhysicalRow, REPORT_FORMAT, Report,
+    ReportRow, SamplerName,
 };
 
 /// How an evaluation runs.
@@ -226,6 +226,7 @@ pub fn evaluate(
         embeddings.set_replication(embedded, clips, texts, prompts);
     }
     let report = Report {
+        format: REPORT_FORMAT,
         setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),
         rows: vec![
             ReportRow::from_replications(

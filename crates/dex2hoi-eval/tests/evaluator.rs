@@ -19,7 +19,7 @@ use dex2hoi_optim::step_rng;
 fn dataset() -> &'static Dataset {
     static DATA: OnceLock<Dataset> = OnceLock::new();
     DATA.get_or_init(|| {
-        dex2hoi_data::synth::build_dataset(48, 7, 20.0, &|_| {}).expect("a procedural dataset")
+        dex2hoi_synth::build_dataset(48, 7, 20.0, &|_| {}).expect("a procedural dataset")
     })
 }
 

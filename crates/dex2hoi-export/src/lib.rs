@@ -15,9 +15,7 @@
 
 pub mod body_mesh;
 pub mod bvh;
-pub mod chart;
 pub mod error;
-pub mod font;
 pub mod glb;
 pub mod npz;
 pub mod preview;
@@ -317,7 +315,7 @@ fn check_body_skeleton(body: &SmplxMesh, skeleton: &Skeleton) -> Result<()> {
 
 /// Writes encoded bytes to `path` atomically (temporary file beside it, then rename).
 pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
-    Ok(dex2hoi_data::dataset::write_atomically(path, bytes)?)
+    Ok(dex2hoi_data::files::write_atomically(path, bytes)?)
 }
 
 /// Options of [`export_all`].

@@ -31,8 +31,8 @@ use dex2hoi_repr::{CONTACT_RADIUS_M, Mesh, MeshQuery, PENETRATION_TOLERANCE_M};
 
 use crate::body_mesh::body_mesh;
 use crate::error::{ExportError, Result};
-use crate::font;
 use crate::{Checked, ExportMotion, write_file};
+use dex2hoi_plot::font;
 
 /// Shades per surface in the palette.
 pub const SHADES: usize = 23;
@@ -744,20 +744,10 @@ impl Preview {
     }
 }
 
-/// An 8-bit RGB PNG of `rgb` (rows top to bottom, three bytes a pixel); the preview sheet and
-/// the charts (`chart.rs`) are written with it.
-pub(crate) fn encode_rgb_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>> {
-    let png_error = |e: png::EncodingError| ExportError::invalid("PNG encoding", "success", e);
-    let mut bytes = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut bytes, width, height);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder.write_header().map_err(png_error)?;
-        writer.write_image_data(rgb).map_err(png_error)?;
-        writer.finish().map_err(png_error)?;
-    }
-    Ok(bytes)
+/// The PNG of a preview sheet.
+fn encode_rgb_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>> {
+    dex2hoi_plot::encode_rgb_png(width, height, rgb)
+        .map_err(|e| ExportError::invalid("PNG encoding", "success", e))
 }
 
 /// The bytes of `preview.gif` (see [`render_preview`]).

@@ -1,9 +1,11 @@
-//! numpy arrays in memory: the element types numpy writes (`dtype` type strings such as `<f8`,
-//! `|b1`, `<U5`, `|O`), decoding of raw little- or big-endian bytes, and Fortran-to-C reordering.
-//! Arrays are always held in C (row-major) order.
+//! numpy element types (`dtype` type strings such as `<f8`, `|b1`, `<U5`, `|O`) and the decoding
+//! of raw little- or big-endian bytes into [`ArrayData`]. The arrays, [`NdArray`] (always held
+//! in C (row-major) order, Fortran-ordered elements reordered when one is built), are defined
+//! with the Python values they nest in and hold ([`crate::value`]) and re-exported here.
 
 use crate::error::{ImportError, Result};
-use crate::value::Value;
+
+pub use crate::value::{ArrayData, NdArray, element_count};
 
 /// The kind of a numpy element type (the letter of its type string).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -102,151 +104,6 @@ impl DType {
         };
         format!("{order}{letter}{}", self.size)
     }
-}
-
-/// The elements of an array, in C order.
-#[derive(Debug, Clone, PartialEq)]
-pub enum ArrayData {
-    /// Floats of any size, widened to `f64`.
-    Float(Vec<f64>),
-    /// Integers of any size and sign that fit `i64`.
-    Int(Vec<i64>),
-    /// Booleans.
-    Bool(Vec<bool>),
-    /// Text elements (trailing NULs removed, as numpy does).
-    Str(Vec<String>),
-    /// Byte-string elements (trailing NULs removed).
-    Bytes(Vec<Vec<u8>>),
-    /// Python objects.
-    Object(Vec<Value>),
-}
-
-impl ArrayData {
-    /// Number of elements.
-    pub fn len(&self) -> usize {
-        match self {
-            Self::Float(v) => v.len(),
-            Self::Int(v) => v.len(),
-            Self::Bool(v) => v.len(),
-            Self::Str(v) => v.len(),
-            Self::Bytes(v) => v.len(),
-            Self::Object(v) => v.len(),
-        }
-    }
-
-    /// `true` when there are no elements.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// A short name of the element kind for messages.
-    pub fn kind_name(&self) -> &'static str {
-        match self {
-            Self::Float(_) => "float",
-            Self::Int(_) => "integer",
-            Self::Bool(_) => "boolean",
-            Self::Str(_) => "text",
-            Self::Bytes(_) => "bytes",
-            Self::Object(_) => "object",
-        }
-    }
-
-    /// Reorders the elements by `order` (`new[i] = old[order[i]]`).
-    fn permuted(self, order: &[usize]) -> Self {
-        fn pick<T: Clone>(values: Vec<T>, order: &[usize]) -> Vec<T> {
-            order.iter().map(|&i| values[i].clone()).collect()
-        }
-        match self {
-            Self::Float(v) => Self::Float(pick(v, order)),
-            Self::Int(v) => Self::Int(pick(v, order)),
-            Self::Bool(v) => Self::Bool(pick(v, order)),
-            Self::Str(v) => Self::Str(pick(v, order)),
-            Self::Bytes(v) => Self::Bytes(pick(v, order)),
-            Self::Object(v) => Self::Object(pick(v, order)),
-        }
-    }
-}
-
-/// An n-dimensional numpy array in C order.
-#[derive(Debug, Clone, PartialEq)]
-pub struct NdArray {
-    /// The shape (empty for a 0-d array).
-    pub shape: Vec<usize>,
-    /// The elements.
-    pub data: ArrayData,
-}
-
-impl NdArray {
-    /// Builds an array, checking that the element count matches the shape, and reorders
-    /// Fortran-ordered elements into C order.
-    pub fn new(
-        shape: Vec<usize>,
-        data: ArrayData,
-        fortran_order: bool,
-        source_name: &str,
-    ) -> Result<Self> {
-        let count = element_count(&shape, source_name)?;
-        if data.len() != count {
-            return Err(ImportError::format(
-                source_name,
-                "element count",
-                format!("{count} elements for shape {shape:?}"),
-                data.len(),
-            ));
-        }
-        let data = if fortran_order && shape.len() > 1 {
-            data.permuted(&fortran_to_c_order(&shape))
-        } else {
-            data
-        };
-        Ok(Self { shape, data })
-    }
-
-    /// Number of elements.
-    pub fn len(&self) -> usize {
-        self.data.len()
-    }
-
-    /// `true` when the array has no elements.
-    pub fn is_empty(&self) -> bool {
-        self.data.is_empty()
-    }
-}
-
-/// The product of a shape's dimensions, refusing overflow.
-pub fn element_count(shape: &[usize], source_name: &str) -> Result<usize> {
-    shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).ok_or_else(|| {
-        ImportError::format(
-            source_name,
-            "shape",
-            "an element count that fits memory",
-            format!("{shape:?}"),
-        )
-    })
-}
-
-/// For each C-order position, the position of the same element in Fortran (column-major) order.
-fn fortran_to_c_order(shape: &[usize]) -> Vec<usize> {
-    let count: usize = shape.iter().product();
-    let mut order = Vec::with_capacity(count);
-    let mut index = vec![0usize; shape.len()];
-    for _ in 0..count {
-        let mut position = 0;
-        let mut stride = 1;
-        for (axis, &i) in index.iter().enumerate() {
-            position += i * stride;
-            stride *= shape[axis];
-        }
-        order.push(position);
-        for axis in (0..shape.len()).rev() {
-            index[axis] += 1;
-            if index[axis] < shape[axis] {
-                break;
-            }
-            index[axis] = 0;
-        }
-    }
-    order
 }
 
 /// IEEE half precision to `f64` (numpy's `f2`).
@@ -420,14 +277,5 @@ mod tests {
         let truncated = decode_raw(DType::parse("<f8", "t").unwrap(), &[0; 12], 2, "file.npy");
         let message = truncated.unwrap_err().to_string();
         assert!(message.contains("file.npy") && message.contains("truncated"), "{message}");
-    }
-
-    #[test]
-    fn fortran_order_becomes_c_order() {
-        // numpy: np.arange(6).reshape(2, 3, order='F') stores 0..6 column-major.
-        let data = ArrayData::Int((0..6).collect());
-        let array = NdArray::new(vec![2, 3], data, true, "t").unwrap();
-        assert_eq!(array.data, ArrayData::Int(vec![0, 2, 4, 1, 3, 5]));
-        assert!(NdArray::new(vec![2, 2], ArrayData::Int(vec![1]), false, "t").is_err());
     }
 }

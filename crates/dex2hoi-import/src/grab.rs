@@ -16,12 +16,11 @@ use dex2hoi_repr::rotation::axis_angle_to_matrix;
 
 use crate::error::{ImportError, Result};
 use crate::npy::{Npz, read_npy};
-use crate::prepare::{Context, HandPoseSource, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::smplx::{HAND_JOINTS, SmplxParams};
+use crate::source::{Context, HandPoseSource, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::value::{Field, Value};
 
-/// The default text template.
-pub const DEFAULT_TEMPLATE: &str = "The person is {verb} the {object}.";
+pub use crate::source::DEFAULT_TEMPLATE;
 
 /// The subject of the test split.
 pub const TEST_SUBJECT: u32 = 10;

@@ -16,8 +16,8 @@ use dex2hoi_data::{MAX_OBJECTS, Sequence};
 
 use crate::error::{ImportError, Result};
 use crate::npy::{Npz, read_npy};
-use crate::prepare::{Context, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::smplx::{HAND_JOINTS, SmplxParams};
+use crate::source::{Context, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::value::Field;
 
 /// HIMO's frame rate.

@@ -18,7 +18,7 @@
 //! The paper keeps clips with at most two moving objects; static objects (furniture the
 //! person never moves) are left out of the sequence.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use glam::{Mat3, Mat4, Vec3};
@@ -31,10 +31,12 @@ use dex2hoi_repr::{Mesh, Skeleton};
 use crate::error::{ImportError, Result};
 use crate::glb::GlbScene;
 use crate::pickle::read_pickle;
-use crate::prepare::{Context, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::rig::{FoldedRig, PosedRig, orthonormalised};
+use crate::source::{Context, Item, Outcome, PrepareOptions, Skipped, SplitRule};
 use crate::value::Field;
 use crate::yaml::top_level_text;
+
+pub use crate::source::{PickleRig, Scripts};
 
 /// HUMOTO's frame rate: one keyframe of the GLB (and one row of the pickle) per 1/30 s.
 pub const FPS: f32 = 30.0;
@@ -53,27 +55,6 @@ pub const SCRIPTS_FILE: &str = "animations.json";
 /// A folded rig whose joints end further than this on average from the data's (metres) is
 /// reported: HUMOTO's captured stretch leaves well under a millimetre.
 const FOLD_WARNING: f32 = 0.005;
-
-/// Which rig the authors' Blender scripts transferred a pickle's motion to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum PickleRig {
-    /// `up_bone`: every bone's rest frame is `Rx(+90 deg)` (read).
-    #[default]
-    UpBone,
-    /// `mixamo_bone`: Mixamo's own rest frame per bone (refused: its rest frames are not in
-    /// the pickle, and no such file has been seen to check a reading against).
-    MixamoBone,
-}
-
-impl PickleRig {
-    /// The name in the authors' scripts.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::UpBone => "up_bone",
-            Self::MixamoBone => "mixamo_bone",
-        }
-    }
-}
 
 /// Every sequence below the root (outside the object folder): a `.glb`, or a `.pkl`, per
 /// folder and name; the GLB when both are there (it is the published source). The id is the
@@ -244,9 +225,6 @@ fn script(item: &Item, context: &Context) -> Result<String> {
         .filter(|t| !t.is_empty())
         .ok_or_else(|| ImportError::missing(&yaml_name, "short_script", "the sequence's text"))
 }
-
-/// `animations.json` of the root or its parent: sequence name -> `short_script`.
-pub type Scripts = Option<(PathBuf, HashMap<String, String>)>;
 
 fn read_scripts(root: &Path) -> std::result::Result<Scripts, String> {
     let candidates = [Some(root.join(SCRIPTS_FILE)), root.parent().map(|p| p.join(SCRIPTS_FILE))];

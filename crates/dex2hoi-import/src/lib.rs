@@ -18,9 +18,11 @@ pub mod pickle;
 pub mod prepare;
 pub mod rig;
 pub mod smplx;
+mod source;
 pub mod value;
 pub mod yaml;
 
 pub use error::{ImportError, Result};
-pub use prepare::{HandPoseSource, PrepareOptions, PrepareReport, Prepared, SourceFormat, prepare};
+pub use prepare::{PrepareReport, Prepared, prepare};
+pub use source::{HandPoseSource, PrepareOptions, SourceFormat};
 pub use value::{Field, Value};

@@ -8,10 +8,10 @@
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use crate::array::{DType, DTypeKind, NdArray, decode_raw, element_count};
+use crate::array::{DType, DTypeKind, decode_raw};
 use crate::error::{ImportError, Result};
 use crate::pickle::read_pickle;
-use crate::value::Value;
+use crate::value::{NdArray, Value, element_count};
 
 /// The largest archive entry read (decompressed): far above any GRAB, HUMOTO or HIMO file, low
 /// enough that a zip bomb fails instead of filling memory.
@@ -205,7 +205,7 @@ impl Npz {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::array::ArrayData;
+    use crate::value::ArrayData;
 
     fn npy(header: &str, data: &[u8]) -> Vec<u8> {
         let mut header = header.to_string();

@@ -14,9 +14,9 @@
 
 use std::collections::HashMap;
 
-use crate::array::{ArrayData, DType, DTypeKind, NdArray, decode_raw, element_count};
+use crate::array::{DType, DTypeKind, decode_raw};
 use crate::error::{ImportError, Result};
-use crate::value::Value;
+use crate::value::{ArrayData, NdArray, Value, element_count};
 
 /// Limits of the reader.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,8 +1,8 @@
-//! Python data as read from pickles and numpy files ([`Value`]), and [`Field`], a view of a value
-//! at a key path inside a file that turns every "missing key", "wrong type" and "wrong shape"
-//! into an error naming the file and the path (`mug_pass.npz[body].params.transl`).
+//! Python data as read from pickles and numpy files ([`Value`], numpy arrays among them as
+//! [`NdArray`], whose object elements are values in turn), and [`Field`], a view of a value at a
+//! key path inside a file that turns every "missing key", "wrong type" and "wrong shape" into an
+//! error naming the file and the path (`mug_pass.npz[body].params.transl`).
 
-use crate::array::{ArrayData, NdArray};
 use crate::error::{ImportError, Result};
 
 /// A Python value built by the data-only unpickler or read from a numpy file.
@@ -71,6 +71,151 @@ impl Value {
             other => other,
         }
     }
+}
+
+/// The elements of an array, in C order.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ArrayData {
+    /// Floats of any size, widened to `f64`.
+    Float(Vec<f64>),
+    /// Integers of any size and sign that fit `i64`.
+    Int(Vec<i64>),
+    /// Booleans.
+    Bool(Vec<bool>),
+    /// Text elements (trailing NULs removed, as numpy does).
+    Str(Vec<String>),
+    /// Byte-string elements (trailing NULs removed).
+    Bytes(Vec<Vec<u8>>),
+    /// Python objects.
+    Object(Vec<Value>),
+}
+
+impl ArrayData {
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Float(v) => v.len(),
+            Self::Int(v) => v.len(),
+            Self::Bool(v) => v.len(),
+            Self::Str(v) => v.len(),
+            Self::Bytes(v) => v.len(),
+            Self::Object(v) => v.len(),
+        }
+    }
+
+    /// `true` when there are no elements.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// A short name of the element kind for messages.
+    pub fn kind_name(&self) -> &'static str {
+        match self {
+            Self::Float(_) => "float",
+            Self::Int(_) => "integer",
+            Self::Bool(_) => "boolean",
+            Self::Str(_) => "text",
+            Self::Bytes(_) => "bytes",
+            Self::Object(_) => "object",
+        }
+    }
+
+    /// Reorders the elements by `order` (`new[i] = old[order[i]]`).
+    fn permuted(self, order: &[usize]) -> Self {
+        fn pick<T: Clone>(values: Vec<T>, order: &[usize]) -> Vec<T> {
+            order.iter().map(|&i| values[i].clone()).collect()
+        }
+        match self {
+            Self::Float(v) => Self::Float(pick(v, order)),
+            Self::Int(v) => Self::Int(pick(v, order)),
+            Self::Bool(v) => Self::Bool(pick(v, order)),
+            Self::Str(v) => Self::Str(pick(v, order)),
+            Self::Bytes(v) => Self::Bytes(pick(v, order)),
+            Self::Object(v) => Self::Object(pick(v, order)),
+        }
+    }
+}
+
+/// An n-dimensional numpy array in C order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NdArray {
+    /// The shape (empty for a 0-d array).
+    pub shape: Vec<usize>,
+    /// The elements.
+    pub data: ArrayData,
+}
+
+impl NdArray {
+    /// Builds an array, checking that the element count matches the shape, and reorders
+    /// Fortran-ordered elements into C order.
+    pub fn new(
+        shape: Vec<usize>,
+        data: ArrayData,
+        fortran_order: bool,
+        source_name: &str,
+    ) -> Result<Self> {
+        let count = element_count(&shape, source_name)?;
+        if data.len() != count {
+            return Err(ImportError::format(
+                source_name,
+                "element count",
+                format!("{count} elements for shape {shape:?}"),
+                data.len(),
+            ));
+        }
+        let data = if fortran_order && shape.len() > 1 {
+            data.permuted(&fortran_to_c_order(&shape))
+        } else {
+            data
+        };
+        Ok(Self { shape, data })
+    }
+
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    /// `true` when the array has no elements.
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+}
+
+/// The product of a shape's dimensions, refusing overflow.
+pub fn element_count(shape: &[usize], source_name: &str) -> Result<usize> {
+    shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).ok_or_else(|| {
+        ImportError::format(
+            source_name,
+            "shape",
+            "an element count that fits memory",
+            format!("{shape:?}"),
+        )
+    })
+}
+
+/// For each C-order position, the position of the same element in Fortran (column-major) order.
+fn fortran_to_c_order(shape: &[usize]) -> Vec<usize> {
+    let count: usize = shape.iter().product();
+    let mut order = Vec::with_capacity(count);
+    let mut index = vec![0usize; shape.len()];
+    for _ in 0..count {
+        let mut position = 0;
+        let mut stride = 1;
+        for (axis, &i) in index.iter().enumerate() {
+            position += i * stride;
+            stride *= shape[axis];
+        }
+        order.push(position);
+        for axis in (0..shape.len()).rev() {
+            index[axis] += 1;
+            if index[axis] < shape[axis] {
+                break;
+            }
+            index[axis] = 0;
+        }
+    }
+    order
 }
 
 /// A value at a key path inside a file.
@@ -280,4 +425,18 @@ pub fn shape_words(shape: &[Option<usize>]) -> String {
     let parts: Vec<String> =
         shape.iter().map(|d| d.map_or_else(|| "T".to_string(), |d| d.to_string())).collect();
     if parts.len() == 1 { format!("({},)", parts[0]) } else { format!("({})", parts.join(", ")) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fortran_order_becomes_c_order() {
+        // numpy: np.arange(6).reshape(2, 3, order='F') stores 0..6 column-major.
+        let data = ArrayData::Int((0..6).collect());
+        let array = NdArray::new(vec![2, 3], data, true, "t").unwrap();
+        assert_eq!(array.data, ArrayData::Int(vec![0, 2, 4, 1, 3, 5]));
+        assert!(NdArray::new(vec![2, 2], ArrayData::Int(vec![1]), false, "t").is_err());
+    }
 }

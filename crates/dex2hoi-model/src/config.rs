@@ -1,4 +1,4 @@
-//! Model configuration with the presets of the issue tracker and the paper's ablation variants
+//! Model configuration with the presets of `configs/` and the paper's ablation variants
 //! (Table 3) as typed options.
 
 use serde::{Deserialize, Serialize};

@@ -1,6 +1,6 @@
-//! Forward-only fused CPU operations of the inference path ([`crate::inference`]): each replaces
-//! a chain of candle operations (one pass over memory instead of four to eight, each a fresh
-//! allocation and, in candle, single-threaded) and spreads its rows over the rayon pool.
+//! Forward-only fused CPU operations of the inference path ([`crate::InferenceModel`]): each
+//! replaces a chain of candle operations (one pass over memory instead of four to eight, each a
+//! fresh allocation and, in candle, single-threaded) and spreads its rows over the rayon pool.
 //!
 //! None of them has a backward pass: training never uses them (Architecture Invariant: every
 //! operation that trains has a backward pass; only the no-grad inference path may use
@@ -13,8 +13,7 @@ use std::sync::Arc;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::differentiable::{ROWS_PER_TASK, leading_rows, op_error, simd};
-use crate::layers::LAYER_NORM_EPS;
+use crate::kernel::{LAYER_NORM_EPS, ROWS_PER_TASK, exp, leading_rows, op_error, simd};
 use crate::matmul::{Packed, Strided, Threads, packed_product, product_into};
 
 /// The values of a contiguous f32 tensor.
@@ -23,7 +22,7 @@ fn values<'a>(
     storage: &'a CpuStorage,
     layout: &Layout,
 ) -> candle_core::Result<&'a [f32]> {
-    crate::differentiable::values::<f32>(op, storage, layout)
+    crate::kernel::values::<f32>(op, storage, layout)
 }
 
 /// Independent partial sums of the row reductions: one AVX-512 register, two AVX2 ones.
@@ -50,32 +49,6 @@ fn normalise_row(row: &[f32], out: &mut [f32]) {
     for o in out.iter_mut() {
         *o *= inverse;
     }
-}
-
-/// `e^x` to about 1 ulp for `x` in `[-87, 88]` (clamped outside), in plain arithmetic so that
-/// loops over it vectorise (a call to libm's `expf` does not): `x = n ln 2 + r` with
-/// `|r| <= ln 2 / 2`, a degree-7 expansion of `e^r` (Cephes' `expf` coefficients), times `2^n`
-/// built in the exponent bits.
-#[inline(always)]
-pub(crate) fn exp(x: f32) -> f32 {
-    const LOG2_E: f32 = std::f32::consts::LOG2_E;
-    // ln 2 split in a part exact in f32 and the rest (Cody and Waite).
-    const LN2_HIGH: f32 = 0.693_359_4;
-    const LN2_LOW: f32 = -2.121_944_4e-4;
-    // Adding and removing 1.5 * 2^23 rounds to the nearest integer in plain arithmetic
-    // (`round` is a libm call on baseline x86-64, which would stop the vectorisation).
-    const ROUNDING: f32 = 12_582_912.0;
-    let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2_E + ROUNDING) - ROUNDING;
-    let r = x - n * LN2_HIGH - n * LN2_LOW;
-    let p = 1.987_569_2e-4_f32;
-    let p = p * r + 1.398_199_9e-3;
-    let p = p * r + 8.333_452e-3;
-    let p = p * r + 4.166_579_6e-2;
-    let p = p * r + 0.166_666_65;
-    let p = p * r + 0.5;
-    let e_r = p * r * r + r + 1.0;
-    e_r * f32::from_bits(((n as i32 + 127) as u32) << 23)
 }
 
 /// `sum_k f(values_k)` in [`LANES`] independent partial sums, so that it vectorises (a plain
@@ -389,7 +362,7 @@ impl CustomOp3 for Residual {
 /// Multi-head attention after the projections ([`crate::layers::Attention`] without its
 /// linear layers): scores scaled by `1/sqrt(head)`, softmax fused, heads merged in the output.
 /// Queries, keys and values are read where the (fused) projections put them, each head's two
-/// products straight from there ([`crate::matmul::product_into`]), so no head split,
+/// products straight from there (`matmul::product_into`), so no head split,
 /// transposition or biased copy is made.
 ///
 /// The projections' biases enter without being added to every row (Eq. 5's attention is
@@ -598,22 +571,4 @@ pub fn attention(
     op: Attention,
 ) -> candle_core::Result<Tensor> {
     queries.apply_op3_no_bwd(keys_values, bias, &op)
-}
-
-#[cfg(test)]
-mod tests {
-    /// The polynomial `exp` against f64's over its whole range and the clamped ends.
-    #[test]
-    fn exp_is_accurate_to_a_few_ulp() {
-        let mut worst = 0f64;
-        for k in 0..=1_000_000 {
-            let x = -87.0 + 175.0 * k as f32 / 1e6;
-            let exact = (x as f64).exp();
-            worst = worst.max(((super::exp(x) as f64) - exact).abs() / exact);
-        }
-        assert!(worst < 3e-7, "relative error {worst}");
-        assert!(super::exp(-1e4) > 0.0 && super::exp(-1e4) < 1e-37);
-        assert!(super::exp(1e4).is_finite());
-        assert_eq!(super::exp(0.0), 1.0);
-    }
 }

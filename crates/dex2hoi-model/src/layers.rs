@@ -11,10 +11,7 @@ use rand_chacha::ChaCha8Rng;
 
 pub use crate::differentiable::Activation;
 use crate::error::Result;
-
-/// The layer norm's epsilon, added to the variance (every implementation: composite, fused
-/// for inference, fused with a backward pass).
-pub const LAYER_NORM_EPS: f64 = 1e-6;
+pub use crate::kernel::LAYER_NORM_EPS;
 
 /// Layer norm over the last dimension without affine parameters, [`LAYER_NORM_EPS`]: fused with a
 /// hand-written backward pass on the CPU ([`crate::differentiable`]), composed elsewhere.

@@ -2,12 +2,14 @@
 //! the streams, the Motion Fusion Network, their conditioning, and the ablation variants of the
 //! paper's Table 3, built on candle from operations that all have a backward pass.
 
+pub mod candle_threads;
 pub mod checkpoint;
 pub mod config;
 pub mod differentiable;
 pub mod error;
 pub mod fused;
 pub mod init;
+mod kernel;
 pub mod layers;
 mod matmul;
 pub mod model;
@@ -21,4 +23,5 @@ pub use config::{
 };
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
-pub use model::{InferenceModel, Model, ModelInput, PreparedCondition, row_groups};
+pub use model::inference::{InferenceModel, PreparedCondition};
+pub use model::{Model, ModelInput, row_groups};

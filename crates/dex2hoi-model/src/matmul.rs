@@ -10,7 +10,7 @@
 //! product (`candle_core::utils::get_num_threads`), which on Linux reads and parses
 //! `/proc/cpuinfo` each time unless `RAYON_NUM_THREADS` is set: tens of microseconds per call,
 //! against a few hundred for a product of a `small` sample, and about 8% of its time in
-//! system calls (perf, session 16). It also always splits the product over every thread, also
+//! system calls (measured with perf). It also always splits the product over every thread, also
 //! inside a row group of [`crate::InferenceModel::forward`] whose neighbours already have
 //! work. Called here, a product runs on one thread inside a row group ([`in_row_group`]) and
 //! as its caller chooses elsewhere ([`Threads`]).
@@ -240,9 +240,9 @@ const ROW_CHUNK: usize = 48;
 ///
 /// Why: gemm copies the weights into this layout inside every product (the model's weights are
 /// its left operand once it has transposed the problem for a row-major output), which for the
-/// inference path's row groups (120 rows for `small`) was about 13% of a `paper` sample and 8%
-/// of a `small` one. Measured alone (one thread, 16 different weight matrices in turn, session
-/// 18): 97 GFLOP/s packed by gemm, 112 GFLOP/s from panels, for `[120, 512] @ [512, 1536]` and
+/// inference path's row groups (120 rows for `small`) takes about 13% of a `paper` sample and
+/// 8% of a `small` one. Measured alone (one thread, 16 different weight matrices in turn):
+/// 97 GFLOP/s packed by gemm, 112 GFLOP/s from panels, for `[120, 512] @ [512, 1536]` and
 /// `[120, 256] @ [256, 768]` alike.
 #[derive(Debug, Clone)]
 pub(crate) struct Packed {

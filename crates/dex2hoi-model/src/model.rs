@@ -6,7 +6,7 @@
 //! `Conditioning`, a `Denoiser` (frame tokens, [`TransformerBlock`]s with AdaLN, the output
 //! head) and, for the dual layout, a `Fusion` of the two bodies. Parameter names mirror it,
 //! except that the denoiser's parameters sit at the root (`blocks.3.cross_attention.query`,
-//! `head.weight`), as in every checkpoint so far.
+//! `head.weight`), as every checkpoint names them.
 
 use candle_core::{D, DType, Tensor};
 use candle_nn::{VarBuilder, init::Init};
@@ -23,11 +23,10 @@ use crate::error::{ModelError, Result};
 use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
 use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, TransformerEncoder};
 
-mod inference;
-pub use inference::{InferenceModel, PreparedCondition};
+pub(crate) mod inference;
 
 /// `rows` split into `groups` runs as even as can be, in order: each run's first row and length
-/// (the row groups of [`InferenceModel::forward`] and of training on the CPU).
+/// (the row groups of [`crate::InferenceModel::forward`] and of training on the CPU).
 pub fn row_groups(rows: usize, groups: usize) -> impl Iterator<Item = (usize, usize)> {
     (0..groups).map(move |g| {
         let (start, end) = (g * rows / groups, (g + 1) * rows / groups);

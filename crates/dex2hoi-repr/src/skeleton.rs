@@ -5,8 +5,6 @@
 //! its rest offset is its rest position. Rest poses are in metres, Y up, facing +Z, in a T-pose:
 //! the character's left arm points along +X.
 
-use std::path::Path;
-
 use glam::{Quat, Vec3};
 
 use crate::error::{ReprError, Result};
@@ -697,16 +695,6 @@ impl Skeleton {
             levels[depth[joint]].push(joint);
         }
         levels
-    }
-
-    /// Rest joints computed from a user-supplied SMPL-X model file (`SMPLX_NEUTRAL.npz` and
-    /// friends) and body-shape coefficients, reduced from 55 to 52 joints:
-    /// `J = J_regressor @ (v_template + shapedirs[..., :n] . betas)`, then offsets child minus
-    /// parent. The file's `kintree_table` must describe the SMPL-X tree. Arrays may be stored
-    /// as `f32` or `f64`, in C or Fortran order; extra keys (including pickled ones) are ignored.
-    pub fn from_smplx_model(path: &Path, betas: &[f32]) -> Result<Self> {
-        let model = crate::smplx_model::SmplxModel::load(path)?;
-        Self::from_smplx_joints(&model.rest_joints(betas)?)
     }
 
     /// The 52-joint skeleton of an SMPL-X body's 55 rest joints (`J_regressor`'s order): jaw

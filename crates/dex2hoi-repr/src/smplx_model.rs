@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 
 use crate::error::{ReprError, Result};
-use crate::skeleton::SMPLX55_PARENTS;
+use crate::skeleton::{SMPLX55_PARENTS, Skeleton};
 
 /// A numeric array read from an `.npz` entry, in C order, converted to `f64`.
 #[derive(Debug, Clone)]
@@ -352,6 +352,18 @@ impl SmplxModel {
                 Vec3::new(sum[0] as f32, sum[1] as f32, sum[2] as f32)
             })
             .collect()
+    }
+}
+
+impl Skeleton {
+    /// Rest joints computed from a user-supplied SMPL-X model file (`SMPLX_NEUTRAL.npz` and
+    /// friends) and body-shape coefficients, reduced from 55 to 52 joints:
+    /// `J = J_regressor @ (v_template + shapedirs[..., :n] . betas)`, then offsets child minus
+    /// parent. The file's `kintree_table` must describe the SMPL-X tree. Arrays may be stored
+    /// as `f32` or `f64`, in C or Fortran order; extra keys (including pickled ones) are ignored.
+    pub fn from_smplx_model(path: &Path, betas: &[f32]) -> Result<Self> {
+        let model = SmplxModel::load(path)?;
+        Self::from_smplx_joints(&model.rest_joints(betas)?)
     }
 }
 

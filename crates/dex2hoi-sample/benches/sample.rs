@@ -4,26 +4,23 @@
 //! weights, next to a large matmul measured in the same run. Medians; also written to
 //! `target/bench/sample.json`.
 
-#[path = "../../dex2hoi-cli/src/candle_threads.rs"]
-mod candle_threads;
 
 use std::time::{Duration, Instant};
 
-mod memory;
-use memory::{peak_memory_mib, reset_peak_memory};
 
 use candle_core::{DType, Device, Tensor};
 use glam::Vec3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_data::synth::PELVIS_HEIGHT;
+use dex2hoi_data::character::PELVIS_HEIGHT;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::{BodyFusion, InferenceModel, Model, ModelConfig, SeededVarMap, StreamLayout};
 use dex2hoi_repr::{Skeleton, SkeletonKind};
 use dex2hoi_sample::{
     Generation, Normaliser, PrefixEncoding, TimedText, WindowCondition, generate, sample_window,
 };
+use dex2hoi_testkit::memory::{peak_memory_mib, reset_peak_memory};
 
 fn median(runs: usize, mut f: impl FnMut()) -> Duration {
     f();
@@ -63,7 +60,7 @@ fn flops_per_forward(c: &ModelConfig, batch: usize) -> f64 {
 
 fn main() {
     // As `dex2hoi` does, before anything starts a thread.
-    candle_threads::run_inline();
+    dex2hoi_model::candle_threads::run_inline();
     let device = Device::Cpu;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     println!("dex2hoi sampling benchmark ({} rayon threads; medians)\n", rayon_threads());

@@ -25,7 +25,9 @@ pub struct WindowCondition {
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
 /// (classifier-free guidance doubles the batch); rows asked for the null condition get a zero
 /// text embedding. The timestep-independent part of the condition is computed at the first
-/// step and reused while the rows' null flags stay the same.
+/// step and reused while the rows' null flags stay the same. The model's errors reach the
+/// sampler's caller as [`DiffusionError::Denoiser`], the [`dex2hoi_model::ModelError`] as its
+/// source.
 pub struct ModelDenoiser<'a> {
     model: &'a InferenceModel,
     condition: &'a WindowCondition,
@@ -60,15 +62,12 @@ impl<'a> ModelDenoiser<'a> {
         let text = repeat_rows(&self.condition.text, times)?.broadcast_mul(&keep)?;
         let bps = repeat_rows(&self.condition.bps, times)?;
         let presence = repeat_rows(&self.condition.presence, times)?;
-        let prepared = self.model.prepare(&text, &bps, &presence).map_err(denoiser_error)?;
+        let prepared =
+            self.model.prepare(&text, &bps, &presence).map_err(DiffusionError::denoiser)?;
         let prefix = repeat_rows(&self.condition.prefix, times)?;
         *cache = Some((null_condition.to_vec(), prepared.clone(), prefix.clone()));
         Ok((prepared, prefix))
     }
-}
-
-fn denoiser_error(e: dex2hoi_model::ModelError) -> DiffusionError {
-    DiffusionError::Denoiser { expected: "a prediction".into(), got: e.to_string() }
 }
 
 fn repeat_rows(t: &Tensor, times: usize) -> candle_core::Result<Tensor> {
@@ -95,7 +94,7 @@ impl Denoiser for ModelDenoiser<'_> {
             ));
         }
         let (prepared, prefix) = self.prepared(null_condition, rows)?;
-        self.model.forward(&prefix, noisy, timesteps, &prepared).map_err(denoiser_error)
+        self.model.forward(&prefix, noisy, timesteps, &prepared).map_err(DiffusionError::denoiser)
     }
 }
 

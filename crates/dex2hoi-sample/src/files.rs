@@ -13,7 +13,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use dex2hoi_data::dataset::{FeatureStats, Manifest, write_atomically};
+use dex2hoi_data::dataset::{FeatureStats, Manifest};
+use dex2hoi_data::files::write_atomically;
 
 use crate::error::{Result, SampleError};
 

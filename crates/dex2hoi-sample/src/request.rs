@@ -8,7 +8,7 @@ use glam::Vec3;
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::features::DecodedMotion;
-use dex2hoi_data::synth::{PELVIS_HEIGHT, standing_features};
+use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_model::text::reject_empty;
 use dex2hoi_repr::{BpsBasis, MeshQuery};

@@ -5,8 +5,8 @@ use std::path::Path;
 
 use glam::{Mat3, Vec3};
 
-use dex2hoi_data::synth::catalogue::{CATALOGUE, catalogue_object};
-use dex2hoi_data::synth::pose::Hand;
+use dex2hoi_data::catalogue::{CATALOGUE, catalogue_object};
+use dex2hoi_data::character::Hand;
 use dex2hoi_model::text::words;
 use dex2hoi_repr::{Mesh, ObjectPose};
 
@@ -18,7 +18,7 @@ pub const DEFAULT_TABLE_HEIGHT: f32 = 0.90;
 pub const DEFAULT_OBJECT_DEPTH: f32 = 0.39;
 /// Sideways distance of a default place from the middle (metres along X; the left hand is
 /// +X): each of two objects, or one object whose prompt names the hand that takes it (the
-/// middle of the procedural dataset's 0.10-0.22 m, `synth::plan`'s `side_x`).
+/// middle of the procedural dataset's 0.10-0.22 m, `dex2hoi_synth::plan`'s `side_x`).
 pub const DEFAULT_OBJECT_SIDE: f32 = 0.16;
 /// The default table's near edge (metres along +Z), for previews.
 pub const DEFAULT_TABLE_NEAR_EDGE: f32 = 0.25;

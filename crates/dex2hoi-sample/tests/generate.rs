@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::FeatureLayout;
-use dex2hoi_data::synth::{PELVIS_HEIGHT, standing_features};
+use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};

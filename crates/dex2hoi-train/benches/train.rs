@@ -8,12 +8,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-#[path = "../../dex2hoi-cli/src/candle_threads.rs"]
-mod candle_threads;
-#[path = "../../dex2hoi-sample/benches/memory.rs"]
-mod memory;
-use memory::{peak_memory_mib, reset_peak_memory};
-
+use dex2hoi_testkit::memory::{peak_memory_mib, reset_peak_memory};
 use dex2hoi_train::{TrainConfig, Trainer};
 
 fn median(mut values: Vec<f64>) -> f64 {
@@ -39,14 +34,13 @@ fn median_step(trainer: &mut Trainer, runs: usize) -> (f64, [f64; 5]) {
 
 fn main() {
     // As `dex2hoi` does, before anything starts a thread.
-    candle_threads::run_inline();
+    dex2hoi_model::candle_threads::run_inline();
     let runs: usize =
         std::env::var("DEX2HOI_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(7);
     println!(
         "dex2hoi training benchmark: small preset, batch 32 x 60 frames, median of {runs} steps\n"
     );
-    let dataset =
-        dex2hoi_data::synth::build_dataset(48, 3, 20.0, &|_| {}).expect("a procedural dataset");
+    let dataset = dex2hoi_synth::build_dataset(48, 3, 20.0, &|_| {}).expect("a procedural dataset");
     let mut config = TrainConfig::preset("small").expect("the small preset");
     config.training.batch_size = 32;
     let mut results = Vec::new();

@@ -71,7 +71,7 @@ pub struct LossConfig {
     /// Approach radius `d_min` of `L_dist` in metres (default 0.10, the paper's).
     pub approach_radius: f64,
     /// Whether the signed-distance terms (penetration, `L_dist`) reach the predicted object
-    /// rotation (default true, every model trained before session 19). Through it the model
+    /// rotation (default true, as the paper's objective). Through it the model
     /// can lower both terms by turning the object instead of placing the hand: the 30140-step
     /// model's objects turned a median 6 degrees on the first generated frame even where the
     /// ground truth leaves them still, and its held objects tilted 15-25 degrees where the data
@@ -80,14 +80,14 @@ pub struct LossConfig {
     /// terms still reach the joints and the object's position.
     pub contact_turns_objects: bool,
     /// Whether the signed-distance terms reach the object channels that place the object (its
-    /// wrist offsets, global position and mixture logits; default true, every model trained
-    /// before session 19). False makes all the object's channels constants to those terms
+    /// wrist offsets, global position and mixture logits; default true, as the paper's
+    /// objective). False makes all the object's channels constants to those terms
     /// (its rotation too, whatever `contact_turns_objects` says); with the hand-relative
     /// representation its decoded position still follows the predicted wrists, so a held object
     /// moves with its hand and the terms have to move the fingers (with `global_only` the terms
-    /// then reach no object channel at all). Tried in session 19 against the sinking that came with
-    /// `contact_turns_objects = false`: the objects sank more (`docs/results/shipped-model.md`,
-    /// "Objects that turn").
+    /// then reach no object channel at all). It does not cure the sinking that comes with
+    /// `contact_turns_objects = false`: with it the objects sink more
+    /// (`docs/results/shipped-model.md`, "Objects that turn").
     pub contact_moves_objects: bool,
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
@@ -163,8 +163,8 @@ pub struct LoopConfig {
     /// Most windows of a batch per group on the CPU (the presets: 8): the model's forward and
     /// backward passes run once per group of rows, the groups in parallel, each drawing its own
     /// dropout masks (see `Trainer::step`). A batch of at most this many windows is one group;
-    /// absent, the whole batch is (as every run before session 17 trained, so that their
-    /// checkpoints resume as they trained). A number of the configuration rather than of the
+    /// absent, the whole batch is one group (so that runs configured without the option resume
+    /// as they trained). A number of the configuration rather than of the
     /// machine, so that the thread count does not change a run's bits.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub group_windows: Option<usize>,

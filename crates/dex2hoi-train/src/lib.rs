@@ -5,18 +5,19 @@
 //! is `dex2hoi-optim`.
 
 pub mod batch;
+pub mod checkpoint;
 pub mod config;
 pub mod error;
+mod files;
 pub mod loss;
+pub mod metrics;
 pub mod plot;
 pub mod run;
-pub mod trainer;
+pub mod step;
 
 pub use config::{LoopConfig, LossConfig, TrainConfig};
 pub use error::{Result, TrainError};
 pub use loss::{LossContext, Objective, Term};
-pub use run::{MetricsLine, read_metrics};
-pub use trainer::{
-    RunStart, SNAPSHOTS_DIR, StepReport, StepTiming, TrainOptions, TrainSummary, Trainer,
-    snapshot_dir, train,
-};
+pub use metrics::{MetricsLine, read_metrics};
+pub use run::{RunStart, SNAPSHOTS_DIR, TrainOptions, TrainSummary, snapshot_dir, train};
+pub use step::{StepReport, StepTiming, Trainer};

@@ -4,11 +4,11 @@
 
 use std::path::Path;
 
-use dex2hoi_export::chart::{Chart, Panel, Scale, Series, short_number};
+use dex2hoi_plot::chart::{Chart, Panel, Scale, Series, short_number};
 
 use crate::error::{Result, TrainError};
-use crate::run::MetricsLine;
-use crate::trainer::write_file;
+use crate::files::write_file;
+use crate::metrics::MetricsLine;
 
 /// Draws the curves of `metrics` into a PNG (written atomically).
 pub fn write_loss_curve(path: &Path, metrics: &[MetricsLine]) -> Result<()> {

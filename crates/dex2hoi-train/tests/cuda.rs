@@ -28,7 +28,7 @@ fn gpu() -> Device {
 }
 
 fn dataset() -> Dataset {
-    dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).expect("a procedural dataset")
+    dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).expect("a procedural dataset")
 }
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {

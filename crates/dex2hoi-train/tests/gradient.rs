@@ -22,7 +22,7 @@ struct Setup {
 
 impl Setup {
     fn new(adjust: impl Fn(&mut TrainConfig)) -> Self {
-        let data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+        let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
         let mut config = TrainConfig::preset("tiny").unwrap();
         adjust(&mut config);
         let trainer =

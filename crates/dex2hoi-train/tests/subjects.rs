@@ -16,7 +16,7 @@ use dex2hoi_train::{Term, TrainConfig, Trainer};
 
 #[test]
 fn the_ground_truth_has_no_joint_error_on_its_own_body() {
-    let mut data = dex2hoi_data::synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
     let topology = data.manifest.builtin_skeleton().unwrap();
     // Give every training sequence another subject: one scale per sequence and a per-bone
     // asymmetry, with the joints recomputed by FK on that body.

@@ -12,7 +12,7 @@ use dex2hoi_model::checkpoint::read_tensors;
 use dex2hoi_train::{RunStart, Term, TrainConfig, TrainError, TrainOptions, Trainer, train};
 
 fn dataset(sequences: usize) -> Dataset {
-    dex2hoi_data::synth::build_dataset(sequences, 11, 20.0, &|_| {}).expect("a procedural dataset")
+    dex2hoi_synth::build_dataset(sequences, 11, 20.0, &|_| {}).expect("a procedural dataset")
 }
 
 /// The mean of each term over fixed evaluation batches (steps the training never draws).

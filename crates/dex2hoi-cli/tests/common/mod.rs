@@ -10,3 +10,20 @@ pub fn dex2hoi(args: &[&str]) -> Output {
         .output()
         .expect("the binary runs")
 }
+
+/// Writes the fixture SMPL-X model (`dex2hoi_testkit::smplx_fixture`) on the built-in skeleton
+/// and its capsule body.
+#[allow(dead_code)] // only the tests that dress the body with a model use it
+pub fn write_smplx_model(path: &std::path::Path) {
+    use dex2hoi_testkit::smplx_fixture::{BoundMesh, Spoil, write_smplx_model};
+    let poser = dex2hoi_data::character::Poser::new(glam::Vec3::ZERO);
+    let skeleton = poser.skeleton();
+    let mesh = dex2hoi_export::body_mesh(skeleton);
+    let bound = BoundMesh {
+        vertices: &mesh.vertices,
+        joints: &mesh.joints,
+        bone_ends: &mesh.bone_ends,
+        faces: &mesh.faces,
+    };
+    write_smplx_model(path, &skeleton.rest_positions(), skeleton.parents(), bound, Spoil::None);
+}

@@ -1,6 +1,8 @@
 //! The evaluation report: rows of estimates over replications laid out like the paper's tables
 //! (Sec. 4.2), as markdown and JSON, and the embeddings of the last replication as `.npz`.
 
+use std::path::Path;
+
 use serde::{Deserialize, Deserializer, Serialize};
 
 use dex2hoi_data::MAX_OBJECTS;
@@ -152,7 +154,7 @@ pub struct PhysicalRow {
     /// Median speed of objects no hand is near, cm/s (`None` when no frame qualifies).
     pub untouched_speed_cm_s: Option<Estimate>,
     /// Median turn of the objects from their last prefix rotation to the first clip frame,
-    /// degrees (`None` without objects; absent in reports written before session 19).
+    /// degrees (`None` without objects; may be absent in format 1).
     #[serde(default)]
     pub object_start_turn_deg: Option<Estimate>,
     /// Median turning rate of objects on untouched frames, degrees per second (likewise).
@@ -204,9 +206,21 @@ pub struct InstructionRow {
     pub truth_r_precision_top3: Option<Estimate>,
 }
 
+/// The version of `report.json`'s layout that [`Report`] writes (`docs/FORMATS.md`). Format 1
+/// (no `format` field) may lack the per-group R-precision, the object turns, the sinking and
+/// the fingertip figures; it reads back with them `None`.
+pub const REPORT_FORMAT: u32 = 2;
+
+fn format_one() -> u32 {
+    1
+}
+
 /// The whole report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
+    /// The layout's version ([`REPORT_FORMAT`] when written; 1 when a file has none).
+    #[serde(default = "format_one")]
+    pub format: u32,
     /// The evaluated weights' steps and the sampler.
     pub setup: EvaluationSetup,
     /// Ground truth, then the model.
@@ -294,6 +308,43 @@ fn optional_cell(e: Option<&Estimate>, digits: usize) -> String {
 }
 
 impl Report {
+    /// Reads `report.json` (any format up to [`REPORT_FORMAT`]); `path` names the file in
+    /// errors.
+    pub fn from_json(path: &Path, bytes: &[u8]) -> Result<Self> {
+        let bad = |what: &str, expected: &str, got: String| EvalError::File {
+            path: path.to_path_buf(),
+            what: what.into(),
+            expected: expected.into(),
+            got,
+        };
+        let value: serde_json::Value =
+            serde_json::from_slice(bytes).map_err(|e| bad("contents", "JSON", e.to_string()))?;
+        let format = match value.get("format") {
+            None => 1,
+            Some(v) => {
+                v.as_u64().ok_or_else(|| bad("format", "a version number", v.to_string()))?
+            }
+        };
+        if format > u64::from(REPORT_FORMAT) {
+            return Err(bad(
+                "format",
+                &format!(
+                    "a report of format {REPORT_FORMAT} or older (this dex2hoi reads up to it)"
+                ),
+                format!("format {format}"),
+            ));
+        }
+        if value.get("setup").is_none() {
+            return Err(bad(
+                "setup",
+                "the evaluated step and sampler (a report of `dex2hoi evaluate`)",
+                "none (written by an older dex2hoi): run `dex2hoi evaluate` again".into(),
+            ));
+        }
+        serde_json::from_value(value)
+            .map_err(|e| bad("contents", "a report of `dex2hoi evaluate`", e.to_string()))
+    }
+
     /// The report as markdown: one table laid out like the paper's (ground truth first), then
     /// the physical metrics, with units and the protocol.
     pub fn markdown(&self, title: &str) -> String {
@@ -569,6 +620,7 @@ mod tests {
         };
         let sampler = SamplerConfig { kind: SamplerKind::Ddpm, steps: 20, guidance: None };
         let report = Report {
+            format: REPORT_FORMAT,
             setup: EvaluationSetup::new(6000, &sampler, 3),
             rows: vec![row],
             instruction: vec![InstructionRow {
@@ -608,16 +660,29 @@ mod tests {
             report.instruction[0].objects_moved_percent
         );
         assert_eq!(back.instruction[0].r_precision_top3, report.instruction[0].r_precision_top3);
-        // A report written before session 19's measures (per-group R-precision, object
+        assert_eq!(back.format, REPORT_FORMAT);
+        // A format-1 report (no `format`, without the per-group R-precision and the object
         // turns) reads back without them.
         let mut older: serde_json::Value = serde_json::from_str(&json).unwrap();
+        assert!(older.as_object_mut().unwrap().remove("format").is_some());
         let group = older["instruction"][0].as_object_mut().unwrap();
         assert!(group.remove("r_precision_top3").is_some());
         assert!(group.remove("truth_r_precision_top3").is_some());
         let physical = older["rows"][0]["physical"].as_object_mut().unwrap();
         assert!(physical.remove("object_start_turn_deg").is_some());
         assert!(physical.remove("untouched_turn_deg_s").is_some());
-        let older: Report = serde_json::from_value(older).unwrap();
+        let older_bytes = serde_json::to_vec(&older).unwrap();
+        let older = Report::from_json(Path::new("old.json"), &older_bytes).unwrap();
+        assert_eq!(older.format, 1);
+        let mut newer: serde_json::Value = serde_json::from_str(&json).unwrap();
+        newer["format"] = serde_json::json!(REPORT_FORMAT + 1);
+        let error = Report::from_json(Path::new("new.json"), &serde_json::to_vec(&newer).unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("new.json") && error.contains("format 3"), "{error}");
+        let no_setup = br#"{"rows": []}"#;
+        let error = Report::from_json(Path::new("bare.json"), no_setup).unwrap_err().to_string();
+        assert!(error.contains("bare.json: setup"), "{error}");
         assert_eq!(older.instruction[0].r_precision_top3, None);
         assert_eq!(older.rows[0].physical.object_start_turn_deg, None);
         assert_eq!(

@@ -7,7 +7,7 @@ use std::path::Path;
 use candle_core::{DType, Device};
 use serde::Serialize;
 
-use dex2hoi_data::dataset::write_atomically;
+use dex2hoi_data::files::write_atomically;
 use dex2hoi_model::checkpoint::{
     FORMAT_KEY, assign_parameters, named_parameters, read_tensors, write_tensors,
 };

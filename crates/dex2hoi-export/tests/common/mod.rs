@@ -9,24 +9,30 @@ use serde_json::Value;
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::features::DecodedMotion;
-use dex2hoi_data::synth::{self, SynthSequence};
 use dex2hoi_export::{ExportMotion, ExportObject};
 use dex2hoi_repr::mesh::box_mesh;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 use dex2hoi_repr::{Mesh, Skeleton, forward_kinematics};
+use dex2hoi_synth::{self as synth, SynthSequence};
 
 pub mod gltf;
-pub mod smplx_fixture;
+pub use dex2hoi_testkit::smplx_fixture;
 
 /// Writes the fixture SMPL-X model ([`smplx_fixture`]) on the built-in skeleton.
 pub fn write_smplx_model(path: &Path, spoil: smplx_fixture::Spoil) {
     let skeleton = Skeleton::smplx();
     let mesh = dex2hoi_export::body_mesh(&skeleton);
+    let bound = smplx_fixture::BoundMesh {
+        vertices: &mesh.vertices,
+        joints: &mesh.joints,
+        bone_ends: &mesh.bone_ends,
+        faces: &mesh.faces,
+    };
     smplx_fixture::write_smplx_model(
         path,
         &skeleton.rest_positions(),
         skeleton.parents(),
-        &mesh,
+        bound,
         spoil,
     );
 }
@@ -89,7 +95,7 @@ pub fn wavy_motion(skeleton: &Skeleton, frames: usize, objects: usize) -> Decode
 
 /// Object meshes of the wavy motion's slots.
 pub fn object_meshes() -> [Mesh; 2] {
-    [box_mesh(Vec3::new(0.05, 0.08, 0.04)), synth::catalogue::cylinder_mesh(0.04, 0.1, 16)]
+    [box_mesh(Vec3::new(0.05, 0.08, 0.04)), dex2hoi_data::catalogue::cylinder_mesh(0.04, 0.1, 16)]
 }
 
 /// An export of the wavy motion with `objects.len()` objects in slots 0, 1.

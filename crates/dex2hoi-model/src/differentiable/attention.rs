@@ -8,7 +8,7 @@
 use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{Real, dot, op_error, simd, values};
+use crate::kernel::{Real, by_dtype, dot, op_error, simd, values};
 use crate::matmul::{Strided, Threads, product_into};
 
 /// What the composite adds to the scores of a masked key (`(mask - 1) * 1e9`).

@@ -8,7 +8,7 @@
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Storage, Tensor};
 use rayon::prelude::*;
 
-use super::{ROWS_PER_TASK, Real, map_rows, op_error, rows_of, simd, values};
+use crate::kernel::{ROWS_PER_TASK, Real, by_dtype, map_rows, op_error, rows_of, simd, values};
 use crate::matmul::{Strided, Threads, product_into};
 
 /// The activation after a bias.
@@ -73,7 +73,7 @@ fn grad_before_activation(
 /// forward product and the two of its backward pass, through gemm on the pool's threads
 /// ([`product_into`]). Not `Tensor::matmul`: candle asks for its thread count on every
 /// product, which on Linux reads and parses `/proc/cpuinfo` each time (2.4% of a `small`
-/// training step in perf, session 18), and zero-fills its output first.
+/// training step in perf), and zero-fills its output first.
 #[derive(Debug, Clone, Copy)]
 struct Product {
     transpose_lhs: bool,

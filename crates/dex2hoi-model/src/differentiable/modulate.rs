@@ -6,7 +6,7 @@
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{Real, dot, normalise, op_error, simd, values};
+use crate::kernel::{Real, by_dtype, dot, normalise, op_error, simd, values};
 
 /// `norm(x) * (1 + scale) + shift` with `(shift, scale)` the two halves of each sequence's
 /// modulation row.

@@ -6,10 +6,10 @@
 //! time behind a lock (`candle_core::utils::barrier_pool`). dex2hoi spreads its own work over
 //! rayon's threads: training runs one forward and backward pass per group of windows on each
 //! (`dex2hoi_train::Trainer::step`). The groups' operations then wait on that lock in turn while
-//! the pool's threads spin on the cores the groups run on. Measured with `benches/train.rs`
-//! (`small`, batch 32 in two groups of 16, 2 threads, session 17): the backward pass took
-//! 0.88-0.96 s as it was and 0.50-0.53 s with `CANDLE_NUM_THREADS=1`, which leaves candle's
-//! pool without threads.
+//! the pool's threads spin on the cores the groups run on: on 2 cores, a `small` training step's
+//! backward pass (batch 32 in two groups of 16) takes about 1.8x as long with candle's pool as
+//! with `CANDLE_NUM_THREADS=1`, which leaves the pool without threads (`cargo xtask bench
+//! train` measures it; `docs/BENCHMARKS.md`).
 //!
 //! candle reads the variable once, when its pool starts, so [`run_inline`] runs first thing
 //! in `main` (the command line's and the benchmarks', which measure what it does).

@@ -3,13 +3,13 @@
 
 use glam::{Mat3, Vec3};
 
+use dex2hoi_data::character::Hand;
 use dex2hoi_data::features::{ProcessedSequence, TargetConfig, process_sequence};
-use dex2hoi_data::synth::plan::{CLOSE_TIME, Task};
-use dex2hoi_data::synth::pose::Hand;
-use dex2hoi_data::synth::{SynthSequence, generate};
 use dex2hoi_repr::object_repr::{HandRelativeObject, WristPose, Wrists, softmax3};
 use dex2hoi_repr::rotation::{is_rotation, sixd_to_matrix};
 use dex2hoi_repr::{MeshQuery, forward_kinematics};
+use dex2hoi_synth::plan::{CLOSE_TIME, Task};
+use dex2hoi_synth::{SynthSequence, generate};
 
 /// Three sequences of every task family.
 fn sample() -> Vec<SynthSequence> {
@@ -320,7 +320,7 @@ fn decode_features_gives_back_the_canonical_motion() {
 fn the_standing_start_is_a_rest_pose_with_free_objects() {
     use dex2hoi_repr::ObjectPose;
     let pose = ObjectPose { rotation: Mat3::IDENTITY, position: Vec3::new(0.1, 0.95, 0.4) };
-    let (body, objects) = dex2hoi_data::synth::standing_features([Some(pose), None]).unwrap();
+    let (body, objects) = dex2hoi_data::character::standing_features([Some(pose), None]).unwrap();
     assert_eq!(body.len(), 6 * 52 + 3);
     assert_eq!(objects.len(), 36);
     assert!(objects[18..].iter().all(|v| *v == 0.0));

@@ -9,9 +9,8 @@
 //! breaks a physical check (a held object away from the fingers, a hand joint inside an object,
 //! an object in the table) is drawn again from the same random stream.
 
-pub mod catalogue;
+pub mod error;
 pub mod plan;
-pub mod pose;
 
 use glam::{Mat3, Vec3};
 use rand::{Rng, SeedableRng};
@@ -20,14 +19,12 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 use dex2hoi_repr::{MeshQuery, forward_kinematics};
 
-use crate::error::{DataError, Result};
-use crate::sequence::{Sequence, SequenceObject};
-use catalogue::CatalogueObject;
-use plan::{Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, Task, minimum_jerk, plan_task};
-use pose::{Hand, HandPose, OPEN_CURL, Poser, wrist_rotation};
+use dex2hoi_data::catalogue::{self, BPS_RADIUS, BPS_SEED, CatalogueObject, catalogue_assets};
+use dex2hoi_data::character::{Hand, HandPose, OPEN_CURL, PELVIS_HEIGHT, Poser, wrist_rotation};
+use dex2hoi_data::{Sequence, SequenceObject};
 
-/// Height of the default character's pelvis.
-pub const PELVIS_HEIGHT: f32 = 0.975;
+pub use error::{Result, SynthError};
+use plan::{Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, Task, minimum_jerk, plan_task};
 
 /// Distance from the grasped surface to the wrist joint along the surface normal.
 const PALM_GAP: f32 = 0.025;
@@ -182,11 +179,11 @@ fn realise(plan: &Plan, fps: f32, rng: &mut ChaCha8Rng, index: usize) -> Result<
     for (pose, &t) in hands.iter().zip(&times) {
         for hand in Hand::BOTH {
             if !poser.reachable(hand, pose[hand.index()].position) {
-                return Err(DataError::invalid(
-                    format!("synth-{index:05}"),
-                    "reachable hand targets",
-                    format!("{} hand at {t:.2} s", hand.word()),
-                ));
+                return Err(SynthError::Sequence {
+                    sequence: format!("synth-{index:05}"),
+                    expected: "reachable hand targets".into(),
+                    got: format!("{} hand at {t:.2} s", hand.word()),
+                });
             }
         }
     }
@@ -359,40 +356,21 @@ pub fn generate(index: usize, seed: u64, fps: f32) -> Result<SynthSequence> {
         }
         last_problem = format!("{report:?}");
     }
-    Err(DataError::invalid(
-        format!("synth-{index:05} ({})", task.label()),
-        format!("a physically valid sequence within {MAX_DRAWS} draws"),
-        last_problem,
-    ))
+    Err(SynthError::Sequence {
+        sequence: format!("synth-{index:05} ({})", task.label()),
+        expected: format!("a physically valid sequence within {MAX_DRAWS} draws"),
+        got: last_problem,
+    })
 }
-
-/// BPS radius for table-top objects: the largest catalogue object (the 30 x 20 x 20 cm box)
-/// has a half-diagonal of 0.21 m, so a 0.25 m ball holds every object with a margin while the
-/// basis points stay close enough to the surfaces that their offsets describe the shape (a
-/// 1 m ball, as CHOIS uses for furniture, would spend most points far from a mug).
-pub const BPS_RADIUS: f32 = 0.25;
-/// Seed of the shared BPS basis.
-pub const BPS_SEED: u64 = 0x0B75;
 
 /// Sequences come in blocks of eight (one per task family); every tenth block (indices
 /// 72-79, 152-159, ...) is in the test split, so both splits hold every task.
-pub fn split_of(index: usize) -> crate::dataset::Split {
+pub fn split_of(index: usize) -> dex2hoi_data::dataset::Split {
     if (index / Task::ALL.len()) % 10 == 9 {
-        crate::dataset::Split::Test
+        dex2hoi_data::dataset::Split::Test
     } else {
-        crate::dataset::Split::Train
+        dex2hoi_data::dataset::Split::Train
     }
-}
-
-/// The object assets of the whole catalogue with the shared BPS basis.
-pub fn catalogue_assets() -> Result<Vec<crate::features::ObjectAsset>> {
-    let basis =
-        dex2hoi_repr::BpsBasis::new(dex2hoi_repr::bps::DEFAULT_BPS_POINTS, BPS_RADIUS, BPS_SEED)?;
-    catalogue::CATALOGUE
-        .iter()
-        .enumerate()
-        .map(|(k, o)| crate::features::ObjectAsset::new(o.name, o.mesh(), &basis, k as u64))
-        .collect()
 }
 
 /// Generates `count` sequences with `seed` at `fps`, extracts features and targets, and
@@ -403,22 +381,26 @@ pub fn build_dataset(
     seed: u64,
     fps: f32,
     progress: &(dyn Fn(usize) + Sync),
-) -> Result<crate::dataset::Dataset> {
-    use crate::dataset::{BpsSettings, Dataset, Split};
-    use crate::features::{TargetConfig, process_sequence};
+) -> Result<dex2hoi_data::dataset::Dataset> {
+    use dex2hoi_data::dataset::{BpsSettings, Dataset, Split};
+    use dex2hoi_data::features::{TargetConfig, process_sequence};
     use rayon::prelude::*;
     use std::collections::BTreeMap;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
     if count == 0 {
-        return Err(DataError::invalid("--sequences", "at least one sequence", 0));
+        return Err(SynthError::Argument {
+            argument: "--sequences",
+            expected: "at least one sequence",
+            got: "0".into(),
+        });
     }
     let assets = catalogue_assets()?;
     let queries: Vec<MeshQuery> =
         assets.iter().map(|a| MeshQuery::new(&a.mesh)).collect::<Result<_, _>>()?;
     let done = AtomicUsize::new(0);
     let config = TargetConfig::default();
-    let processed: Vec<(usize, crate::features::ProcessedSequence)> = (0..count)
+    let processed: Vec<(usize, dex2hoi_data::features::ProcessedSequence)> = (0..count)
         .into_par_iter()
         .map(|index| {
             let synth = generate(index, seed, fps)?;
@@ -430,19 +412,18 @@ pub fn build_dataset(
                     catalogue::CATALOGUE.iter().position(|c| c.name == o.name).map(|k| &queries[k])
                 })
                 .collect::<Option<_>>()
-                .ok_or_else(|| {
-                    DataError::invalid(
-                        &synth.sequence.source_id,
-                        "catalogue objects",
-                        "an unknown object",
-                    )
+                .ok_or_else(|| SynthError::Sequence {
+                    sequence: synth.sequence.source_id.clone(),
+                    expected: "catalogue objects".into(),
+                    got: "an unknown object".into(),
                 })?;
             let features = process_sequence(&synth.sequence, &object_queries, &config)?;
             progress(done.fetch_add(1, Ordering::Relaxed) + 1);
             Ok((index, features))
         })
         .collect::<Result<_>>()?;
-    let mut splits: BTreeMap<Split, Vec<crate::features::ProcessedSequence>> = BTreeMap::new();
+    let mut splits: BTreeMap<Split, Vec<dex2hoi_data::features::ProcessedSequence>> =
+        BTreeMap::new();
     for (index, sequence) in processed {
         splits.entry(split_of(index)).or_default().push(sequence);
     }
@@ -452,42 +433,5 @@ pub fn build_dataset(
         seed: BPS_SEED,
     };
     let skeleton = dex2hoi_repr::Skeleton::smplx();
-    Dataset::assemble("synth", &skeleton, fps, splits, assets, bps, Some(seed))
-}
-
-/// One frame of features for the default character standing relaxed (hands hanging) at the
-/// canonical origin, with objects at the given poses (canonical frame) and nobody holding them:
-/// the starting state of generation. Returns the body row `[6J + 3]` and the object rows
-/// `[2, 18]` (zeros for an empty slot).
-pub fn standing_features(
-    objects: [Option<dex2hoi_repr::ObjectPose>; crate::MAX_OBJECTS],
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    use dex2hoi_repr::object_repr::{
-        HandRelativeObject, MixtureTargetConfig, Wrists, mixture_targets,
-    };
-    let poser = Poser::new(Vec3::new(0.0, PELVIS_HEIGHT, 0.0));
-    let idle = [poser.idle_hand(Hand::Left), poser.idle_hand(Hand::Right)];
-    let local = poser.pose(0.0, 0.0, &idle);
-    let skeleton = poser.skeleton();
-    let layout = crate::layout::FeatureLayout::of_skeleton(skeleton);
-    let root = Vec3::new(0.0, PELVIS_HEIGHT, 0.0);
-    let fk = forward_kinematics(skeleton, &local, &[root])?;
-    // One frame: the joint rotations, then a zero root displacement (the frame is the start).
-    let mut body: Vec<f32> =
-        local.iter().flat_map(|r| dex2hoi_repr::rotation::matrix_to_sixd(*r)).collect();
-    body.extend([0.0; crate::layout::ROOT_FEATURE_SIZE]);
-    debug_assert_eq!(body.len(), layout.body_width());
-    let g = skeleton.groups();
-    let wrists = Wrists::from_fk(&fk, 0, g);
-    // Nobody holds anything: the mixture target of "neither hand".
-    let free =
-        mixture_targets(&[f32::INFINITY], &[f32::INFINITY], &MixtureTargetConfig::default())?[0];
-    let mut rows = vec![0.0f32; layout.objects_width()];
-    for (slot, pose) in objects.iter().enumerate() {
-        if let Some(pose) = pose {
-            let encoded = HandRelativeObject::encode(*pose, wrists, free).to_array();
-            rows[layout.object_row(0, slot)].copy_from_slice(&encoded);
-        }
-    }
-    Ok((body, rows))
+    Ok(Dataset::assemble("synth", &skeleton, fps, splits, assets, bps, Some(seed))?)
 }

@@ -7,8 +7,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 
-use super::catalogue::{CATALOGUE, CatalogueObject};
-use super::pose::Hand;
+use dex2hoi_data::catalogue::{CATALOGUE, CatalogueObject};
+use dex2hoi_data::character::Hand;
 
 /// The task families.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -1,5 +1,5 @@
-//! Peak resident memory of a benchmark process, shared by the sampling and training benchmarks
-//! (the training one includes this file by path).
+//! Peak resident memory of a benchmark process (the sampling and training benchmarks report
+//! it beside their times).
 
 /// Starts a new peak of the resident memory (Linux: `/proc/self/clear_refs`; elsewhere the
 /// peak is the process's).

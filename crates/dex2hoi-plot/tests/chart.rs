@@ -2,7 +2,7 @@
 //! colour and the reference line in grey, where the points say; gaps (NaN, non-positive values
 //! on a log axis), flat series and empty panels draw without failing.
 
-use dex2hoi_export::chart::{Chart, PALETTE, Panel, Scale, Series};
+use dex2hoi_plot::chart::{Chart, PALETTE, Panel, Scale, Series};
 
 fn decode(bytes: &[u8]) -> (usize, usize, Vec<[u8; 3]>) {
     let decoder = png::Decoder::new(std::io::Cursor::new(bytes));

@@ -1,8 +1,12 @@
-//! The procedural object catalogue: eight table-top objects with realistic sizes, their meshes
-//! (centred on the bounding box, resting on their bottom face when upright) and how a hand
-//! holds them.
+//! The object catalogue: eight table-top objects with realistic sizes, their meshes (centred on
+//! the bounding box, resting on their bottom face when upright), how a hand holds them, and the
+//! BPS basis every object of a dataset is encoded with. The procedural dataset draws its objects
+//! from it; sampling places them by name.
 
 use glam::Vec3;
+
+use crate::error::Result;
+use crate::features::ObjectAsset;
 
 use dex2hoi_repr::Mesh;
 use dex2hoi_repr::mesh::{box_mesh, uv_sphere};
@@ -163,4 +167,23 @@ impl CatalogueObject {
             ObjectShape::Sphere { radius } => Vec3::splat(radius),
         }
     }
+}
+
+/// BPS radius for table-top objects: the largest catalogue object (the 30 x 20 x 20 cm box)
+/// has a half-diagonal of 0.21 m, so a 0.25 m ball holds every object with a margin while the
+/// basis points stay close enough to the surfaces that their offsets describe the shape (a
+/// 1 m ball, as CHOIS uses for furniture, would spend most points far from a mug).
+pub const BPS_RADIUS: f32 = 0.25;
+/// Seed of the shared BPS basis.
+pub const BPS_SEED: u64 = 0x0B75;
+
+/// The object assets of the whole catalogue with the shared BPS basis.
+pub fn catalogue_assets() -> Result<Vec<ObjectAsset>> {
+    let basis =
+        dex2hoi_repr::BpsBasis::new(dex2hoi_repr::bps::DEFAULT_BPS_POINTS, BPS_RADIUS, BPS_SEED)?;
+    CATALOGUE
+        .iter()
+        .enumerate()
+        .map(|(k, o)| ObjectAsset::new(o.name, o.mesh(), &basis, k as u64))
+        .collect()
 }

@@ -8,15 +8,25 @@
 //! joint, as the real one averages a ring of vertices. The users' real model is licensed; the
 //! tests use this one.
 //!
-//! Shared by the export and CLI tests (`#[path]`; the CLI may not depend on `dex2hoi-repr`), so
-//! it takes the built-in SMPL-X skeleton's rest joints, parents and capsule mesh as arguments
-//! and names nothing of `dex2hoi-repr`.
+//! It takes the built-in SMPL-X skeleton's rest joints, parents and capsule mesh as arguments
+//! ([`BoundMesh`]: `dex2hoi_export::body_mesh`'s fields), so it names no dex2hoi crate.
 
 use std::path::Path;
 
 use glam::Vec3;
 
-use dex2hoi_export::SkinnedMesh;
+/// A rest-pose mesh bound to a skeleton's bones, as `dex2hoi_export::SkinnedMesh` holds it.
+#[derive(Debug, Clone, Copy)]
+pub struct BoundMesh<'a> {
+    /// Vertex positions in the rest pose (metres).
+    pub vertices: &'a [Vec3],
+    /// The joint each vertex follows.
+    pub joints: &'a [u16],
+    /// The joint at the far end of each vertex's bone.
+    pub bone_ends: &'a [u16],
+    /// Triangles.
+    pub faces: &'a [[u32; 3]],
+}
 
 /// Shape coefficients in the fixture.
 pub const SHAPES: usize = 10;
@@ -58,11 +68,14 @@ fn target_joints(rest: &[Vec3]) -> Vec<Vec3> {
 
 /// Writes the model to `path`, built on the built-in SMPL-X skeleton (`rest` positions and
 /// `parents` of its 52 joints) and its capsule `mesh` (`dex2hoi_export::body_mesh`).
+///
+/// # Panics
+/// When the file cannot be written: it is a test fixture.
 pub fn write_smplx_model(
     path: &Path,
     rest: &[Vec3],
     parents: &[Option<usize>],
-    mesh: &SkinnedMesh,
+    mesh: BoundMesh<'_>,
     spoil: Spoil,
 ) {
     assert_eq!(rest.len(), 52, "the SMPL-X skeleton");

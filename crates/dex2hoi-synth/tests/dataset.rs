@@ -2,9 +2,9 @@
 
 use dex2hoi_data::augment::{mirror, mirror_text, swap_streams};
 use dex2hoi_data::dataset::{Dataset, Split};
-use dex2hoi_data::synth::build_dataset;
 use dex2hoi_data::window::{WindowConfig, resample, windows};
 use dex2hoi_repr::Skeleton;
+use dex2hoi_synth::build_dataset;
 
 fn temp_dir(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("dex2hoi-{name}-{}", std::process::id()));
@@ -140,7 +140,7 @@ fn windows_cover_sequences_and_pad_short_ones() {
 
 #[test]
 fn resampling_keeps_the_motion() {
-    let synth = dex2hoi_data::synth::generate(0, 1, 20.0).unwrap();
+    let synth = dex2hoi_synth::generate(0, 1, 20.0).unwrap();
     let s = &synth.sequence;
     let same = resample(s, 20.0).unwrap();
     assert_eq!(same.frames(), s.frames());
@@ -173,7 +173,7 @@ fn feature_mirroring_equals_mirroring_the_raw_motion() {
     use dex2hoi_repr::MeshQuery;
     let skeleton = Skeleton::smplx();
     for index in [0, 2, 4, 7] {
-        let synth = dex2hoi_data::synth::generate(index, 5, 20.0).unwrap();
+        let synth = dex2hoi_synth::generate(index, 5, 20.0).unwrap();
         let process = |s: &dex2hoi_data::Sequence| {
             let queries: Vec<MeshQuery> =
                 s.objects.iter().map(|o| MeshQuery::new(&o.mesh).unwrap()).collect();

@@ -3,9 +3,8 @@
 //! the axis. Used for a run's loss curves and for metrics against training steps; drawn with the
 //! project's bitmap font, so no plotting library or font file is needed.
 
-use crate::error::Result;
 use crate::font::{GLYPH_HEIGHT, draw_text, text_width};
-use crate::preview::encode_rgb_png;
+use crate::{Result, encode_rgb_png};
 
 const PANEL_WIDTH: usize = 360;
 const PANEL_HEIGHT: usize = 170;

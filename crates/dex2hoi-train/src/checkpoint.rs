@@ -1,0 +1,217 @@
+//! A trainer's checkpoint: written atomically with everything a resumed run needs (parameters,
+//! EMA, optimiser moments, step, configuration, vocabulary), restored bit for bit, or read as
+//! the starting weights of a new run (fine-tuning).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+
+use dex2hoi_model::checkpoint::{CONFIG_KEY, FORMAT, FORMAT_KEY, read_tensors, write_tensors};
+use dex2hoi_optim::Parameter;
+use dex2hoi_sample::{
+    STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, TextModule, VOCABULARY_KEY, trained_steps,
+};
+
+use crate::config::TrainConfig;
+use crate::error::{Result, TrainError};
+use crate::step::Trainer;
+
+impl Trainer {
+    /// Writes the checkpoint (parameters, EMA, optimiser moments, step, configuration,
+    /// vocabulary) atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut tensors = BTreeMap::new();
+        // Everything is written as host f32 tensors, so the file is the same whatever device
+        // trained it.
+        let host =
+            |t: &Tensor| -> Result<Tensor> { Ok(t.to_dtype(DType::F32)?.to_device(&Device::Cpu)?) };
+        for (k, p) in self.parameters.iter().enumerate() {
+            let (first, second) = self.optimizer.moments(k);
+            tensors.insert(p.name.clone(), host(p.var.as_tensor())?);
+            tensors.insert(format!("ema.{}", p.name), host(self.ema.value(k))?);
+            tensors.insert(format!("optimizer.first.{}", p.name), host(first)?);
+            tensors.insert(format!("optimizer.second.{}", p.name), host(second)?);
+        }
+        let mut metadata = BTreeMap::from([
+            (FORMAT_KEY.to_string(), FORMAT.to_string()),
+            (
+                CONFIG_KEY.to_string(),
+                serde_json::to_string(&self.config.model).expect("a model config serialises"),
+            ),
+            (TRAIN_CONFIG_KEY.to_string(), self.config.to_toml()?),
+            (STEP_KEY.to_string(), self.step.to_string()),
+            ("dex2hoi.optimizer_updates".to_string(), self.optimizer.updates.to_string()),
+            (
+                "dex2hoi.rng".to_string(),
+                format!("chacha8 seeded by {} with the step as stream", self.config.training.seed),
+            ),
+        ]);
+        if self.steps_before > 0 {
+            metadata.insert(STEPS_BEFORE_KEY.to_string(), self.steps_before.to_string());
+        }
+        if let TextModule::Builtin { encoder, .. } = &self.text {
+            metadata.insert(
+                VOCABULARY_KEY.to_string(),
+                serde_json::to_string(encoder.vocabulary().words()).expect("words serialise"),
+            );
+        }
+        write_tensors(path, &tensors, &metadata)?;
+        Ok(())
+    }
+
+    /// Restores a checkpoint written by [`Trainer::save`] for the same configuration (the
+    /// number of steps may differ) and vocabulary.
+    pub fn restore(&mut self, path: &Path) -> Result<()> {
+        // Read on the host (the file holds host f32 tensors) and placed on the trainer's device.
+        let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
+        let stored = metadata.get(TRAIN_CONFIG_KEY).ok_or_else(|| {
+            TrainError::checkpoint(path, TRAIN_CONFIG_KEY, "the training configuration", "nothing")
+        })?;
+        let mut stored = TrainConfig::from_toml(stored, &path.display().to_string())?;
+        stored.training.steps = self.config.training.steps;
+        if stored != self.config {
+            return Err(TrainError::checkpoint(
+                path,
+                "training configuration",
+                "the configuration of the run being resumed (apart from training.steps)",
+                "a different one",
+            ));
+        }
+        self.check_vocabulary(&metadata, path)?;
+        let read = |name: &str, p: &Parameter| -> Result<&Tensor> {
+            let t = tensors
+                .get(name)
+                .ok_or_else(|| TrainError::checkpoint(path, name, "a tensor", "nothing"))?;
+            let count = p.var.elem_count();
+            if t.elem_count() != count {
+                return Err(TrainError::checkpoint(
+                    path,
+                    name,
+                    format!("{count} values"),
+                    t.elem_count(),
+                ));
+            }
+            Ok(t)
+        };
+        for (k, p) in self.parameters.iter().enumerate() {
+            let value = read(&p.name, p)?.reshape(p.var.shape())?;
+            p.var.set(&value.to_dtype(p.var.dtype())?.to_device(p.var.device())?)?;
+            self.ema.set_value(k, p, read(&format!("ema.{}", p.name), p)?)?;
+            self.optimizer.set_moments(
+                k,
+                p,
+                read(&format!("optimizer.first.{}", p.name), p)?,
+                read(&format!("optimizer.second.{}", p.name), p)?,
+            )?;
+        }
+        let number = |key: &str| -> Result<usize> {
+            metadata
+                .get(key)
+                .and_then(|v| v.parse().ok())
+                .ok_or_else(|| TrainError::checkpoint(path, key, "a step count", "nothing"))
+        };
+        self.step = number(STEP_KEY)?;
+        self.optimizer.updates = number("dex2hoi.optimizer_updates")?;
+        self.steps_before =
+            if metadata.contains_key(STEPS_BEFORE_KEY) { number(STEPS_BEFORE_KEY)? } else { 0 };
+        Ok(())
+    }
+
+    /// Starts this fresh trainer from the EMA weights of a trained model: a packed model
+    /// (`dex2hoi model pack`) or a run's checkpoint. The weights become both the parameters and
+    /// their EMA; AdamW starts afresh (zero moments, its warm-up included) and the step count at
+    /// 0, so the learning-rate schedule and the batches are this run's own, while the steps the
+    /// weights had behind them are kept ([`STEPS_BEFORE_KEY`]) and counted in a packed model.
+    /// The model must have this configuration's network and text encoder and the dataset's
+    /// vocabulary; the training settings (losses, optimiser, batch) are this run's. The
+    /// normalisation statistics are the dataset's, as for every run: fine-tuning on the model's
+    /// own dataset keeps them as they were.
+    pub fn initialise_from(&mut self, path: &Path) -> Result<()> {
+        if self.step > 0 {
+            return Err(TrainError::checkpoint(
+                path,
+                "initial weights",
+                "a trainer that has not stepped",
+                format!("{} steps done", self.step),
+            ));
+        }
+        let (tensors, metadata) = read_tensors(path, &Device::Cpu)?;
+        let format = metadata.get(FORMAT_KEY).map_or("nothing", String::as_str);
+        if format != FORMAT {
+            return Err(TrainError::checkpoint(path, FORMAT_KEY, FORMAT, format));
+        }
+        let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
+        // Dropout is how the network trains, not what it is.
+        stored.model.dropout = self.config.model.dropout;
+        for (section, model, run) in [
+            (
+                "[model]",
+                serde_json::to_value(&stored.model),
+                serde_json::to_value(&self.config.model),
+            ),
+            ("[text]", serde_json::to_value(&stored.text), serde_json::to_value(&self.config.text)),
+        ] {
+            let (model, run) =
+                (model.expect("a config serialises"), run.expect("a config serialises"));
+            let differing: Vec<String> = run
+                .as_object()
+                .into_iter()
+                .flatten()
+                .filter(|(key, value)| model.get(key.as_str()) != Some(value))
+                .map(|(key, value)| {
+                    let theirs =
+                        model.get(key.as_str()).map_or("nothing".into(), |v| v.to_string());
+                    format!("{key} = {theirs} (this run: {value})")
+                })
+                .collect();
+            if !differing.is_empty() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    section,
+                    format!("the {section} settings of this run's configuration"),
+                    differing.join(", "),
+                ));
+            }
+        }
+        self.check_vocabulary(&metadata, path)?;
+        for (k, p) in self.parameters.iter().enumerate() {
+            let name = format!("ema.{}", p.name);
+            let t = tensors
+                .get(&name)
+                .ok_or_else(|| TrainError::checkpoint(path, &name, "a tensor", "nothing"))?;
+            if t.dims() != p.var.dims() {
+                return Err(TrainError::checkpoint(
+                    path,
+                    &name,
+                    format!("shape {:?}", p.var.dims()),
+                    format!("{:?}", t.dims()),
+                ));
+            }
+            p.var.set(&t.to_dtype(p.var.dtype())?.to_device(p.var.device())?)?;
+            self.ema.set_value(k, p, t)?;
+        }
+        self.steps_before = trained_steps(&metadata);
+        Ok(())
+    }
+
+    /// Checks that the built-in encoder's vocabulary in a file's metadata is this dataset's.
+    fn check_vocabulary(&self, metadata: &BTreeMap<String, String>, path: &Path) -> Result<()> {
+        if let TextModule::Builtin { encoder, .. } = &self.text {
+            let words: Option<Vec<String>> = metadata
+                .get(VOCABULARY_KEY)
+                .map(|w| serde_json::from_str(w))
+                .transpose()
+                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?;
+            if words.as_deref() != Some(encoder.vocabulary().words()) {
+                return Err(TrainError::checkpoint(
+                    path,
+                    VOCABULARY_KEY,
+                    "the vocabulary of this dataset",
+                    if words.is_some() { "another vocabulary" } else { "none" },
+                ));
+            }
+        }
+        Ok(())
+    }
+}
