@@ -1,5 +1,6 @@
 //! `dex2hoi sample`: generate a motion with a trained run and export it (npz, glb, bvh, gif).
 
+use std::num::NonZeroUsize;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
@@ -39,9 +40,9 @@ pub struct SampleArgs {
     /// left.
     #[arg(long = "object", required = true)]
     objects: Vec<String>,
-    /// Frames to generate (at the run's frame rate).
-    #[arg(long, default_value_t = 120)]
-    frames: usize,
+    /// Frames to generate (at the run's frame rate; at least 1).
+    #[arg(long, default_value = "120")]
+    frames: NonZeroUsize,
     /// Seed of the noise: the same seed gives the same motion.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -67,9 +68,6 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let device = args.device.open()?;
     if args.objects.len() > 2 {
         bail!("the model takes at most two objects, got {}", args.objects.len());
-    }
-    if args.frames == 0 {
-        bail!("--frames must be at least 1");
     }
     let sampler = args.sampling.config()?;
     if !(args.table_height.is_finite() && (0.3..=1.5).contains(&args.table_height)) {

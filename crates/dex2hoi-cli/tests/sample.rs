@@ -176,6 +176,8 @@ fn sample_exports_four_files_and_refuses_bad_input() {
         &with(&["--text", "hi", "--object", "mug", "--smplx-model", "/nonexistent/SMPLX.npz"]),
         "/nonexistent/SMPLX.npz",
     );
+    // The frame count is typed: zero is refused where it is parsed.
+    fails(&with(&["--text", "hi", "--object", "mug", "--frames", "0"]), "--frames");
     assert!(!bad.exists(), "nothing partial is written");
     std::fs::remove_dir_all(&dir).ok();
 }

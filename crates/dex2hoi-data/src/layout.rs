@@ -32,9 +32,9 @@ use std::ops::Range;
 use candle_core::{D, Tensor};
 
 use crate::error::{DataError, Result};
-use crate::features::ProcessedSequence;
+use crate::processed::ProcessedSequence;
 
-pub use crate::features::ObjectAsset;
+pub use crate::processed::ObjectAsset;
 pub use crate::sequence::MAX_OBJECTS;
 pub use dex2hoi_repr::object_repr::OBJECT_FEATURE_SIZE;
 

@@ -10,8 +10,11 @@ pub mod error;
 pub mod features;
 pub mod files;
 pub mod layout;
+pub mod normalise;
 pub mod npz;
+pub mod processed;
 pub mod sequence;
+pub mod timeline;
 pub mod window;
 
 pub use error::{DataError, Result};

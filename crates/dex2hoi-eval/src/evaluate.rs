@@ -176,7 +176,10 @@ pub fn evaluate(
     let mm_prompts = mm.prompts.min(chosen.len());
     let mut progress =
         Progress::new(options.replications * (chosen.len() + mm_prompts * mm.repeats), progress);
-    let generator = Generator::new(run, dataset, window.frames, options.sampler, options.seed);
+    // The evaluator's configuration holds at least two clip frames (`EvaluatorConfig::validate`).
+    let clip_frames = std::num::NonZeroUsize::new(window.frames)
+        .ok_or_else(|| EvalError::invalid("evaluator clip_frames", "at least 1", window.frames))?;
+    let generator = Generator::new(run, dataset, clip_frames, options.sampler, options.seed);
     let fps = dataset.manifest.fps;
     let truth =
         GroundTruth::measure(&chosen, evaluator, features, (&run.skeleton, &meshes), window, fps)?;

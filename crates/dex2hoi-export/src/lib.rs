@@ -114,7 +114,7 @@ impl Checked<'_> {
 
 /// The last of `prompts` (by start frame, in order) that starts at or before `frame`.
 fn prompt_in_force(prompts: &[(usize, String)], frame: usize) -> &str {
-    prompts.iter().rev().find(|(start, _)| *start <= frame).map_or("", |(_, text)| text)
+    dex2hoi_data::timeline::in_force(prompts, |p| p.0, frame).map_or("", |(_, text)| text)
 }
 
 /// An object whose poses cover every frame.

@@ -10,9 +10,9 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use rayon::prelude::*;
 
+use dex2hoi_data::catalogue::{BPS_RADIUS, BPS_SEED};
 use dex2hoi_data::dataset::{BpsSettings, Dataset, Split};
 use dex2hoi_data::features::{ObjectAsset, ProcessedSequence, TargetConfig, process_sequence};
-use dex2hoi_data::catalogue::{BPS_RADIUS, BPS_SEED};
 use dex2hoi_data::window::resample;
 use dex2hoi_data::{Sequence, SequenceObject};
 use dex2hoi_repr::bps::DEFAULT_BPS_POINTS;

@@ -3,8 +3,9 @@
 //! SMPL-X models and the meshes, each loaded once), the [`Item`]s a reader finds and the
 //! [`Outcome`] of reading one, and the split rule (split files, the seeded hash split) and
 //! prompt tables that decide which sequences are read and with which text. The module is
-//! private: its public items are re-exported from [`crate::prepare`], [`PickleRig`] and
-//! [`Scripts`] from [`crate::humoto`] and [`DEFAULT_TEMPLATE`] from [`crate::grab`].
+//! private: its public items are re-exported from [`prepare`](mod@crate::prepare),
+//! [`PickleRig`] and [`Scripts`] from [`crate::humoto`] and [`DEFAULT_TEMPLATE`] from
+//! [`crate::grab`].
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

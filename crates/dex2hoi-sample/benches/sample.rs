@@ -4,9 +4,7 @@
 //! weights, next to a large matmul measured in the same run. Medians; also written to
 //! `target/bench/sample.json`.
 
-
 use std::time::{Duration, Instant};
-
 
 use candle_core::{DType, Device, Tensor};
 use glam::Vec3;
@@ -129,7 +127,7 @@ fn main() {
             timeline: vec![TimedText { start_frame: 0, embedding: condition.text.clone() }],
             bps: condition.bps.clone(),
             presence: condition.presence.clone(),
-            frames: 300,
+            frames: std::num::NonZeroUsize::new(300).expect("positive"),
             sampler,
             // As `dex2hoi sample` does with the hand-relative objects of these presets.
             prefix_encoding: Some(PrefixEncoding {

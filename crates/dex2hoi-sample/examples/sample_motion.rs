@@ -8,6 +8,8 @@
 //!     "The person picks up the mug with the right hand and puts it down." mug
 //! ```
 
+use std::num::NonZeroUsize;
+
 use candle_core::Device;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_sample::{
@@ -29,7 +31,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let request = SampleRequest {
         prompts: vec![Prompt { start_frame: 0, text: prompt }],
         objects,
-        frames: 4 * run.manifest.fps as usize,
+        frames: NonZeroUsize::new(4 * run.manifest.fps as usize).expect("a positive frame rate"),
         seed: 0,
         sampler: SamplerConfig::default(),
         table_height: DEFAULT_TABLE_HEIGHT,

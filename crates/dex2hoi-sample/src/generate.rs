@@ -7,6 +7,7 @@
 //! displacement is measured from the first frame of the whole generation, so a window's prefix
 //! is simply the last `T_p` generated frames, objects included.
 
+use std::num::NonZeroUsize;
 use std::time::Instant;
 
 use candle_core::{DType, Tensor};
@@ -22,6 +23,9 @@ use dex2hoi_model::text::reject_empty;
 use dex2hoi_model::{InferenceModel, ObjectRepresentation};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, Wrists};
 
+use dex2hoi_data::normalise::Normaliser;
+use dex2hoi_data::timeline::in_force;
+
 use crate::denoiser::{WindowCondition, sample_window};
 use crate::error::{Result, SampleError};
 use crate::run::TrainedRun;
@@ -33,27 +37,6 @@ pub struct TimedText {
     pub start_frame: usize,
     /// Its embedding, `[B, E]`.
     pub embedding: Tensor,
-}
-
-/// Per-channel normalisation of stream features.
-#[derive(Debug, Clone)]
-pub struct Normaliser {
-    /// `[D]` means.
-    pub mean: Tensor,
-    /// `[D]` standard deviations.
-    pub std: Tensor,
-}
-
-impl Normaliser {
-    /// `(x - mean) / std` over the last dimension.
-    pub fn normalise(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(x.broadcast_sub(&self.mean)?.broadcast_div(&self.std)?)
-    }
-
-    /// `x * std + mean` over the last dimension.
-    pub fn denormalise(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(x.broadcast_mul(&self.std)?.broadcast_add(&self.mean)?)
-    }
 }
 
 /// What an autoregressive generation needs.
@@ -74,7 +57,7 @@ pub struct Generation<'a> {
     /// Object presence, `[B, 2]`.
     pub presence: Tensor,
     /// Frames to generate after the initial prefix.
-    pub frames: usize,
+    pub frames: NonZeroUsize,
     /// Sampler settings.
     pub sampler: SamplerConfig,
     /// How each later window's prefix is rebuilt from the motion it decodes to (hand-relative
@@ -150,9 +133,6 @@ impl PrefixEncoding<'_> {
 pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor> {
     let c = request.model.config();
     let (tp, tf) = (c.prefix_frames, c.predicted_frames);
-    if request.frames == 0 {
-        return Err(SampleError::invalid("generation", "frames to generate", "at least 1", 0));
-    }
     if request.timeline.first().map(|t| t.start_frame) != Some(0) {
         return Err(SampleError::invalid(
             "generation",
@@ -182,14 +162,11 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     }
     let mut produced = 0;
     let mut windows = Vec::new();
-    while produced < request.frames {
-        let text = request
-            .timeline
-            .iter()
-            .rev()
-            .find(|t| t.start_frame <= produced)
-            .map(|t| t.embedding.clone())
-            .unwrap_or_else(|| request.timeline[0].embedding.clone());
+    let frames = request.frames.get();
+    while produced < frames {
+        // The timeline starts at frame 0 (checked above), so a prompt is always in force.
+        let text = in_force(&request.timeline, |t| t.start_frame, produced)
+            .map_or_else(|| request.timeline[0].embedding.clone(), |t| t.embedding.clone());
         let length = history.dims()[2];
         let condition = WindowCondition {
             prefix: history.narrow(2, length - tp, tp)?,
@@ -199,19 +176,19 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
         };
         let window =
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;
-        let keep = tf.min(request.frames - produced);
+        let keep = tf.min(frames - produced);
         let window = window.narrow(2, 0, keep)?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
-        if let (Some(encoding), true) = (&request.prefix_encoding, produced < request.frames) {
+        if let (Some(encoding), true) = (&request.prefix_encoding, produced < frames) {
             let length = history.dims()[2];
             let prefix = request.normaliser.denormalise(&history.narrow(2, length - tp, tp)?)?;
             let prefix = encoding.rebuild(&prefix, c.layout())?;
             history = request.normaliser.normalise(&prefix)?;
         }
     }
-    request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)
+    Ok(request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)?)
 }
 /// What a generation is conditioned on besides the model.
 #[derive(Debug, Clone)]
@@ -248,7 +225,7 @@ pub struct GeneratedMotion {
 pub fn generate_motion(
     run: &TrainedRun,
     conditioning: &Conditioning<'_>,
-    frames: usize,
+    frames: NonZeroUsize,
     seed: u64,
     sampler: SamplerConfig,
 ) -> Result<GeneratedMotion> {
@@ -266,9 +243,6 @@ pub fn generate_motion(
             format!("a [2, {}, {width}] prefix and [2, {bps_width}] BPS", config.prefix_frames),
             format!("{} and {} numbers", conditioning.prefix.len(), conditioning.bps.len()),
         ));
-    }
-    if frames == 0 {
-        return Err(SampleError::invalid("generation", "frames", "at least 1", 0));
     }
     let texts: Vec<&str> = conditioning.prompts.iter().map(|p| p.1).collect();
     reject_empty(&texts)?;

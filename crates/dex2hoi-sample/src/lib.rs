@@ -20,7 +20,7 @@
 //! let request = SampleRequest {
 //!     prompts: vec![Prompt { start_frame: 0, text: "The person picks up the mug.".into() }],
 //!     objects: vec![SceneObject::parse("mug")?],
-//!     frames: 120,
+//!     frames: std::num::NonZeroUsize::new(120).unwrap(),
 //!     seed: 0,
 //!     sampler: SamplerConfig::default(),
 //!     table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
@@ -44,13 +44,14 @@ pub mod timeline;
 
 pub use config::{RunConfig, TextConfig, default_diffusion_steps};
 pub use denoiser::{ModelDenoiser, WindowCondition, sample_window};
+/// The normaliser a [`Generation`] takes (`dex2hoi_data::normalise`).
+pub use dex2hoi_data::normalise::Normaliser;
 pub use error::{Result, SampleError};
 pub use files::{
     RunFiles, STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY, trained_steps,
 };
 pub use generate::{
-    Conditioning, GeneratedMotion, Generation, Normaliser, PrefixEncoding, TimedText, generate,
-    generate_motion,
+    Conditioning, GeneratedMotion, Generation, PrefixEncoding, TimedText, generate, generate_motion,
 };
 pub use model_file::{PackSummary, PackedPrecision, pack_run};
 pub use request::{SampleRequest, SampledMotion, sample};

@@ -2,13 +2,14 @@
 //! with the run's basis, the starting state (standing, nobody holding anything), a prompt
 //! timeline, autoregressive generation and decoding to joint rotations, FK and object poses.
 
+use std::num::NonZeroUsize;
 use std::time::Instant;
 
 use glam::Vec3;
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::DecodedMotion;
 use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
+use dex2hoi_data::features::DecodedMotion;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_model::text::reject_empty;
 use dex2hoi_repr::{BpsBasis, MeshQuery};
@@ -29,7 +30,7 @@ pub struct SampleRequest {
     /// One or two objects (slot A, then slot B).
     pub objects: Vec<SceneObject>,
     /// Frames to generate.
-    pub frames: usize,
+    pub frames: NonZeroUsize,
     /// Seed of the noise.
     pub seed: u64,
     /// Sampler (DDIM steps, guidance).
@@ -61,9 +62,6 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             format!("one or two objects (the model takes at most {MAX_OBJECTS})"),
             request.objects.len(),
         ));
-    }
-    if request.frames == 0 {
-        return Err(SampleError::invalid("request", "frames", "at least 1", 0));
     }
     let texts: Vec<&str> = request.prompts.iter().map(|p| p.text.as_str()).collect();
     reject_empty(&texts)?;
@@ -120,7 +118,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
         request.sampler,
     )?;
     let motion = generated.motion;
-    let frames = request.frames;
+    let frames = request.frames.get();
     Ok(SampledMotion {
         motion,
         objects: request.objects.iter().cloned().enumerate().collect(),

@@ -12,10 +12,11 @@ use dex2hoi_model::text::{TextEncoder, Vocabulary};
 use dex2hoi_model::{InferenceModel, Model, SeededVarMap};
 use dex2hoi_repr::Skeleton;
 
+use dex2hoi_data::normalise::Normaliser;
+
 use crate::config::RunConfig;
 use crate::error::{Result, SampleError};
 use crate::files::{RunFiles, VOCABULARY_KEY, trained_steps};
-use crate::generate::Normaliser;
 use crate::model_file;
 use crate::text::TextModule;
 
@@ -182,10 +183,6 @@ impl TrainedRun {
 
     /// The normaliser of the run's statistics, on the run's device.
     pub fn normaliser(&self) -> Result<Normaliser> {
-        let width = self.stats.mean.len();
-        Ok(Normaliser {
-            mean: Tensor::from_vec(self.stats.mean.clone(), width, &self.device)?,
-            std: Tensor::from_vec(self.stats.std.clone(), width, &self.device)?,
-        })
+        Ok(self.stats.normaliser(&self.device)?)
     }
 }

@@ -208,9 +208,7 @@ impl TrainingSet {
                 for s in 0..MAX_OBJECTS {
                     let row = &mut features[((i * 2 + s) * t_all + k) * width..][..width];
                     layout.write_stream_row(&w.body, &w.objects, k, s, row);
-                    for (c, v) in row.iter_mut().enumerate() {
-                        *v = (*v - self.stats.mean[c]) / self.stats.std[c];
-                    }
+                    self.stats.normalise_row(row);
                 }
             }
             for s in 0..MAX_OBJECTS {

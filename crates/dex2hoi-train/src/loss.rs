@@ -26,6 +26,7 @@ use rayon::prelude::*;
 use dex2hoi_data::FeatureLayout;
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::layout::OBJECT_FEATURE_SIZE;
+use dex2hoi_data::normalise::Normaliser;
 use dex2hoi_model::ObjectRepresentation;
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::object_repr::{
@@ -527,8 +528,7 @@ struct Window<'a> {
     device: candle_core::Device,
     /// Per sample, 1 when its diffusion step is at most `geometric_max_timestep`.
     gate: Vec<f32>,
-    mean: Tensor,
-    std: Tensor,
+    normaliser: Normaliser,
 }
 
 impl<'a> Window<'a> {
@@ -548,9 +548,6 @@ impl<'a> Window<'a> {
                 _ => 1.0,
             })
             .collect();
-        let statistic = |values: &[f32]| -> Result<Tensor> {
-            Ok(Tensor::from_vec(values.to_vec(), width, &device)?.to_dtype(dtype)?)
-        };
         Ok(Self {
             batch_data,
             batch,
@@ -561,8 +558,7 @@ impl<'a> Window<'a> {
             joints,
             dtype,
             gate,
-            mean: statistic(&context.mean)?,
-            std: statistic(&context.std)?,
+            normaliser: Normaliser::new(&context.mean, &context.std, dtype, &device)?,
             device,
         })
     }
@@ -616,7 +612,7 @@ impl<'a> Window<'a> {
 
     /// Normalised features back to raw ones (`x std + mean`).
     fn denormalise(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(x.broadcast_mul(&self.std)?.broadcast_add(&self.mean)?)
+        Ok(self.normaliser.denormalise(x)?)
     }
 }
 

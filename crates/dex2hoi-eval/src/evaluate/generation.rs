@@ -2,6 +2,8 @@
 //! texts condition a clip after the prefix (paper Sec. 4.2 protocol; the prefix of Sec. 3),
 //! once per replication, plus the repeated generations of MultiModality.
 
+use std::num::NonZeroUsize;
+
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_data::layout::slot_bps;
@@ -55,7 +57,7 @@ pub(super) struct GeneratedClip {
 pub(super) struct Generator<'a> {
     run: &'a TrainedRun,
     dataset: &'a Dataset,
-    frames: usize,
+    frames: NonZeroUsize,
     sampler: SamplerConfig,
     seed: u64,
 }
@@ -65,7 +67,7 @@ impl<'a> Generator<'a> {
     pub(super) fn new(
         run: &'a TrainedRun,
         dataset: &'a Dataset,
-        frames: usize,
+        frames: NonZeroUsize,
         sampler: SamplerConfig,
         seed: u64,
     ) -> Self {

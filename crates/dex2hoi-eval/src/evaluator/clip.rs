@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::dataset::STD_FLOOR;
 use dex2hoi_data::features::{DecodedMotion, ProcessedSequence};
+use dex2hoi_data::normalise::normalise_row;
 
 use crate::error::{EvalError, Result};
 
@@ -266,9 +267,9 @@ impl ClipStats {
         let width = self.feature_size;
         let mut features = clip.raw_features(joints, frames);
         for row in features.chunks_exact_mut(width) {
-            for c in 0..width - MAX_OBJECTS {
-                row[c] = (row[c] - self.mean[c]) / self.std[c];
-            }
+            // The presence flags (the last channels) stay 0 or 1.
+            let channels = width - MAX_OBJECTS;
+            normalise_row(&mut row[..channels], &self.mean, &self.std);
             for slot in (0..MAX_OBJECTS).filter(|s| !clip.present[*s]) {
                 let first = 3 * joints + slot * OBJECT_CHANNELS;
                 row[first..first + OBJECT_CHANNELS].fill(0.0);

@@ -1,0 +1,88 @@
+//! What the feature pipeline produces ([`crate::features`]) and the layout indexes
+//! ([`crate::layout`]): a processed sequence and the per-mesh object assets.
+
+use glam::Vec3;
+
+use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SurfaceSamples};
+
+use crate::error::Result;
+use crate::sequence::MAX_OBJECTS;
+
+/// What the features of one object mesh need, computed once per mesh: BPS and surface samples.
+#[derive(Debug, Clone)]
+pub struct ObjectAsset {
+    /// The object's name.
+    pub name: String,
+    /// The canonical (bounding-box-centred) mesh.
+    pub mesh: Mesh,
+    /// BPS offsets `[points]` in the object frame.
+    pub bps: Vec<Vec3>,
+    /// Surface samples with normals in the object frame (penetration terms).
+    pub samples: SurfaceSamples,
+}
+
+/// Number of surface samples stored per object.
+pub const SURFACE_SAMPLES: usize = 512;
+
+impl ObjectAsset {
+    /// BPS and surface samples of a mesh (the samples are seeded by `seed`).
+    pub fn new(name: &str, mesh: Mesh, basis: &BpsBasis, seed: u64) -> Result<Self> {
+        let query = MeshQuery::new(&mesh)?;
+        Ok(Self {
+            name: name.into(),
+            bps: basis.encode(&query),
+            samples: mesh.sample_surface(SURFACE_SAMPLES, seed)?,
+            mesh,
+        })
+    }
+}
+
+/// A sequence after feature extraction, in the canonical frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProcessedSequence {
+    /// Number of frames `T`.
+    pub frames: usize,
+    /// Number of joints `J`.
+    pub joints: usize,
+    /// `[T, 6J + 3]`: 6D local rotations then the root displacement from the first frame.
+    pub body: Vec<f32>,
+    /// `[T, 2, 18]`: the hand-relative representation of each object slot (zeros when absent).
+    pub objects: Vec<f32>,
+    /// Which object slots hold an object.
+    pub object_present: [bool; MAX_OBJECTS],
+    /// Names of the objects in the slots.
+    pub object_names: [Option<String>; MAX_OBJECTS],
+    /// `[T, J, 3]` joint positions.
+    pub joint_positions: Vec<f32>,
+    /// `[T, 2, H]` signed distance of every hand joint (left hand then right hand joints of the
+    /// skeleton's groups) to each object; [`ABSENT_DISTANCE`](crate::features::ABSENT_DISTANCE) for an absent object.
+    pub hand_distances: Vec<f32>,
+    /// `[T, 2, 2]` contact flags (object slot, then left and right hand), 0 or 1.
+    pub hand_contact: Vec<f32>,
+    /// `[T, 4]` foot contact flags: left ankle, left toe, right ankle, right toe.
+    pub foot_contact: Vec<f32>,
+    /// `[T, 2, 3, 3]` object rotations (identity when absent).
+    pub object_rotations: Vec<f32>,
+    /// `[T, 2, 3]` object positions (zero when absent).
+    pub object_positions: Vec<f32>,
+    /// The root position at the first frame in the canonical frame, `(0, height, 0)`.
+    pub root_start: Vec3,
+    /// `[J]` rest offsets of the sequence's own body (a subject's proportions): the features
+    /// are posed on them, and `joint_positions` is their FK.
+    pub rest_offsets: Vec<Vec3>,
+    /// Descriptions.
+    pub texts: Vec<String>,
+    /// Action label.
+    pub action: Option<String>,
+    /// Source id.
+    pub source_id: String,
+}
+
+impl ProcessedSequence {
+    /// The sequence's own body: the topology, names and groups of `topology` (the dataset's
+    /// built-in skeleton, [`crate::dataset::Manifest::builtin_skeleton`]) on the sequence's
+    /// rest offsets.
+    pub fn skeleton(&self, topology: &Skeleton) -> Result<Skeleton> {
+        Ok(topology.with_rest_offsets(self.rest_offsets.clone())?)
+    }
+}
