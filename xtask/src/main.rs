@@ -4,8 +4,9 @@
 //!   format, clippy (warnings denied), tests, fuzz check.
 //! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
 //!   medians. `bench compare`: dex2hoi against the PyTorch reference (see [`compare`]).
-//! - `demo`: the main job on the built-in default: the procedural dataset, the `demo` training
-//!   preset, two prompts sampled, exported and rendered; what is up to date is reused.
+//! - `demo`: the main job: two prompts sampled with the shipped model, exported and rendered,
+//!   then the procedural dataset, a short run of the `demo` preset, the same prompts sampled
+//!   with it and a short evaluation; what is up to date is reused.
 //! - `ablate [--preset NAME] [--steps N]`: the paper's Table 3 on the procedural dataset: the
 //!   full model, its variants and the MDM-style baseline trained with equal budgets, evaluated
 //!   with one evaluator, written to `docs/results/ablation.md`; resumable (see [`ablate`]).
@@ -33,7 +34,7 @@ commands:
   bench compare sampling and training side by side with the PyTorch reference (bench/torch_reference.py)
   ablate [--preset NAME] [--steps N]
                 train and evaluate the full model and the Table 3 variants, write docs/results/ablation.md
-  demo          generate the procedural dataset, train the demo preset, sample and render two prompts
+  demo          sample and render two prompts with the shipped model, then train and evaluate a short run
   build-cuda    build the GPU binary and CUDA tests (toolkit from PyPI) and pack them into target/cuda-pack
   fuzz NAME|all [SECONDS]
                 fuzz a file reader (pickle, npy, glb, mesh) with libFuzzer for SECONDS (600) each
@@ -192,14 +193,25 @@ const DEMO_PROMPTS: [(&str, &str, &[&str]); 2] = [
     ),
 ];
 
-/// `cargo xtask demo`: dataset, training, two samples with exports and previews. A stamp file
-/// beside each stage records what made it; a stage whose stamp matches is reused, and an
+/// `cargo xtask demo`: first the shipped model's motions for the two prompts (exports and
+/// previews, right after the build), then the procedural dataset, a short training run, the
+/// same prompts sampled with it, a small evaluator and a short evaluation of the run. A stamp
+/// file beside each stage records what made it; a stage whose stamp matches is reused, and an
 /// interrupted training run is resumed.
 fn demo(root: &Path) -> Result<()> {
     let started = std::time::Instant::now();
     let dir = root.join("target/demo");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     cargo(root, &["build", "--release", "--locked", "-p", "dex2hoi-cli"])?;
+
+    // The shipped model needs no training (no `--run`; README.md, "The shipped model").
+    let shipped = sample_demo_prompts(root, None, &dir)?;
+    println!(
+        "\n==> the shipped model's motions, {:.0} s after the start: {}/preview.png",
+        started.elapsed().as_secs_f64(),
+        shipped[0].1
+    );
+
     let data = dir.join("data");
     let data_stamp = format!("synth sequences={DEMO_SEQUENCES} seed={DEMO_SEED} fps=20\n");
     let data_stamp_file = dir.join("data.stamp");
@@ -258,33 +270,10 @@ fn demo(root: &Path) -> Result<()> {
         let _ = std::fs::remove_file(&pending_file);
     }
 
+    // The short run shows that training works; it has not learned much yet.
     let run_path = path(&run)?;
-    // Each prompt twice: with the shipped model (no `--run`; README.md, "The shipped model")
-    // and with the short run just trained, which shows that training works but has not learned
-    // much yet.
-    let mut outputs = Vec::new();
-    for (model, run, folder) in [
-        (SHIPPED_MODEL, None, dir.clone()),
-        ("the short run", Some(&run_path), dir.join("short-run")),
-    ] {
-        for (name, text, objects) in DEMO_PROMPTS {
-            let out = path(&folder.join(name))?;
-            if Path::new(&out).exists() {
-                std::fs::remove_dir_all(&out).with_context(|| format!("removing {out}"))?;
-            }
-            let mut args = vec!["sample"];
-            if let Some(run) = run {
-                args.extend(["--run", run]);
-            }
-            args.extend(["--text", text, "--frames", "160", "--seed", "1", "--out", &out]);
-            for object in objects {
-                args.extend(["--object", object]);
-            }
-            dex2hoi(root, &args)?;
-            outputs.push((model, text, out));
-        }
-    }
-    // A small evaluator and a short metrics table (issue: keep the demo within its budget).
+    let short = sample_demo_prompts(root, Some(&run_path), &dir.join("short-run"))?;
+    // A small evaluator and a short metrics table, so that the demo stays short.
     let evaluator = dir.join("evaluator");
     let evaluator_stamp = format!("{data_stamp}evaluator steps={DEMO_EVALUATOR_STEPS}\n");
     let evaluator_stamp_file = dir.join("evaluator.stamp");
@@ -326,16 +315,44 @@ fn demo(root: &Path) -> Result<()> {
         report.display()
     );
     println!("  training run: {}  (loss curve: {}/loss.png)", run.display(), run.display());
-    for (model, text, out) in outputs {
-        println!(
-            "  {model}: \"{text}\"\n    {out}/preview.gif, preview.png, motion.glb, motion.bvh, \
-             motion.npz"
-        );
+    for (model, outputs) in [(SHIPPED_MODEL, shipped), ("the short run", short)] {
+        for (text, out) in outputs {
+            println!(
+                "  {model}: \"{text}\"\n    {out}/preview.gif, preview.png, motion.glb, \
+                 motion.bvh, motion.npz"
+            );
+        }
     }
     Ok(())
 }
 
-/// A file's text, or nothing when it cannot be read.
+/// Samples the demo prompts (160 frames, seed 1) with a run, or the shipped model without one,
+/// each into its folder under `folder`; returns each prompt with its folder.
+fn sample_demo_prompts(
+    root: &Path,
+    run: Option<&str>,
+    folder: &Path,
+) -> Result<Vec<(&'static str, String)>> {
+    let mut outputs = Vec::new();
+    for (name, text, objects) in DEMO_PROMPTS {
+        let out = path(&folder.join(name))?;
+        if Path::new(&out).exists() {
+            std::fs::remove_dir_all(&out).with_context(|| format!("removing {out}"))?;
+        }
+        let mut args = vec!["sample"];
+        if let Some(run) = run {
+            args.extend(["--run", run]);
+        }
+        args.extend(["--text", text, "--frames", "160", "--seed", "1", "--out", &out]);
+        for object in objects {
+            args.extend(["--object", object]);
+        }
+        dex2hoi(root, &args)?;
+        outputs.push((text, out));
+    }
+    Ok(outputs)
+}
+
 /// A path as a command-line argument.
 fn path(p: &Path) -> Result<String> {
     p.to_str().map(str::to_owned).with_context(|| format!("{} is not a UTF-8 path", p.display()))
@@ -349,6 +366,7 @@ fn train_evaluator(root: &Path, data: &Path, out: &Path, steps: &str) -> Result<
     )
 }
 
+/// A file's text, or nothing when it cannot be read.
 fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_default()
 }

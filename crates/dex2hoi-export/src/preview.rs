@@ -8,7 +8,7 @@
 //! three-quarter view from the character's front left (35 degrees round from +Z towards +X, 20
 //! degrees above the horizon) and a side view from its right (10 degrees above the horizon).
 //! Above them a caption band writes the prompt in force on the frame with the project's bitmap
-//! font ([`crate::font`]). Hand bones are coloured by contact: yellow when one of their joints
+//! font ([`dex2hoi_plot::font`]). Hand bones are coloured by contact: yellow when one of their joints
 //! is within [`CONTACT_RADIUS_M`] of an object's surface, red when one is deeper than
 //! [`PENETRATION_TOLERANCE_M`] inside it (the thresholds of the contact and penetration
 //! metrics). `preview.png` is a still sheet of the first view at 0, 25, 50, 75 and 100% of the
