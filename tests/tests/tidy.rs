@@ -484,3 +484,120 @@ fn no_file_is_compiled_into_another_crate() {
         assert!(!text.contains(attribute), "{}: includes a file by path", file.display());
     }
 }
+
+/// The top-level module a source file of a crate belongs to (`lib` for the crate root).
+fn top_module(src: &Path, file: &Path) -> String {
+    let relative = file.strip_prefix(src).unwrap_or(file);
+    let first = relative.components().next().and_then(|c| c.as_os_str().to_str()).unwrap_or("");
+    let name = first.trim_end_matches(".rs");
+    if ["lib", "main", "mod"].contains(&name) { "lib".into() } else { name.into() }
+}
+
+/// The top-level modules that `text` names through `crate::` paths, outside comments
+/// (`use crate::a::...`, `crate::{a, b::c}`, `crate::a::f(...)`).
+fn crate_paths(text: &str) -> std::collections::BTreeSet<String> {
+    let is_ident = |c: char| c.is_ascii_alphanumeric() || c == '_';
+    let mut modules = std::collections::BTreeSet::new();
+    for line in text.lines() {
+        let code = line.split("//").next().unwrap_or("");
+        let mut rest = code;
+        while let Some(at) = rest.find("crate::") {
+            // `dex2hoi_crate::` and the like are not this crate.
+            let before = rest[..at].chars().next_back();
+            rest = &rest[at + "crate::".len()..];
+            if before.is_some_and(is_ident) {
+                continue;
+            }
+            if let Some(group) = rest.strip_prefix('{') {
+                let inner = group.split('}').next().unwrap_or("");
+                for item in inner.split(',') {
+                    let name: String = item.trim().chars().take_while(|c| is_ident(*c)).collect();
+                    modules.insert(name);
+                }
+            } else {
+                modules.insert(rest.chars().take_while(|c| is_ident(*c)).collect());
+            }
+        }
+    }
+    modules.retain(|m| !m.is_empty() && m.starts_with(|c: char| c.is_ascii_lowercase()));
+    modules
+}
+
+/// A module that reaches itself through the graph's edges, with the path, if any.
+fn first_cycle(
+    graph: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
+) -> Option<Vec<String>> {
+    fn visit(
+        node: &str,
+        graph: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
+        path: &mut Vec<String>,
+        done: &mut std::collections::BTreeSet<String>,
+    ) -> Option<Vec<String>> {
+        if let Some(at) = path.iter().position(|n| n == node) {
+            let mut cycle = path[at..].to_vec();
+            cycle.push(node.to_string());
+            return Some(cycle);
+        }
+        if done.contains(node) {
+            return None;
+        }
+        path.push(node.to_string());
+        for next in graph.get(node).into_iter().flatten() {
+            if let Some(cycle) = visit(next, graph, path, done) {
+                return Some(cycle);
+            }
+        }
+        path.pop();
+        done.insert(node.to_string());
+        None
+    }
+    let mut done = std::collections::BTreeSet::new();
+    graph.keys().find_map(|node| visit(node, graph, &mut Vec::new(), &mut done))
+}
+
+#[test]
+fn the_cycle_finder_finds_cycles() {
+    let graph = |edges: &[(&str, &str)]| {
+        let mut graph = std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
+        for (from, to) in edges {
+            graph.entry(from.to_string()).or_default().insert(to.to_string());
+        }
+        graph
+    };
+    assert_eq!(first_cycle(&graph(&[("a", "b"), ("b", "c"), ("a", "c")])), None);
+    assert_eq!(first_cycle(&graph(&[("a", "b"), ("b", "c"), ("c", "a")])).map(|c| c.len()), Some(4));
+    let text = concat!("use crate::{a, b::C};\n// crate::commented\nlet x = crate::c::f();\n", "dex2hoi_", "crate::d");
+    assert_eq!(crate_paths(text).into_iter().collect::<Vec<_>>(), ["a", "b", "c"]);
+}
+
+/// Within each crate, no top-level module imports another that imports it back, directly or
+/// through others (docs/ARCHITECTURE.md, "Invariants"): what two modules share lives in a
+/// module below both, so each crate's modules read in one order.
+#[test]
+fn no_module_imports_another_in_a_circle() {
+    let root = workspace_root();
+    for member in members() {
+        let src = member.dir.join("src");
+        if !src.is_dir() {
+            continue;
+        }
+        let mut files = Vec::new();
+        rust_files(&src, &mut files);
+        let mut graph =
+            std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
+        for file in files {
+            let from = top_module(&src, &file);
+            let text = std::fs::read_to_string(&file).expect("readable source");
+            let edges = graph.entry(from.clone()).or_default();
+            edges.extend(crate_paths(&text).into_iter().filter(|to| *to != from));
+        }
+        // The crate root declares and re-exports every module; it is above them all.
+        graph.values_mut().for_each(|edges| {
+            edges.remove("lib");
+        });
+        if let Some(cycle) = first_cycle(&graph) {
+            let shown = member.dir.strip_prefix(&root).unwrap_or(&member.dir).display().to_string();
+            panic!("{shown}: modules import each other in a circle: {}", cycle.join(" -> "));
+        }
+    }
+}
