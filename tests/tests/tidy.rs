@@ -558,15 +558,23 @@ fn first_cycle(
 #[test]
 fn the_cycle_finder_finds_cycles() {
     let graph = |edges: &[(&str, &str)]| {
-        let mut graph = std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
+        let mut graph =
+            std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
         for (from, to) in edges {
             graph.entry(from.to_string()).or_default().insert(to.to_string());
         }
         graph
     };
     assert_eq!(first_cycle(&graph(&[("a", "b"), ("b", "c"), ("a", "c")])), None);
-    assert_eq!(first_cycle(&graph(&[("a", "b"), ("b", "c"), ("c", "a")])).map(|c| c.len()), Some(4));
-    let text = concat!("use crate::{a, b::C};\n// crate::commented\nlet x = crate::c::f();\n", "dex2hoi_", "crate::d");
+    assert_eq!(
+        first_cycle(&graph(&[("a", "b"), ("b", "c"), ("c", "a")])).map(|c| c.len()),
+        Some(4)
+    );
+    let text = concat!(
+        "use crate::{a, b::C};\n// crate::commented\nlet x = crate::c::f();\n",
+        "dex2hoi_",
+        "crate::d"
+    );
     assert_eq!(crate_paths(text).into_iter().collect::<Vec<_>>(), ["a", "b", "c"]);
 }
 
