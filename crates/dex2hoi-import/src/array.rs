@@ -68,8 +68,10 @@ impl DType {
             'i' if matches!(size, 1 | 2 | 4 | 8) => DTypeKind::Int,
             'u' if matches!(size, 1 | 2 | 4 | 8) => DTypeKind::UInt,
             'b' if size == 1 => DTypeKind::Bool,
-            'U' => DTypeKind::Unicode,
-            'S' => DTypeKind::Bytes,
+            // A width of at least one character: zero-width strings would let a header's
+            // element count ask for any number of elements with no bytes behind them.
+            'U' if size >= 1 && size.checked_mul(4).is_some() => DTypeKind::Unicode,
+            'S' if size >= 1 => DTypeKind::Bytes,
             'O' => return Ok(Self { kind: DTypeKind::Object, size: 0, big_endian: false }),
             _ => return Err(refuse()),
         };
@@ -215,9 +217,6 @@ pub fn decode_raw(
                 }
                 strings.push(text.trim_end_matches('\0').to_string());
             }
-            if width == 0 {
-                strings = vec![String::new(); count];
-            }
             ArrayData::Str(strings)
         }
         DTypeKind::Object => {
@@ -251,7 +250,10 @@ mod tests {
         }
         assert_eq!(DType::parse("|O", "t").unwrap().kind, DTypeKind::Object);
         assert_eq!(DType::parse("<f4", "t").unwrap().type_string(), "<f4");
-        for bad in ["<c16", "V8", "<f3", "", "<M8[ns]"] {
+        // Zero-width strings (which would decode any element count from no bytes) and widths
+        // whose byte size overflows are refused.
+        for bad in ["<c16", "V8", "<f3", "", "<M8[ns]", "<U0", "<U", "|S0", "<U4611686018427387904"]
+        {
             assert!(DType::parse(bad, "t").is_err(), "{bad}");
         }
     }

@@ -10,7 +10,11 @@
 //! objects and the size of what is built are bounded.
 //!
 //! Python objects live in an arena while the program runs, because pickles share them through
-//! the memo and mutate them after memoising (an empty list is memoised, then appended to).
+//! the memo and mutate them after memoising (an empty list is memoised, then appended to). The
+//! result copies what the arena shares, so a few bytes of references to references can stand
+//! for an exponentially large result (a "billion laughs": 123 bytes of nested `MARK`, `LIST`
+//! and `DUP` asked for gigabytes). The result's size in memory is therefore counted while it
+//! is built and bounded in proportion to the pickle's own size ([`PickleLimits`]).
 
 use std::collections::HashMap;
 
@@ -21,18 +25,65 @@ use crate::value::{ArrayData, NdArray, Value, element_count};
 /// Limits of the reader.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PickleLimits {
-    /// The most objects the program may create (each int, float, list... counts one).
+    /// The most objects the program may create (each int, float, list... counts one), and the
+    /// most the result may hold.
     pub max_objects: usize,
     /// The deepest nesting of containers in the result.
     pub max_depth: usize,
+    /// The most bytes the result may take in memory for each byte of the pickle, beyond
+    /// [`PickleLimits::result_floor_bytes`] (see [`result_bytes`] for what counts).
+    pub result_bytes_per_input_byte: usize,
+    /// Bytes any pickle's result may take, however small the pickle.
+    pub result_floor_bytes: usize,
 }
 
 impl Default for PickleLimits {
+    /// HUMOTO's longest sequences are a few million small objects; 50 million objects is a
+    /// few GB of memory at most. A pickle's result takes at most 64 bytes of memory per byte
+    /// of the pickle plus 16 MiB: a real file takes far less, because everything in its result
+    /// is written out in it once (a float is 9 bytes in the file and 32 in memory; a numpy
+    /// array's elements at most twice their size in the file, widened to 64 bits), and only
+    /// repeated dictionary keys are shared. The published HUMOTO pickle takes under 8 bytes a
+    /// byte (`tests/realdata.rs` holds it to a quarter of the limit), numpy's pickles of GRAB's
+    /// and HIMO's arrays about 2.
     fn default() -> Self {
-        // HUMOTO's longest sequences are a few million small objects; 50 million objects is
-        // a few GB of memory at most.
-        Self { max_objects: 50_000_000, max_depth: 100 }
+        Self {
+            max_objects: 50_000_000,
+            max_depth: 100,
+            result_bytes_per_input_byte: 64,
+            result_floor_bytes: 16 << 20,
+        }
     }
+}
+
+/// What a value takes in memory, as the reader counts it against
+/// [`PickleLimits::result_bytes_per_input_byte`]: the value itself, plus its text, bytes or
+/// array elements (an object array's elements are counted as values of their own).
+pub fn result_bytes(value: &Value) -> usize {
+    let own = size_of::<Value>();
+    own + match value {
+        Value::Str(text) => text.len(),
+        Value::Bytes(bytes) => bytes.len(),
+        Value::Array(array) => match &array.data {
+            ArrayData::Float(v) => v.len() * 8,
+            ArrayData::Int(v) => v.len() * 8,
+            ArrayData::Bool(v) => v.len(),
+            ArrayData::Str(v) => v.iter().map(|t| t.len() + size_of::<String>()).sum(),
+            ArrayData::Bytes(v) => v.iter().map(|b| b.len() + size_of::<Vec<u8>>()).sum(),
+            ArrayData::Object(v) => v.iter().map(result_bytes).sum(),
+        },
+        Value::List(items) | Value::Tuple(items) | Value::Set(items) => {
+            items.iter().map(result_bytes).sum()
+        }
+        Value::Dict(pairs) => pairs.iter().map(|(k, v)| result_bytes(k) + result_bytes(v)).sum(),
+        Value::None | Value::Bool(_) | Value::Int(_) | Value::Float(_) => 0,
+    }
+}
+
+/// What is left of the limits while the result is built.
+struct Budget {
+    objects: usize,
+    bytes: usize,
 }
 
 /// The callables a pickle may name: numpy's array, dtype and scalar reconstruction and the
@@ -127,7 +178,11 @@ pub fn read_pickle_with_limits(
         memo: HashMap::new(),
     };
     let root = machine.run()?;
-    let mut budget = limits.max_objects;
+    let bytes = data
+        .len()
+        .saturating_mul(limits.result_bytes_per_input_byte)
+        .saturating_add(limits.result_floor_bytes);
+    let mut budget = Budget { objects: limits.max_objects, bytes };
     let value = machine.materialise(root, 0, &mut budget)?;
     Ok((value, machine.position))
 }
@@ -732,31 +787,46 @@ impl Machine<'_> {
         }
     }
 
-    /// Turns the arena object `index` into a [`Value`], within the depth limit and the object
-    /// budget (shared objects are copied, so a pickle of many references to one big list
-    /// cannot expand without bound).
-    fn materialise(&self, index: usize, depth: usize, budget: &mut usize) -> Result<Value> {
+    /// Turns the arena object `index` into a [`Value`], within the depth limit and the budget
+    /// of objects and bytes (shared objects are copied, so a pickle of many references to one
+    /// big list cannot expand without bound). Each value is charged before it is built.
+    fn materialise(&self, index: usize, depth: usize, budget: &mut Budget) -> Result<Value> {
         if depth > self.limits.max_depth {
             return Err(self.error(format!(
                 "nesting deeper than {} levels (or a self-referencing container)",
                 self.limits.max_depth
             )));
         }
-        *budget = budget.checked_sub(1).ok_or_else(|| {
-            self.error("the result would hold more objects than the reader's limit")
+        budget.objects = budget.objects.checked_sub(1).ok_or_else(|| {
+            self.error(format!(
+                "the result would hold more than {} objects (the reader's limit)",
+                self.limits.max_objects
+            ))
         })?;
-        let many = |items: &[usize], budget: &mut usize| -> Result<Vec<Value>> {
+        let charge = match &self.arena[index] {
+            Node::Value(v) => result_bytes(v),
+            _ => size_of::<Value>(),
+        };
+        budget.bytes = budget.bytes.checked_sub(charge).ok_or_else(|| {
+            let limit = self
+                .data
+                .len()
+                .saturating_mul(self.limits.result_bytes_per_input_byte)
+                .saturating_add(self.limits.result_floor_bytes);
+            self.error(format!(
+                "the result would take more than {} MiB of memory ({} bytes per byte of the \
+                 file beyond {} MiB): its shared references expand far beyond what the file \
+                 holds",
+                limit >> 20,
+                self.limits.result_bytes_per_input_byte,
+                self.limits.result_floor_bytes >> 20
+            ))
+        })?;
+        let many = |items: &[usize], budget: &mut Budget| -> Result<Vec<Value>> {
             items.iter().map(|&i| self.materialise(i, depth + 1, budget)).collect()
         };
         Ok(match &self.arena[index] {
-            Node::Value(v) => {
-                if let Value::Array(a) = v {
-                    *budget = budget.checked_sub(a.len() / 64).ok_or_else(|| {
-                        self.error("the result would be larger than the reader's limit")
-                    })?;
-                }
-                v.clone()
-            }
+            Node::Value(v) => v.clone(),
             Node::List(items) => Value::List(many(items, budget)?),
             Node::Tuple(items) => Value::Tuple(many(items, budget)?),
             Node::Set(items) => Value::Set(many(items, budget)?),
@@ -862,11 +932,55 @@ mod tests {
         }
         bytes.extend(b".");
         assert!(read(&bytes).unwrap_err().to_string().contains("nesting"));
-        let small = PickleLimits { max_objects: 3, max_depth: 10 };
+        let small = PickleLimits { max_objects: 3, max_depth: 10, ..PickleLimits::default() };
         let many = b"\x80\x02(K\x01K\x02K\x03K\x04l.";
         assert!(read_pickle_with_limits(many, "t", small).is_err());
         // Self-reference: a list appended to itself.
         let cycle = b"\x80\x02]q\x00h\x00a.";
         assert!(read(cycle).is_err());
+    }
+
+    /// A list holding the same list twice, nested `levels` deep: `9 * levels + 5` bytes that
+    /// stand for `2^levels` empty lists.
+    fn doubling(levels: usize) -> Vec<u8> {
+        // An empty list, memoised as 0.
+        let mut bytes = b"\x80\x02]q\x00".to_vec();
+        for _ in 0..levels {
+            // POP it, MARK, memo 0 twice, LIST of the two, memoised as 0 in its place.
+            bytes.extend(b"0(h\x00h\x00lq\x00");
+        }
+        bytes.extend(b".");
+        bytes
+    }
+
+    #[test]
+    fn shared_references_cannot_expand_beyond_the_budget() {
+        // 2^10 copies fit any budget; 2^40 would take terabytes and are refused, quickly.
+        assert!(read(&doubling(10)).is_ok());
+        let started = std::time::Instant::now();
+        let error = read(&doubling(40)).unwrap_err().to_string();
+        assert!(error.contains("MiB of memory") && error.contains("test.pkl"), "{error}");
+        assert!(started.elapsed().as_secs() < 10, "refused after {:?}", started.elapsed());
+        // The budget grows with the file: a result of 2^17 values (about 4 MiB) is refused with
+        // no floor and 8 bytes per input byte, accepted with the default limits.
+        let tight = PickleLimits {
+            result_bytes_per_input_byte: 8,
+            result_floor_bytes: 0,
+            ..PickleLimits::default()
+        };
+        assert!(read_pickle_with_limits(&doubling(17), "t", tight).is_err());
+        assert!(read(&doubling(17)).is_ok());
+    }
+
+    /// `../shared/bad-inputs/pickle-bomb-123b.pkl`, the input the pickle fuzzer stopped at:
+    /// nested `MARK`, `LIST` and `DUP` inside two dicts.
+    const BOMB: &[u8] = include_bytes!("../tests/fixtures/pickle-bomb-123b.pkl");
+
+    #[test]
+    fn the_fuzzers_pickle_bomb_is_refused_quickly() {
+        let started = std::time::Instant::now();
+        let error = read(BOMB).unwrap_err().to_string();
+        assert!(error.contains("MiB of memory"), "{error}");
+        assert!(started.elapsed().as_secs() < 10, "refused after {:?}", started.elapsed());
     }
 }

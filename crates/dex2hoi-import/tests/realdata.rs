@@ -238,3 +238,24 @@ fn prepared_humoto_decodes_to_blenders_joints() {
         assert!(max <= 0.025, "{folder}: a joint is {max} m off");
     }
 }
+
+/// The pickle reader's memory bound (`PickleLimits`: 64 bytes of result per byte of the file,
+/// beyond a floor) never refuses a real file: the published `up_bone` pickle reads within a
+/// quarter of it with no floor at all.
+#[test]
+fn the_real_pickle_reads_well_within_the_memory_bound() {
+    use dex2hoi_import::pickle::{PickleLimits, read_pickle_with_limits, result_bytes};
+    let Some(dir) = humoto_dir() else { return };
+    let path = dir.join(format!("pkl_up_bone/{SEQUENCE}/{SEQUENCE}.pkl"));
+    let bytes = std::fs::read(&path).unwrap();
+    let defaults = PickleLimits::default();
+    let quarter = PickleLimits {
+        result_bytes_per_input_byte: defaults.result_bytes_per_input_byte / 4,
+        result_floor_bytes: 0,
+        ..defaults
+    };
+    let (value, _) = read_pickle_with_limits(&bytes, "real.pkl", quarter).unwrap();
+    let ratio = result_bytes(&value) as f64 / bytes.len() as f64;
+    eprintln!("{} bytes read into {ratio:.2} bytes of result per byte", bytes.len());
+    assert!(ratio < quarter.result_bytes_per_input_byte as f64);
+}

@@ -83,6 +83,19 @@ pub fn read_tensors_from_bytes(
         header.metadata().clone().unwrap_or_default().into_iter().collect();
     let mut tensors = BTreeMap::new();
     for (name, view) in file.tensors() {
+        // safetensors checks that the bytes match the shape's element count, but a shape with
+        // a zero dimension holds no bytes whatever its other dimensions, and candle's strides
+        // of such a shape can overflow: every dimension's product must fit.
+        let fits =
+            view.shape().iter().filter(|&&d| d > 0).try_fold(1usize, |n, &d| n.checked_mul(d));
+        if fits.is_none() {
+            return Err(checkpoint_error(
+                path,
+                &name,
+                "a shape whose dimensions' product fits memory",
+                format!("{:?}", view.shape()),
+            ));
+        }
         tensors.insert(name, view.load(device)?);
     }
     Ok((tensors, metadata))
@@ -187,5 +200,33 @@ impl Model {
         let model = Model::new(&config, vars.builder(dtype, device))?;
         assign_parameters(&vars, tensors, prefix, path)?;
         Ok((model, vars))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A safetensors file of one tensor: the 8-byte header length, the JSON header, the data.
+    fn safetensors_file(header: &str, data: &[u8]) -> Vec<u8> {
+        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+        bytes.extend(header.as_bytes());
+        bytes.extend(data);
+        bytes
+    }
+
+    #[test]
+    fn empty_tensors_with_huge_dimensions_are_refused() {
+        let path = Path::new("huge.safetensors");
+        let fine =
+            safetensors_file(r#"{"t":{"dtype":"F32","shape":[0,3],"data_offsets":[0,0]}}"#, &[]);
+        let (tensors, _) = read_tensors_from_bytes(&fine, path, &Device::Cpu).unwrap();
+        assert_eq!(tensors["t"].dims(), [0, 3]);
+        let huge = safetensors_file(
+            r#"{"t":{"dtype":"F32","shape":[0,1099511627776,1099511627776],"data_offsets":[0,0]}}"#,
+            &[],
+        );
+        let error = read_tensors_from_bytes(&huge, path, &Device::Cpu).unwrap_err().to_string();
+        assert!(error.contains("huge.safetensors") && error.contains("fits memory"), "{error}");
     }
 }

@@ -243,25 +243,17 @@ impl Mesh {
     }
 }
 
-/// The PLY file with every header line that starts with no PLY keyword turned into a comment;
 /// Checks every face's vertex, texture and normal indices (1-based, or negative: relative to
 /// the elements read so far) against the elements defined before it, as OBJ requires. `tobj`
 /// 4.0 resolves them unchecked: a relative index before the start wraps around and overflows
-/// (found by the `mesh` fuzz target). `Err((line, what))` for the first bad one.
+/// (found by the `mesh` fuzz target). Lines are checked as `tobj` reads them, one by one: it
+/// knows no continuation lines, so a face behind a trailing backslash is a face of its own.
+/// `Err((line, what))` for the first bad one.
 fn check_obj_indices(bytes: &[u8]) -> std::result::Result<(), (usize, String)> {
     let text = String::from_utf8_lossy(bytes);
     // [v, vt, vn] defined so far.
     let mut counts = [0i64; 3];
-    let mut pending = String::new();
-    for (number, raw) in text.lines().enumerate() {
-        // A trailing backslash continues the line.
-        if let Some(start) = raw.strip_suffix('\\') {
-            pending.push_str(start);
-            pending.push(' ');
-            continue;
-        }
-        pending.push_str(raw);
-        let line = std::mem::take(&mut pending);
+    for (number, line) in text.lines().enumerate() {
         let mut words = line.split_whitespace();
         match words.next() {
             Some("v") => counts[0] += 1,
@@ -294,6 +286,7 @@ fn check_obj_indices(bytes: &[u8]) -> std::result::Result<(), (usize, String)> {
     Ok(())
 }
 
+/// The PLY file with every header line that starts with no PLY keyword turned into a comment;
 /// `None` when there is no `end_header` line.
 fn tolerant_ply_header(bytes: &[u8]) -> Option<Vec<u8>> {
     const KEYWORDS: [&str; 7] =
@@ -470,6 +463,13 @@ mod tests {
             (b"v 0 0 0\nv 1 0 0\nf 1 2 3\n".as_slice(), "vertex index 3 with 2 defined"),
             (b"v 0 0 0\nf -4 1 1\n".as_slice(), "vertex index -4"),
             (b"v 0 0 0\nv 1 0 0\nv 1 1 0\nf 0 1 2\n".as_slice(), "vertex index 0"),
+            // tobj reads no continuation lines: a face after a comment ending in a backslash
+            // is checked as the face it reads.
+            (
+                b"v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\n# x \\\nf 1/-9223372036854775807 2 3\n"
+                    .as_slice(),
+                "texture coordinate index -9223372036854775807",
+            ),
         ] {
             let error = Mesh::parse_obj(text, "bad.obj").unwrap_err().to_string();
             assert!(error.contains("bad.obj") && error.contains(needle), "{error}");
