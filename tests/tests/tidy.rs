@@ -310,19 +310,24 @@ fn unsafe_stays_in_its_modules_with_a_safety_comment_per_use() {
     }
 }
 
-/// The repository's source and documentation files (`.rs`, `.md`, `.py`, `.toml`, `.sh`),
-/// outside `target/` and hidden folders.
-fn text_files(dir: &Path, out: &mut Vec<PathBuf>) {
+/// The source and documentation files (`.rs`, `.md`, `.py`, `.toml`, `.sh`) that cite the
+/// conventions.
+const CITING_EXTENSIONS: [&str; 5] = ["rs", "md", "py", "toml", "sh"];
+
+/// Every text file the repository holds, for the history check: the citing ones and its data.
+const TEXT_EXTENSIONS: [&str; 9] = ["rs", "md", "py", "toml", "sh", "json", "yml", "yaml", "txt"];
+
+/// The files below `dir` with one of `extensions`, outside build outputs (`target/`), hidden
+/// folders and installed packages (`node_modules/`): the repository's own files.
+fn text_files(dir: &Path, extensions: &[&str], out: &mut Vec<PathBuf>) {
     for entry in std::fs::read_dir(dir).expect("readable dir") {
         let path = entry.expect("entry").path();
-        let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
         if path.is_dir() {
-            if name != "target" && !name.starts_with('.') {
-                text_files(&path, out);
+            if !name.starts_with('.') && name != "target" && name != "node_modules" {
+                text_files(&path, extensions, out);
             }
-        } else if path
-            .extension()
-            .is_some_and(|e| ["rs", "md", "py", "toml", "sh"].iter().any(|x| e == *x))
+        } else if path.extension().and_then(|e| e.to_str()).is_some_and(|e| extensions.contains(&e))
         {
             out.push(path);
         }
@@ -342,7 +347,7 @@ fn conventions_are_cited_from_inside_the_repository() {
     let mut files = vec![root.join("README.md")];
     for dir in ["crates", "docs", "xtask", "tests", "scripts", "configs"] {
         if root.join(dir).is_dir() {
-            text_files(&root.join(dir), &mut files);
+            text_files(&root.join(dir), &CITING_EXTENSIONS, &mut files);
         }
     }
     // Built from pieces so that this file does not match itself.
@@ -405,23 +410,6 @@ fn readme_gives_the_ci_test_command() {
     );
 }
 
-/// Every text file of the repository outside build outputs and dependencies.
-fn repository_text_files(dir: &Path, out: &mut Vec<PathBuf>) {
-    for entry in std::fs::read_dir(dir).expect("readable dir") {
-        let path = entry.expect("entry").path();
-        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-        if path.is_dir() {
-            if !name.starts_with('.') && name != "target" && name != "node_modules" {
-                repository_text_files(&path, out);
-            }
-        } else if path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
-            ["rs", "md", "py", "toml", "sh", "json", "yml", "yaml", "txt"].contains(&e)
-        }) {
-            out.push(path);
-        }
-    }
-}
-
 /// Where `text` names a development session by number (the word, an optional plural `s`,
 /// blanks, then a digit), as 1-based line numbers.
 fn development_history_lines(text: &str) -> Vec<usize> {
@@ -460,7 +448,7 @@ fn the_history_detector_finds_what_it_should() {
 fn no_development_history_in_the_repository() {
     let root = workspace_root();
     let mut files = Vec::new();
-    repository_text_files(&root, &mut files);
+    text_files(&root, &TEXT_EXTENSIONS, &mut files);
     assert!(files.iter().any(|f| f.ends_with("README.md")), "the walk reaches the root");
     let mut found = Vec::new();
     for file in files {

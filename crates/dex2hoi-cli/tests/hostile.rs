@@ -17,10 +17,7 @@ const BOMB: &[u8] = include_bytes!("../../dex2hoi-import/tests/fixtures/pickle-b
 const PEAK_LIMIT_MIB: i64 = 256;
 
 fn temp_dir(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("dex2hoi-cli-hostile-{name}-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    dir
+    common::temp_dir("hostile", name)
 }
 
 #[test]

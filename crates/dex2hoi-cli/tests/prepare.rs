@@ -12,10 +12,7 @@ mod common;
 use common::dex2hoi;
 
 fn temp_dir(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("dex2hoi-cli-prepare-{name}-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    dir
+    common::temp_dir("prepare", name)
 }
 
 fn fixtures() -> &'static Path {

@@ -11,9 +11,7 @@ mod common;
 use common::dex2hoi;
 
 fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("dex2hoi-cli-show-{name}-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    dir
+    common::temp_dir("show", name)
 }
 
 fn succeed(args: &[&str]) -> String {

@@ -56,6 +56,15 @@ impl Default for PickleLimits {
     }
 }
 
+impl PickleLimits {
+    /// The most bytes the result of a pickle of `input_bytes` bytes may take in memory.
+    pub fn result_limit(&self, input_bytes: usize) -> usize {
+        input_bytes
+            .saturating_mul(self.result_bytes_per_input_byte)
+            .saturating_add(self.result_floor_bytes)
+    }
+}
+
 /// What a value takes in memory, as the reader counts it against
 /// [`PickleLimits::result_bytes_per_input_byte`]: the value itself, plus its text, bytes or
 /// array elements (an object array's elements are counted as values of their own).
@@ -178,11 +187,7 @@ pub fn read_pickle_with_limits(
         memo: HashMap::new(),
     };
     let root = machine.run()?;
-    let bytes = data
-        .len()
-        .saturating_mul(limits.result_bytes_per_input_byte)
-        .saturating_add(limits.result_floor_bytes);
-    let mut budget = Budget { objects: limits.max_objects, bytes };
+    let mut budget = Budget { objects: limits.max_objects, bytes: limits.result_limit(data.len()) };
     let value = machine.materialise(root, 0, &mut budget)?;
     Ok((value, machine.position))
 }
@@ -808,11 +813,7 @@ impl Machine<'_> {
             _ => size_of::<Value>(),
         };
         budget.bytes = budget.bytes.checked_sub(charge).ok_or_else(|| {
-            let limit = self
-                .data
-                .len()
-                .saturating_mul(self.limits.result_bytes_per_input_byte)
-                .saturating_add(self.limits.result_floor_bytes);
+            let limit = self.limits.result_limit(self.data.len());
             self.error(format!(
                 "the result would take more than {} MiB of memory ({} bytes per byte of the \
                  file beyond {} MiB): its shared references expand far beyond what the file \

@@ -11,6 +11,16 @@ pub fn dex2hoi(args: &[&str]) -> Output {
         .expect("the binary runs")
 }
 
+/// An empty scratch directory path for one test, `dex2hoi-cli-{file}-{name}-{pid}` under the
+/// system's temporary folder (removed if an earlier run left it; not created).
+#[allow(dead_code)] // not every test binary needs scratch space
+pub fn temp_dir(file: &str, name: &str) -> std::path::PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("dex2hoi-cli-{file}-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    dir
+}
+
 /// Writes the fixture SMPL-X model (`dex2hoi_testkit::smplx_fixture`) on the built-in skeleton
 /// and its capsule body.
 #[allow(dead_code)] // only the tests that dress the body with a model use it
