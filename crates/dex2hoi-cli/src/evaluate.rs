@@ -1,6 +1,7 @@
 //! `dex2hoi evaluate`: the metrics of the paper's tables for a trained run on a dataset's test
 //! split, with an evaluator trained by `dex2hoi evaluator train`.
 
+use std::num::NonZeroUsize;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
@@ -8,7 +9,7 @@ use clap::Args;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::files::write_atomically;
-use dex2hoi_eval::evaluate::{EvaluateOptions, evaluate};
+use dex2hoi_eval::evaluate::{DEFAULT_LONG_FRAMES, EvaluateOptions, LongOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
 use dex2hoi_sample::{TrainedRun, Weights};
@@ -59,6 +60,16 @@ pub struct EvaluateArgs {
     /// they embed and the sequences' actions to embeddings.npz.
     #[arg(long)]
     dump_embeddings: bool,
+    /// Also run the long-generation protocol: motions of --long-frames frames from each test
+    /// sequence's first-frame placements and prompt (no motion prefix), as `dex2hoi sample`
+    /// makes them, judged against the whole ground truth (task done as asked and once, objects
+    /// at rest); with the lone object moved to the middle or across the body, and with the
+    /// phrasings held out of training.
+    #[arg(long)]
+    long: bool,
+    /// Frames of each long generation.
+    #[arg(long, default_value_t = DEFAULT_LONG_FRAMES.try_into().expect("a positive default"), requires = "long")]
+    long_frames: NonZeroUsize,
     #[command(flatten)]
     device: DeviceArgs,
 }
@@ -97,6 +108,7 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
         sampler,
         seed: args.seed,
         multimodality,
+        long: args.long.then_some(LongOptions { frames: args.long_frames }),
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(

@@ -141,6 +141,7 @@ pub fn mirror(sequence: &ProcessedSequence, skeleton: &Skeleton) -> ProcessedSeq
     out.root_start.x = -sequence.root_start.x;
     out.rest_offsets = skeleton.mirror_offsets(&sequence.rest_offsets);
     out.texts = sequence.texts.iter().map(|t| mirror_text(t)).collect();
+    out.held_out_texts = sequence.held_out_texts.iter().map(|t| mirror_text(t)).collect();
     out
 }
 

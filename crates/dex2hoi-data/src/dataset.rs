@@ -18,9 +18,13 @@ use crate::files::{io_error, temporary_path, write_atomically};
 use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
 
-/// The version of the format this code writes and reads. Version 2 added each sequence's rest
-/// offsets (`rest_offsets`); version 1 files are refused (prepare them again).
-pub const FORMAT_VERSION: u32 = 2;
+/// The version of the format this code writes. Version 2 added each sequence's rest offsets
+/// (`rest_offsets`); version 3 each sequence's held-out descriptions (`held_out_texts`, absent
+/// when there are none).
+pub const FORMAT_VERSION: u32 = 3;
+/// The oldest version this code reads: version 2 reads as version 3 without held-out
+/// descriptions; version 1 files are refused (prepare them again).
+pub const OLDEST_READABLE_FORMAT: u32 = 2;
 
 /// The least standard deviation a feature channel is normalised with: channels that never
 /// change (the legs of a standing character) must not blow up.
@@ -111,6 +115,10 @@ pub struct SequenceInfo {
     pub source_id: String,
     /// Descriptions.
     pub texts: Vec<String>,
+    /// Descriptions in phrasings held out of training (see
+    /// [`ProcessedSequence::held_out_texts`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub held_out_texts: Vec<String>,
     /// Action label.
     pub action: Option<String>,
     /// Object names per slot (`null` for an empty slot).
@@ -419,6 +427,7 @@ impl Dataset {
                 .map(|s| SequenceInfo {
                     source_id: s.source_id.clone(),
                     texts: s.texts.clone(),
+                    held_out_texts: s.held_out_texts.clone(),
                     action: s.action.clone(),
                     objects: s.object_names.clone(),
                 })
@@ -477,8 +486,8 @@ impl Dataset {
         let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| {
             DataError::format(&path, "manifest", "the dex2hoi dataset manifest (JSON)", e)
         })?;
-        if manifest.format_version != FORMAT_VERSION {
-            let advice = if manifest.format_version < FORMAT_VERSION {
+        if !(OLDEST_READABLE_FORMAT..=FORMAT_VERSION).contains(&manifest.format_version) {
+            let advice = if manifest.format_version < OLDEST_READABLE_FORMAT {
                 "written by an older dex2hoi (without each sequence's rest skeleton): run \
                  `dex2hoi data prepare` or `dex2hoi data synth` again"
             } else {
@@ -487,7 +496,7 @@ impl Dataset {
             return Err(DataError::format(
                 &path,
                 "format_version",
-                FORMAT_VERSION.to_string(),
+                format!("{OLDEST_READABLE_FORMAT} to {FORMAT_VERSION}"),
                 format!("{}, {advice}", manifest.format_version),
             ));
         }
@@ -612,6 +621,7 @@ impl Dataset {
                         .map(Vec3::from_slice)
                         .collect(),
                     texts: info.texts,
+                    held_out_texts: info.held_out_texts,
                     action: info.action,
                     source_id: info.source_id,
                 });

@@ -235,6 +235,7 @@ pub fn process_sequence(
         root_start,
         rest_offsets: skeleton.rest_offsets().to_vec(),
         texts: sequence.texts.clone(),
+        held_out_texts: Vec::new(),
         action: sequence.action.clone(),
         source_id: sequence.source_id.clone(),
     })

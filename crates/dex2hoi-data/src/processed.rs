@@ -72,6 +72,10 @@ pub struct ProcessedSequence {
     pub rest_offsets: Vec<Vec3>,
     /// Descriptions.
     pub texts: Vec<String>,
+    /// Descriptions in phrasings held out of training, for evaluating how a model reads words
+    /// it knows in phrasings it never saw; training never reads them. Empty for sources without
+    /// them.
+    pub held_out_texts: Vec<String>,
     /// Action label.
     pub action: Option<String>,
     /// Source id.

@@ -83,6 +83,7 @@ impl Window {
             root_start: sequence.root_start,
             rest_offsets: sequence.rest_offsets.clone(),
             texts: sequence.texts.clone(),
+            held_out_texts: sequence.held_out_texts.clone(),
             action: sequence.action.clone(),
             source_id: sequence.source_id.clone(),
         }

@@ -23,6 +23,7 @@
 
 mod embedding;
 mod generation;
+mod long;
 mod physical;
 mod report;
 mod scores;
@@ -41,6 +42,10 @@ use generation::{Generator, Progress, replication_prompts};
 use physical::{GroupScores, ObjectMeshes, Physical, Window, instruction_rows, physical_row};
 use scores::DistributionScores;
 
+pub use long::{
+    ACROSS_THE_BODY_M, DEFAULT_LONG_FRAMES, LongOptions, LongProtocol, LongRow, LongScores,
+    LongSet, LongSetKind,
+};
 pub use report::{
     Embeddings, Estimate, EvaluationSetup, InstructionRow, PhysicalRow, REPORT_FORMAT, Report,
     ReportRow, SamplerName,
@@ -59,6 +64,8 @@ pub struct EvaluateOptions {
     pub seed: u64,
     /// The MultiModality protocol (prompts x repeats x pairs; default 8 x 4 x 3).
     pub multimodality: metrics::MultimodalityProtocol,
+    /// The long-generation protocol too, with these options (`None`: the paper's only).
+    pub long: Option<LongOptions>,
 }
 
 impl Default for EvaluateOptions {
@@ -69,6 +76,7 @@ impl Default for EvaluateOptions {
             sampler: SamplerConfig::default(),
             seed: 0,
             multimodality: metrics::MultimodalityProtocol::default(),
+            long: None,
         }
     }
 }
@@ -174,8 +182,11 @@ pub fn evaluate(
     let features = DistributionFeatures::of(evaluator);
     let mm = options.multimodality;
     let mm_prompts = mm.prompts.min(chosen.len());
-    let mut progress =
-        Progress::new(options.replications * (chosen.len() + mm_prompts * mm.repeats), progress);
+    let progress_callback = progress;
+    let mut progress = Progress::new(
+        options.replications * (chosen.len() + mm_prompts * mm.repeats),
+        progress_callback,
+    );
     // The evaluator's configuration holds at least two clip frames (`EvaluatorConfig::validate`).
     let clip_frames = std::num::NonZeroUsize::new(window.frames)
         .ok_or_else(|| EvalError::invalid("evaluator clip_frames", "at least 1", window.frames))?;
@@ -228,6 +239,19 @@ pub fn evaluate(
         all.truth.push(DistributionScores::of_ground_truth(&truth.embedded, &texts, seed)?);
         embeddings.set_replication(embedded, clips, texts, prompts);
     }
+    let long = match options.long {
+        Some(long_options) => Some(long::evaluate_long(
+            run,
+            dataset,
+            &chosen,
+            &meshes,
+            long_options,
+            options.sampler,
+            options.seed,
+            progress_callback,
+        )?),
+        None => None,
+    };
     let report = Report {
         format: REPORT_FORMAT,
         setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),
@@ -256,6 +280,7 @@ pub fn evaluate(
         clip_frames: window.frames,
         distribution_features: features.describe().into(),
         multimodality_protocol: [mm_prompts, mm.repeats, mm.pairs],
+        long,
     };
     Ok((report, embeddings))
 }

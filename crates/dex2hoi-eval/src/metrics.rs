@@ -16,6 +16,8 @@
 //! with the same hands, to the same place?), [`object_start_jumps`], [`object_start_turns`],
 //! [`untouched_object_motion`] (speeds and turning rates; [`turn_degrees`] in `f64`) and
 //! [`object_sinking`] (do objects behave like objects?),
+//! [`long_generation`] (a motion of many seconds against its whole ground truth: the task done
+//! as asked and once, objects at rest on their support),
 //! [`fingertip_distances`] (how precisely the fingertips sit on a held object) and [`runtime`]. Each per-sample result carries its counts so that a test set can be
 //! pooled ([`Penetration::pooled`], [`ContactCounts::merge`]).
 //!
@@ -38,6 +40,7 @@ mod foot_sliding;
 mod grasp;
 mod instruction;
 mod linalg;
+mod long_generation;
 mod matching;
 mod mixture;
 mod penetration;
@@ -61,6 +64,10 @@ pub use instruction::{
     untouched_object_speeds, untouched_object_turn_rates,
 };
 pub use linalg::{SymmetricEigen, symmetric_eigen};
+pub use long_generation::{
+    HandsUsed, LIFT_M, LongCounts, MIN_HOLD_S, MIN_LIFT_S, ObjectCourse, PUT_DOWN_GAP_S,
+    lift_count, long_generation, long_medians, object_courses,
+};
 pub use matching::{
     R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_of_ranks,
     r_precision_with, retrieval_ranks, top_k_shares,

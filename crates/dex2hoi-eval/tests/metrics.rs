@@ -914,3 +914,117 @@ fn instruction_following_by_hand() {
     assert!(untouched_object_speeds(&truth, 0.0).is_err());
     assert!(object_start_jumps(&truth, [Vec3::NAN, Vec3::ZERO]).is_err());
 }
+
+#[test]
+fn long_generation_by_hand() {
+    use dex2hoi_eval::metrics::{LIFT_M, lift_count, long_generation, long_medians};
+    let skeleton = Skeleton::smplx();
+    let half = 0.04;
+    let query = MeshQuery::new(&box_mesh(Vec3::splat(half))).unwrap();
+    let pelvis = skeleton.rest_positions()[0];
+    let frames = 60;
+    let start = [pelvis + Vec3::new(0.0, 0.0, 0.4), pelvis + Vec3::new(0.4, 0.0, 0.4)];
+    let support = start.map(|p| p.y - half);
+    // A lift of object 0 by `hand` over frames `from..to`: 10 cm up, `across` sideways, back
+    // down on frame `to`; the hand holds it on those frames.
+    let carry = |t: usize, (from, to): (usize, usize), across: f32| -> Option<Vec3> {
+        (from..to).contains(&t).then(|| {
+            let k = (t - from) as f32 / (to - from - 1) as f32;
+            let up = 0.10 * (std::f32::consts::PI * k).sin();
+            start[0] + Vec3::new(across * k, up, 0.0)
+        })
+    };
+    let resting = |t: usize, lifts: &[((usize, usize), f32)]| {
+        let mut at = start[0];
+        for &(span, across) in lifts {
+            if t >= span.1 {
+                at = start[0] + Vec3::new(across, 0.0, 0.0);
+            }
+            if let Some(p) = carry(t, span, across) {
+                return p;
+            }
+        }
+        at
+    };
+    // Ground truth: the right hand (side 1) puts object 0 30 cm to the right over frames
+    // 10-20; object 1 stays.
+    let once = [((10, 21), -0.3)];
+    let truth = Scene::new(
+        &skeleton,
+        frames,
+        |t, side| (side == 1).then(|| carry(t, once[0].0, -0.3)).flatten(),
+        |t| [resting(t, &once), start[1]],
+    );
+    // Generated: the same, then the right hand lifts object 0 again over frames 35-45 and puts
+    // it back where it was; object 1 sinks 0.1 cm a frame, untouched (3 cm in 30 frames, then
+    // it stays).
+    let twice = [((10, 21), -0.3), ((35, 46), 0.0)];
+    let again = |t: usize| {
+        carry(t, (10, 21), -0.3).or(carry(t, (35, 46), 0.0).map(|p| p + Vec3::new(-0.3, 0.0, 0.0)))
+    };
+    let generated = Scene::new(
+        &skeleton,
+        frames,
+        |t, side| (side == 1).then(|| again(t)).flatten(),
+        |t| {
+            let sink = 0.001 * t.min(30) as f32;
+            let first = match t {
+                35..46 => again(t).unwrap(),
+                _ => resting(t, &twice[..1]),
+            };
+            [first, start[1] - Vec3::new(0.0, sink, 0.0)]
+        },
+    );
+    let (truth, generated) = (truth.sample(&skeleton, &query), generated.sample(&skeleton, &query));
+    let counts = long_generation(&generated, &truth, start, support, 20.0).unwrap();
+    assert_eq!((counts.generations, counts.as_asked, counts.objects), (1, 1, 2));
+    assert_eq!((counts.moved_in_truth, counts.moved_agree), (1, 2));
+    assert_eq!((counts.hands_agree, counts.travel_agrees), (1, 1));
+    assert_eq!(counts.lifted_again, 1, "object 0 lifted a second time, unasked");
+    assert!((counts.deepest_sink_m[1] - 0.03).abs() < 1e-5, "{:?}", counts.deepest_sink_m);
+    assert_eq!(counts.highest_float_m, vec![0.0, 0.0]);
+    assert_eq!(counts.start_jumps_m, vec![0.0, 0.0]);
+    let [off, sink, float, _, jump] = long_medians(&counts);
+    assert!((off.unwrap() - 0.015).abs() < 1e-5 && (sink.unwrap() - 0.015).abs() < 1e-5);
+    assert_eq!((float, jump), (Some(0.0), Some(0.0)));
+    // The ground truth against itself: the task as asked, nothing lifted again, nothing off its
+    // support or moving while untouched.
+    let same = long_generation(&truth, &truth, start, support, 20.0).unwrap();
+    assert_eq!((same.as_asked, same.lifted_again), (1, 0));
+    assert_eq!(same.off_support_m, vec![0.0, 0.0]);
+    assert!(same.untouched_speeds.iter().all(|&v| v == 0.0) && !same.untouched_speeds.is_empty());
+    // The other hand, the other side: not as asked.
+    let wrong = Scene::new(
+        &skeleton,
+        frames,
+        |t, side| (side == 0).then(|| carry(t, once[0].0, 0.3)).flatten(),
+        |t| [resting(t, &[((10, 21), 0.3)]), start[1]],
+    );
+    let wrong = wrong.sample(&skeleton, &query);
+    let counts = long_generation(&wrong, &truth, start, support, 20.0).unwrap();
+    assert_eq!((counts.as_asked, counts.hands_agree, counts.travel_agrees), (0, 0, 0));
+    // A floating object: placed 2 cm above its support, it floats 2 cm, and jumps 2 cm at the
+    // start.
+    let raised = Scene::new(
+        &skeleton,
+        frames,
+        |_, _| None,
+        |_| [start[0] + Vec3::new(0.0, 0.02, 0.0), start[1]],
+    );
+    let raised = raised.sample(&skeleton, &query);
+    let counts = long_generation(&raised, &truth, start, support, 20.0).unwrap();
+    assert!((counts.highest_float_m[0] - 0.02).abs() < 1e-5, "{:?}", counts.highest_float_m);
+    assert!((counts.start_jumps_m[0] - 0.02).abs() < 1e-5);
+    assert_eq!((counts.moved_agree, counts.as_asked), (1, 0), "object 0 never moves");
+    // Lifts: runs above LIFT_M, a gap of fewer than 3 frames merged, runs under 2 frames dropped.
+    let up = LIFT_M + 0.01;
+    let heights = [0.0, up, up, 0.0, up, up, 0.0, 0.0, 0.0, up, up, 0.0, 0.0, 0.0, 0.0, up];
+    assert_eq!(lift_count(&heights, 2, 3), 2);
+    assert_eq!(lift_count(&heights, 2, 1), 3);
+    assert_eq!(lift_count(&heights, 1, 1), 4);
+    // Bad input.
+    assert!(long_generation(&generated, &truth, start, [0.0, f32::NAN], 20.0).is_err());
+    assert!(long_generation(&generated, &truth, start, support, 0.0).is_err());
+    let one = MotionSample { present: [true, false], ..generated };
+    assert!(long_generation(&one, &truth, start, support, 20.0).is_err());
+}

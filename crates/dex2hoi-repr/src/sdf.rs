@@ -17,7 +17,7 @@
 
 use std::collections::HashMap;
 
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 use parry3d::query::PointQueryWithLocation;
 use parry3d::shape::{TriMesh, TrianglePointLocation};
 use rayon::prelude::*;
@@ -123,6 +123,16 @@ impl MeshQuery {
             ReprError::format("signed-distance query", "triangle mesh", "a valid mesh", error)
         })?;
         Ok(Self { trimesh, face_normals, vertex_normals, edge_normals })
+    }
+
+    /// The height (world Y) of the mesh's lowest point when its frame is placed at
+    /// `rotation`, `position`: where an object standing on a support touches it.
+    pub fn lowest_height(&self, rotation: Mat3, position: Vec3) -> f32 {
+        self.trimesh
+            .vertices()
+            .iter()
+            .map(|v| (rotation * *v + position).y)
+            .fold(f32::INFINITY, f32::min)
     }
 
     /// Number of triangles in the query structure.

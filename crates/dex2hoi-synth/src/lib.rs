@@ -11,6 +11,7 @@
 
 pub mod error;
 pub mod plan;
+pub mod text;
 
 use glam::{Mat3, Vec3};
 use rand::{Rng, SeedableRng};
@@ -47,6 +48,8 @@ pub struct SynthSequence {
     pub table_height: f32,
     /// Who holds what, when (seconds).
     pub attachments: Vec<Attachment>,
+    /// Descriptions in the phrasings held out of training.
+    pub held_out_texts: Vec<String>,
 }
 
 /// How a hand holds an object: the wrist in the object frame, the surface normal at the grasp
@@ -69,7 +72,10 @@ fn grasp(
     let fingers = Vec3::Z;
     let (contact, outward) = match style {
         GraspStyle::Top => (Vec3::new(0.0, half.y, 0.0), Vec3::Y),
-        GraspStyle::Side => (Vec3::new(hand.side() * half.x, 0.0, 0.0), Vec3::X * hand.side()),
+        GraspStyle::Side => (
+            Vec3::new(hand.side() * half.x, (half.y - SIDE_GRASP_BELOW_TOP).max(0.0), 0.0),
+            Vec3::X * hand.side(),
+        ),
     };
     let rotation = wrist_rotation(hand, fingers, outward);
     let position = contact + outward * PALM_GAP - fingers * WRIST_BACK;
@@ -84,6 +90,11 @@ fn grasp(
     );
     Grasp { wrist: Pose { rotation, position }, outward, curls }
 }
+
+/// How far below the top a side grasp holds a side taller than this (the box): centred on
+/// its 20 cm face the curled hand put joints 13 mm into it; held on the upper part, as a
+/// person lifts a box, they stay outside. Lower sides are held in the middle.
+const SIDE_GRASP_BELOW_TOP: f32 = 0.07;
 
 /// Height of the arc that free hand paths take over the objects on the table.
 const PATH_ARC: f32 = 0.12;
@@ -240,6 +251,7 @@ fn realise(plan: &Plan, fps: f32, rng: &mut ChaCha8Rng, index: usize) -> Result<
         task: plan.task,
         table_height: plan.table_height,
         attachments: plan.attachments.clone(),
+        held_out_texts: plan.held_out_texts.clone(),
     })
 }
 
@@ -417,7 +429,8 @@ pub fn build_dataset(
                     expected: "catalogue objects".into(),
                     got: "an unknown object".into(),
                 })?;
-            let features = process_sequence(&synth.sequence, &object_queries, &config)?;
+            let mut features = process_sequence(&synth.sequence, &object_queries, &config)?;
+            features.held_out_texts = synth.held_out_texts;
             progress(done.fetch_add(1, Ordering::Relaxed) + 1);
             Ok((index, features))
         })

@@ -10,6 +10,8 @@ use dex2hoi_repr::rotation::axis_angle_to_matrix;
 use dex2hoi_data::catalogue::{CATALOGUE, CatalogueObject};
 use dex2hoi_data::character::Hand;
 
+use crate::text::{Description, Phrasing, describe};
+
 /// The task families.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Task {
@@ -155,9 +157,35 @@ pub struct Plan {
     pub objects: Vec<(&'static CatalogueObject, Track)>,
     /// Who holds what, when.
     pub attachments: Vec<Attachment>,
-    /// Descriptions.
+    /// What the descriptions say.
+    pub description: Description<'static>,
+    /// Descriptions in the training phrasings.
     pub texts: Vec<String>,
+    /// Descriptions in the phrasings held out of training (see [`crate::text`]).
+    pub held_out_texts: Vec<String>,
 }
+
+/// Descriptions in the training phrasings per sequence.
+pub const TRAINING_TEXTS: usize = 3;
+/// Descriptions in the held-out phrasings per sequence.
+pub const HELD_OUT_TEXTS: usize = 1;
+
+/// Seconds the person stands at rest after the last hand is back, drawn per sequence.
+pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..4.0;
+
+/// Sideways places of the object of a one-handed task towards the hand's side (metres along X
+/// times `hand.side()`): from 22 cm across the body to 22 cm on the hand's own side, so that
+/// which hand takes an object follows from the words and not from the object's side. Across
+/// the body the object stands nearer the edge ([`ACROSS_NEARER`]), and the draws a hand cannot
+/// reach are refused with the rest of the physical checks.
+pub const ONE_HANDED_REACH: std::ops::Range<f32> = -0.22..0.22;
+
+/// How much nearer the table's edge an object stands per metre across the body from the
+/// middle, for the hand that reaches it (see [`ONE_HANDED_REACH`]).
+const ACROSS_NEARER: f32 = 0.8;
+
+/// How far across the body, from the middle, a hand puts an object down.
+const PUT_DOWN_ACROSS: f32 = 0.14;
 
 /// Seconds the fingers take to close after arriving and to open before leaving; the object
 /// is still then.
@@ -264,17 +292,23 @@ impl<'r> Planner<'r> {
         }
     }
 
-    /// The finished plan: it lasts until the last hand is back at rest and a moment more.
-    fn finish(self, task: Task, texts: Vec<String>) -> Plan {
+    /// The finished plan: it lasts until the last hand is back at rest, then the person stands
+    /// at rest for a while ([`REST_AFTER_TASK`]), so that the data show the task done once and
+    /// followed by rest, as a generation longer than the task should be.
+    fn finish(self, task: Task, description: Description<'static>) -> Plan {
         let duration = self.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
-            + self.rng.random_range(0.3..0.7);
+            + self.rng.random_range(REST_AFTER_TASK);
+        let texts = describe(&description, Phrasing::Training, TRAINING_TEXTS, self.rng);
+        let held_out_texts = describe(&description, Phrasing::HeldOut, HELD_OUT_TEXTS, self.rng);
         Plan {
             task,
             duration,
             table_height: self.table.height,
             objects: self.objects,
             attachments: self.attachments,
+            description,
             texts,
+            held_out_texts,
         }
     }
 
@@ -365,11 +399,19 @@ impl<'r> Planner<'r> {
         retract_end
     }
 
-    /// An object from `pool` on the main hand's side, and the main hand reaching for it after
+    /// An object from `pool` anywhere the main hand reaches comfortably
+    /// ([`ONE_HANDED_REACH`]: across the body too), and the main hand reaching for it after
     /// the idle time.
     fn place_for_main_hand(&mut self, pool: &[&'static CatalogueObject]) -> Placed {
         let object = pick(self.rng, pool);
-        let rest = self.spot_beside(object, self.hand);
+        let x = self.hand.side() * self.rng.random_range(ONE_HANDED_REACH);
+        let z = self.depth();
+        // Across the body the arm reaches less far ahead (the shoulder is further away and
+        // the torso leans but does not turn): nearer the edge the further across.
+        let across = (-x * self.hand.side()).max(0.0);
+        let z = (z - across * ACROSS_NEARER).max(self.table.near + footprint(object) + 0.04);
+        let yaw = self.yaw();
+        let rest = self.table.rest(object, x, z, yaw);
         let index = self.add_object(object, rest);
         let grasp = self.reach();
         Placed { object, rest, index, grasp }
@@ -404,36 +446,31 @@ impl<'r> Planner<'r> {
     }
 
     /// [`Task::PickPlace`]: the main hand moves an object a little to the side.
-    fn pick_place(&mut self) -> Vec<String> {
+    fn pick_place(&mut self) -> Description<'static> {
         let hand = self.hand;
         let o = self.place_for_main_hand(&pool(|o| o.one_handed));
         let distance: f32 = self.rng.random_range(0.10..0.16);
         let direction = if self.rng.random_bool(0.5) { 1.0 } else { -1.0 };
-        let dx = hand.side() * distance * direction;
-        let x = (o.rest.position.x + dx).clamp(-0.25, 0.25);
+        let mut x = o.rest.position.x + hand.side() * distance * direction;
+        // Not further across the body than a hand reaches comfortably: the other way instead.
+        if x * hand.side() < -PUT_DOWN_ACROSS {
+            x = o.rest.position.x + hand.side() * distance;
+        }
+        let x = x.clamp(-0.25, 0.25);
         let z = self.depth();
         let yaw = self.yaw();
         let target = self.table.rest(o.object, x, z, yaw);
-        // From the person's point of view: +X is their left.
-        let towards = if target.position.x > o.rest.position.x { "left" } else { "right" };
         let lift = self.duration(0.12..0.2);
         let arrive = self.carry_over(o.index, o.grasp, &o.rest, target, lift);
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
-        let (name, hand) = (o.object.name, hand.word());
-        vec![
-            format!(
-                "The person picks up the {name} with the {hand} hand and puts it down to the {towards}."
-            ),
-            format!(
-                "Using the {hand} hand, someone lifts the {name} and sets it down a little to the {towards}."
-            ),
-            format!("A person moves the {name} to the {towards} with the {hand} hand."),
-        ]
+        // From the person's point of view: +X is their left.
+        let towards = if target.position.x > o.rest.position.x { Hand::Left } else { Hand::Right };
+        Description::PickPlace { object: o.object.name, hand, towards }
     }
 
     /// [`Task::Inspect`]: the main hand brings an object up in front of the chest, turns it
     /// one way and the other, and puts it back where it was.
-    fn inspect(&mut self) -> Vec<String> {
+    fn inspect(&mut self) -> Description<'static> {
         let hand = self.hand;
         let o = self.place_for_main_hand(&pool(|o| o.one_handed));
         let held = Pose {
@@ -455,22 +492,11 @@ impl<'r> Planner<'r> {
         ];
         let arrive = self.carry(o.index, o.grasp, &looks);
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
-        let (name, hand) = (o.object.name, hand.word());
-        vec![
-            format!(
-                "The person picks up the {name} with the {hand} hand, turns it around to look at it and puts it back."
-            ),
-            format!(
-                "Someone inspects the {name} held in the {hand} hand and then returns it to the table."
-            ),
-            format!(
-                "A person lifts the {name} with the {hand} hand, examines it from several sides and sets it down."
-            ),
-        ]
+        Description::Inspect { object: o.object.name, hand }
     }
 
     /// [`Task::LiftBoth`]: both hands lift a wide object straight up, hold it, put it back.
-    fn lift_both(&mut self) -> Vec<String> {
+    fn lift_both(&mut self) -> Description<'static> {
         let object = pick(self.rng, &pool(|o| o.two_handed));
         let x = self.rng.random_range(-0.04..0.04);
         // In the middle, just far enough from the edge for both hands to get around it.
@@ -485,19 +511,12 @@ impl<'r> Planner<'r> {
         let end = arrive + CLOSE_TIME;
         self.attach(Hand::Left, o, GraspStyle::Side, self.idle, start, end);
         self.attach(Hand::Right, o, GraspStyle::Side, self.idle, start, end);
-        let name = object.name;
-        vec![
-            format!("The person lifts the {name} with both hands and puts it back down."),
-            format!(
-                "Someone raises the {name} using both hands, holds it for a moment and lowers it again."
-            ),
-            format!("A person picks up the {name} with two hands and sets it back on the table."),
-        ]
+        Description::LiftBoth { object: object.name }
     }
 
     /// [`Task::Handover`]: the main hand brings an object to the middle, the other hand takes
     /// it there and puts it down on its own side.
-    fn handover(&mut self) -> Vec<String> {
+    fn handover(&mut self) -> Description<'static> {
         let (hand, other) = (self.hand, self.hand.other());
         let o = self.place_for_main_hand(&small_one_handed());
         let middle = Pose {
@@ -517,21 +536,12 @@ impl<'r> Planner<'r> {
         let place = self.carry_over(o.index, give_end - CLOSE_TIME, &middle, target, lift);
         let reach_start = take - self.duration(0.8..1.1);
         self.attach(other, o.index, GraspStyle::Side, reach_start, take, place + CLOSE_TIME);
-        let (name, hand, other) = (o.object.name, hand.word(), other.word());
-        vec![
-            format!(
-                "The person picks up the {name} with the {hand} hand, passes it to the {other} hand and puts it down on the {other} side."
-            ),
-            format!("Someone hands the {name} over from the {hand} hand to the {other} hand."),
-            format!(
-                "A person lifts the {name} with the {hand} hand, gives it to the other hand and places it to the {other}."
-            ),
-        ]
+        Description::Handover { object: o.object.name, from: hand }
     }
 
     /// [`Task::HoldTwo`]: each hand lifts one object (the right a little later), both are
     /// held up together, then put back.
-    fn hold_two(&mut self) -> Vec<String> {
+    fn hold_two(&mut self) -> Description<'static> {
         let p = self.place_pair(0.09..0.16, false);
         let start_left = self.reach();
         let delay = self.duration(0.0..0.4);
@@ -563,25 +573,14 @@ impl<'r> Planner<'r> {
             start_right,
             right_end,
         );
-        let (left, right) = (p.left.name, p.right.name);
-        vec![
-            format!(
-                "The person picks up the {left} with the left hand and the {right} with the right hand, holds both and puts them back."
-            ),
-            format!(
-                "Someone lifts the {left} in the left hand and the {right} in the right hand at the same time and sets them down again."
-            ),
-            format!(
-                "A person holds the {left} and the {right}, one in each hand, then returns them to the table."
-            ),
-        ]
+        Description::HoldTwo { left: p.left.name, right: p.right.name }
     }
 
     /// [`Task::Swap`]: the right hand parks its object far to the right, the left hand moves
     /// its object to the right spot, the right hand brings the parked object to the left spot,
     /// high over the object now standing in the middle. Each reach starts 0.9 s before the
     /// previous hand lets go, so the hands overlap a little.
-    fn swap(&mut self) -> Vec<String> {
+    fn swap(&mut self) -> Description<'static> {
         let p = self.place_pair(0.06..0.11, true);
         let park_yaw = self.yaw();
         let park = self.table.rest(p.right, -0.30, self.table.near + 0.10, park_yaw);
@@ -612,21 +611,12 @@ impl<'r> Planner<'r> {
         let placed = self.carry_over(p.right_index, start3, &park, right_to, 0.30);
         let end3 = placed + CLOSE_TIME;
         self.attach(Hand::Right, p.right_index, GraspStyle::Top, reach3, start3, end3);
-        let (left, right) = (p.left.name, p.right.name);
-        vec![
-            format!("The person swaps the places of the {left} and the {right}."),
-            format!(
-                "Someone exchanges the positions of the {left} on the left and the {right} on the right."
-            ),
-            format!(
-                "A person moves the {right} out of the way, puts the {left} in its place and the {right} where the {left} was."
-            ),
-        ]
+        Description::Swap { left: p.left.name, right: p.right.name }
     }
 
     /// [`Task::Pour`]: the other hand steadies a receiver near the edge while the main hand
     /// lifts a pourer above it, tips it towards it and puts it back.
-    fn pour(&mut self) -> Vec<String> {
+    fn pour(&mut self) -> Description<'static> {
         let (hand, other) = (self.hand, self.hand.other());
         let pourer = pick(self.rng, &pool(|o| o.pours && o.one_handed));
         let receiver =
@@ -660,24 +650,12 @@ impl<'r> Planner<'r> {
         self.attach(hand, source, GraspStyle::Top, reach_start, start, end);
         // The steadying hand lets go only after the pourer is down.
         self.attach(other, target, GraspStyle::Side, reach_start, hold_start, end + 0.2);
-        let (pourer, receiver, hand, other) =
-            (pourer.name, receiver.name, hand.word(), other.word());
-        vec![
-            format!(
-                "The person holds the {receiver} with the {other} hand and pours from the {pourer} with the {hand} hand."
-            ),
-            format!(
-                "Someone pours from the {pourer} into the {receiver}, steadying the {receiver} with the {other} hand."
-            ),
-            format!(
-                "A person lifts the {pourer} with the {hand} hand, tips it over the {receiver} and puts it back."
-            ),
-        ]
+        Description::Pour { pourer: pourer.name, receiver: receiver.name, hand }
     }
 
     /// [`Task::MoveNextTo`]: the main hand moves an object from its side of the table next to
     /// another near the middle, on the side facing the hand.
-    fn move_next_to(&mut self) -> Vec<String> {
+    fn move_next_to(&mut self) -> Description<'static> {
         let hand = self.hand;
         let moved = pick(self.rng, &small_one_handed());
         let anchor = pick(self.rng, &pool(|o| o.one_handed && o.name != moved.name));
@@ -706,12 +684,7 @@ impl<'r> Planner<'r> {
         let lift = self.duration(0.08..0.15);
         let arrive = self.carry_over(o, start, &moved_rest, target, lift);
         self.attach(hand, o, GraspStyle::Top, self.idle, start, arrive + CLOSE_TIME);
-        let (moved, anchor, hand) = (moved.name, anchor.name, hand.word());
-        vec![
-            format!("The person moves the {moved} next to the {anchor} with the {hand} hand."),
-            format!("Using the {hand} hand, someone places the {moved} beside the {anchor}."),
-            format!("A person picks up the {moved} and puts it down next to the {anchor}."),
-        ]
+        Description::MoveNextTo { moved: moved.name, anchor: anchor.name, hand }
     }
 }
 
@@ -719,7 +692,7 @@ impl<'r> Planner<'r> {
 /// assignments (see [`Planner`] on why the order of the random draws must not change).
 pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
     let mut planner = Planner::start(rng);
-    let texts = match task {
+    let description = match task {
         Task::PickPlace => planner.pick_place(),
         Task::Inspect => planner.inspect(),
         Task::LiftBoth => planner.lift_both(),
@@ -729,5 +702,5 @@ pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
         Task::Pour => planner.pour(),
         Task::MoveNextTo => planner.move_next_to(),
     };
-    planner.finish(task, texts)
+    planner.finish(task, description)
 }

@@ -935,8 +935,9 @@ const OBJECTS: &[(&str, &[&str])] = &[
     ("plate", &["plate", "dinner plate", "flat plate", "ceramic plate"]),
 ];
 
-/// How an object is named: its synonyms, or just its name if it is not in the catalogue.
-fn synonyms(name: &str) -> Vec<String> {
+/// How an object is named in texts: its synonyms (the catalogue name first), or just its name
+/// if it is not in the catalogue.
+pub fn synonyms(name: &str) -> Vec<String> {
     OBJECTS
         .iter()
         .find(|(n, _)| *n == name)

@@ -61,6 +61,34 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
             assert_ne!(bytes(&a), bytes(&c), "{file}");
         }
     }
+    // Every sequence has a description in a held-out phrasing, and no sequence of any split is
+    // trained on it.
+    let trained: std::collections::HashSet<&String> =
+        loaded.splits.values().flatten().flat_map(|s| &s.texts).collect();
+    for sequence in loaded.splits.values().flatten() {
+        assert_eq!(sequence.held_out_texts.len(), 1, "{}", sequence.source_id);
+        assert!(sequence.held_out_texts.iter().all(|t| !trained.contains(t)));
+    }
+    // A dataset of format 2 (no held-out descriptions) reads, without them.
+    let old = temp_dir("format-2");
+    dataset.save(&old).unwrap();
+    let manifest = std::fs::read_to_string(old.join("manifest.json")).unwrap();
+    let current = format!("\"format_version\": {}", dex2hoi_data::dataset::FORMAT_VERSION);
+    std::fs::write(old.join("manifest.json"), manifest.replace(&current, "\"format_version\": 2"))
+        .unwrap();
+    for split in ["train", "test"] {
+        let path = old.join(format!("{split}.json"));
+        let mut infos: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+        for info in infos.as_array_mut().unwrap() {
+            info.as_object_mut().unwrap().remove("held_out_texts").expect("written in format 3");
+        }
+        std::fs::write(&path, serde_json::to_vec(&infos).unwrap()).unwrap();
+    }
+    let read = Dataset::load(&old).unwrap();
+    assert!(read.splits.values().flatten().all(|s| s.held_out_texts.is_empty()));
+    assert_eq!(read.splits[&Split::Test][0].texts, loaded.splits[&Split::Test][0].texts);
+    std::fs::remove_dir_all(old).ok();
     // Statistics: floors hold, mixture channels are left as logits.
     let width = dataset.manifest.stream_feature_size;
     assert!(dataset.stats.std.iter().all(|s| *s >= 0.01));

@@ -208,8 +208,9 @@ pub struct InstructionRow {
 
 /// The version of `report.json`'s layout that [`Report`] writes (`docs/FORMATS.md`). Format 1
 /// (no `format` field) may lack the per-group R-precision, the object turns, the sinking and
-/// the fingertip figures; it reads back with them `None`.
-pub const REPORT_FORMAT: u32 = 2;
+/// the fingertip figures; it reads back with them `None`. Format 3 added the long-generation
+/// protocol (`long`, absent when it was not run).
+pub const REPORT_FORMAT: u32 = 3;
 
 fn format_one() -> u32 {
     1
@@ -239,6 +240,9 @@ pub struct Report {
     pub distribution_features: String,
     /// The MultiModality protocol.
     pub multimodality_protocol: [usize; 3],
+    /// The long-generation protocol's results, when it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub long: Option<super::LongProtocol>,
 }
 
 /// Embeddings of the last replication and the clips they embed, for `--dump-embeddings`.
@@ -470,6 +474,9 @@ impl Report {
              smaller, the incomplete last one left out; a group none of whose clips was ranked \
              in some replication shows \"-\"). \"-\" where nothing qualifies.\n",
         );
+        if let Some(long) = &self.long {
+            out.push_str(&long.markdown());
+        }
         out
     }
 }
@@ -640,6 +647,7 @@ mod tests {
             clip_frames: 60,
             distribution_features: "features".into(),
             multimodality_protocol: [2, 2, 1],
+            long: None,
         };
         let json = serde_json::to_string(&report).unwrap();
         assert!(json.contains("\"sampler\":\"ddpm\"") && json.contains("null"), "{json}");

@@ -175,7 +175,7 @@ pub fn median(values: &[f64]) -> Option<f64> {
 
 /// Whether an object moves over a clip: travel beyond [`MOVED_TRAVEL_M`] or rise beyond
 /// [`MOVED_RISE_M`] from its first frame.
-fn moves(sample: &MotionSample<'_>, slot: usize, frames: usize) -> bool {
+pub(super) fn moves(sample: &MotionSample<'_>, slot: usize, frames: usize) -> bool {
     let start = sample.object_pose(0, slot).position;
     (0..frames).any(|t| {
         let p = sample.object_pose(t, slot).position;
@@ -185,17 +185,28 @@ fn moves(sample: &MotionSample<'_>, slot: usize, frames: usize) -> bool {
 
 /// The side of the body a point is on, judged on the body of `frame`: the left axis runs from
 /// the right foot group's first joint to the left's, flattened onto the floor.
-fn side(body: &MotionSample<'_>, frame: usize, point: Vec3) -> Side {
+pub(super) fn side(body: &MotionSample<'_>, frame: usize, point: Vec3) -> Side {
+    Side::of_across((point - body.joint(frame, 0)).dot(left_axis(body, frame)))
+}
+
+/// The body's left axis on `frame`: from the right foot group's first joint to the left's,
+/// flattened onto the floor (callers check that both feet have joints).
+pub(super) fn left_axis(body: &MotionSample<'_>, frame: usize) -> Vec3 {
     let groups = body.skeleton.groups();
     let left = body.joint(frame, groups.left_foot[0]) - body.joint(frame, groups.right_foot[0]);
-    let axis = Vec3::new(left.x, 0.0, left.z).normalize_or_zero();
-    let across = (point - body.joint(frame, 0)).dot(axis);
-    if across > SIDE_MARGIN_M {
-        Side::Left
-    } else if across < -SIDE_MARGIN_M {
-        Side::Right
-    } else {
-        Side::Centre
+    Vec3::new(left.x, 0.0, left.z).normalize_or_zero()
+}
+
+impl Side {
+    /// The side of a distance along the body's left axis (metres, positive to the left).
+    pub fn of_across(across: f32) -> Self {
+        if across > SIDE_MARGIN_M {
+            Side::Left
+        } else if across < -SIDE_MARGIN_M {
+            Side::Right
+        } else {
+            Side::Centre
+        }
     }
 }
 

@@ -1,0 +1,113 @@
+//! Properties of the procedural plans over many seeds: the hand the words name does not follow
+//! from where the object stands, every sequence ends at rest, the box is lifted, and an object
+//! no hand holds stands on the table top.
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::character::Hand;
+use dex2hoi_synth::plan::{ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task};
+use dex2hoi_synth::{SynthSequence, generate};
+
+fn plans(task: Task, seeds: std::ops::Range<u64>) -> impl Iterator<Item = Plan> {
+    seeds.map(move |seed| plan_task(task, &mut ChaCha8Rng::seed_from_u64(seed)))
+}
+
+/// Where the object of a one-handed task starts, sideways towards the acting hand's side
+/// (positive: on that hand's side), and the hand, in a generated sequence (after the draws
+/// the physical checks refused).
+fn start_towards_hand(synth: &SynthSequence) -> (f32, Hand) {
+    let first = &synth.attachments[0];
+    let object = &synth.sequence.objects[first.object];
+    // The scene is turned about +Y and moved: measure in the character's frame.
+    let root = synth.sequence.root_positions[0];
+    let turn = synth.sequence.local_rotations[0];
+    let local = turn.transpose() * (object.translations[0] - root);
+    (local.x * first.hand.side(), first.hand)
+}
+
+#[test]
+fn the_hand_does_not_follow_from_where_the_object_stands() {
+    for task in [Task::PickPlace, Task::Inspect, Task::Handover] {
+        let family = Task::ALL.iter().position(|&t| t == task).expect("a task family");
+        let starts: Vec<(f32, Hand)> = (0..400)
+            .map(|k| start_towards_hand(&generate(family + 8 * k, 9, 20.0).expect("generated")))
+            .collect();
+        let (low, high) = (ONE_HANDED_REACH.start, ONE_HANDED_REACH.end);
+        assert!(starts.iter().all(|&(x, _)| (low - 1e-6..=high + 1e-6).contains(&x)), "{task:?}");
+        // Across the body or in the middle (within 5 cm) in a good share of plans.
+        let crossing = starts.iter().filter(|&&(x, _)| x < 0.05).count() as f32 / 400.0;
+        assert!((0.25..0.75).contains(&crossing), "{task:?}: {crossing}");
+        // An object on the person's left is taken by either hand, each at least a fifth of
+        // the time: a model cannot read the hand off the object's side.
+        let on_left: Vec<Hand> = starts
+            .iter()
+            .filter(|&&(x, hand)| x * hand.side() > 0.05)
+            .map(|&(_, hand)| hand)
+            .collect();
+        let by_right = on_left.iter().filter(|&&h| h == Hand::Right).count() as f32;
+        let share = by_right / on_left.len() as f32;
+        assert!((0.2..0.8).contains(&share), "{task:?}: right hand takes {share} of left objects");
+    }
+}
+
+#[test]
+fn every_plan_ends_with_the_person_at_rest_for_a_varying_time() {
+    let mut tails = Vec::new();
+    for task in Task::ALL {
+        for plan in plans(task, 0..60) {
+            let done = plan.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max);
+            let tail = plan.duration - done;
+            assert!(
+                (REST_AFTER_TASK.start..REST_AFTER_TASK.end).contains(&tail),
+                "{task:?}: {tail} s of rest"
+            );
+            tails.push(tail);
+        }
+    }
+    let (shortest, longest) =
+        tails.iter().fold((f32::INFINITY, 0.0f32), |(a, b), &t| (a.min(t), b.max(t)));
+    assert!(shortest < 1.0 && longest > 3.5, "rest tails from {shortest} to {longest} s");
+}
+
+#[test]
+fn the_box_is_lifted_with_both_hands() {
+    // Sequence indices 1, 9, 17, ... are the two-handed lift.
+    let boxes = (0..40)
+        .map(|k| generate(1 + 8 * k, 3, 20.0).expect("generation succeeds"))
+        .filter(|s| s.sequence.objects[0].name == "box")
+        .count();
+    assert!(boxes >= 4, "{boxes} of 40 two-handed lifts use the box");
+}
+
+#[test]
+fn objects_no_hand_holds_stand_on_the_table_top() {
+    for index in 0..48 {
+        let synth = generate(index, 5, 20.0).expect("generation succeeds");
+        let s = &synth.sequence;
+        for (o, object) in s.objects.iter().enumerate() {
+            for f in 0..s.frames() {
+                let t = f as f32 / s.fps;
+                let held =
+                    synth.attachments.iter().any(|a| a.object == o && a.start < t && t < a.end);
+                if held {
+                    continue;
+                }
+                let lowest = object
+                    .mesh
+                    .vertices
+                    .iter()
+                    .map(|v| (object.rotations[f] * *v + object.translations[f]).y)
+                    .fold(f32::INFINITY, f32::min);
+                let height = lowest - synth.table_height;
+                assert!(
+                    height.abs() < 2e-3,
+                    "{} {}: free at {t:.2} s with its bottom {:.1} mm off the table",
+                    s.source_id,
+                    object.name,
+                    height * 1e3
+                );
+            }
+        }
+    }
+}
