@@ -1,7 +1,11 @@
 //! `dex2hoi sample`: generate a motion with a trained run and export it (npz, glb, bvh, gif).
 
+mod long_generation;
+
 use std::num::NonZeroUsize;
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -15,8 +19,12 @@ use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
 use dex2hoi_sample::{
-    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleRequest, SceneObject,
+    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleError, SampleRequest, SceneObject,
     parse_timeline, sample,
+};
+
+use long_generation::{
+    AvailableMemory, FrameCost, GenerationShape, GenerationWatch, check_length, install_ctrl_c,
 };
 
 /// Arguments of `dex2hoi sample`.
@@ -40,7 +48,8 @@ pub struct SampleArgs {
     /// left.
     #[arg(long = "object", required = true)]
     objects: Vec<String>,
-    /// Frames to generate (at the run's frame rate; at least 1).
+    /// Frames to generate (at the run's frame rate; at least 1). A length whose motion and
+    /// exports would not fit in the memory available is refused before any work.
     #[arg(long, default_value = "120")]
     frames: NonZeroUsize,
     /// Seed of the noise: the same seed gives the same motion.
@@ -65,6 +74,8 @@ pub struct SampleArgs {
 
 /// Runs `dex2hoi sample`.
 pub fn run(args: SampleArgs) -> Result<()> {
+    let generating = Arc::new(AtomicBool::new(false));
+    let stop = install_ctrl_c(Arc::clone(&generating))?;
     let device = args.device.open()?;
     if args.objects.len() > 2 {
         bail!("the model takes at most two objects, got {}", args.objects.len());
@@ -81,8 +92,17 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let body = args.body.load()?;
     let source = ModelSource::resolve(args.run.as_deref());
     let run = source.load(&device)?;
-    println!("sampling with {} ({} training steps)", source.describe(), run.step);
     let fps = run.manifest.fps;
+    let preview = PreviewOptions::default();
+    let cost = FrameCost {
+        stream_features: run.config.model.stream_features(),
+        joints: body.as_ref().map_or(&run.skeleton, |mesh| &mesh.skeleton).joint_count(),
+        objects: objects.len(),
+        preview_width: preview.width,
+        preview_height: preview.height,
+    };
+    check_length(args.frames.get(), fps, &cost, &AvailableMemory::of_this_machine())?;
+    println!("sampling with {} ({} training steps)", source.describe(), run.step);
     let prompts = match (&args.text, &args.timeline) {
         (Some(text), None) => vec![Prompt { start_frame: 0, text: text.clone() }],
         (None, Some(path)) => {
@@ -106,6 +126,12 @@ pub fn run(args: SampleArgs) -> Result<()> {
             );
         }
     }
+    let shape = GenerationShape {
+        fps,
+        window_frames: run.config.model.predicted_frames,
+        steps: sampler.steps,
+    };
+    let watch = Arc::new(GenerationWatch::start(shape, Arc::clone(&stop))?);
     let request = SampleRequest {
         prompts: prompts.clone(),
         objects,
@@ -113,11 +139,30 @@ pub fn run(args: SampleArgs) -> Result<()> {
         seed: args.seed,
         sampler,
         table_height: args.table_height,
+        progress: Some(watch.hook()),
     };
     if let Some(mesh) = &body {
         mesh.fits(&run.skeleton)?;
     }
-    let sampled = sample(&run, &request).context("generating")?;
+    generating.store(true, Ordering::SeqCst);
+    let sampled = sample(&run, &request);
+    generating.store(false, Ordering::SeqCst);
+    watch.finish();
+    let sampled = match sampled {
+        Err(SampleError::Interrupted { frames_done, frames }) => bail!(
+            "interrupted (Ctrl-C) after {frames_done} of {frames} frames: nothing written to {}",
+            args.out.display()
+        ),
+        // A Ctrl-C after the last window: the generation is whole, but it was asked to stop.
+        Ok(_) if stop.load(Ordering::SeqCst) => bail!(
+            "interrupted (Ctrl-C) as the generation ended: nothing written to {}",
+            args.out.display()
+        ),
+        other => other.context("generating")?,
+    };
+    if watch.was_announced() {
+        eprintln!("rendering the preview of {} frames and writing the outputs", sampled.frames);
+    }
     let export = ExportMotion {
         skeleton: body.as_ref().map_or(&run.skeleton, |mesh| &mesh.skeleton),
         fps,
@@ -139,7 +184,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
                 half_extents: Vec2::new(0.55, half_depth),
             }),
             caption: !args.no_caption,
-            ..PreviewOptions::default()
+            ..preview
         },
     };
     let files = export_all(&args.out, &export, &options)

@@ -135,6 +135,7 @@ fn main() {
                 root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
                 present: [true, true],
             }),
+            progress: None,
         };
         let realtime_at = |steps: usize, rng: &mut ChaCha8Rng| {
             let request =

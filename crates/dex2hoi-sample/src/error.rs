@@ -39,6 +39,14 @@ pub enum SampleError {
         /// The underlying error.
         source: std::io::Error,
     },
+    /// The generation's progress hook asked it to stop (Ctrl-C); no motion was produced.
+    #[error("interrupted after {frames_done} of {frames} frames: nothing generated")]
+    Interrupted {
+        /// Frames generated when it stopped (discarded).
+        frames_done: usize,
+        /// Frames requested.
+        frames: usize,
+    },
     /// An error from the data crate.
     #[error(transparent)]
     Data(#[from] dex2hoi_data::DataError),

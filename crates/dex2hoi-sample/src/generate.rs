@@ -8,6 +8,8 @@
 //! is simply the last `T_p` generated frames, objects included.
 
 use std::num::NonZeroUsize;
+use std::ops::ControlFlow;
+use std::sync::Arc;
 use std::time::Instant;
 
 use candle_core::{DType, Tensor};
@@ -39,6 +41,40 @@ pub struct TimedText {
     pub embedding: Tensor,
 }
 
+/// Where a generation stands after a window, as a [`ProgressHook`] sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WindowProgress {
+    /// Windows generated so far (at least 1).
+    pub windows_done: usize,
+    /// Windows the generation takes in all.
+    pub windows: usize,
+    /// Frames generated so far.
+    pub frames_done: usize,
+    /// Frames the generation produces in all.
+    pub frames: usize,
+}
+
+/// Called after each window of a generation: progress reports, and a way to stop a long
+/// generation cleanly between windows ([`ControlFlow::Break`] ends it with
+/// [`SampleError::Interrupted`], returning no motion).
+///
+/// Shared (`Arc`) so that the structures holding it stay cheap to clone and need no lifetime.
+#[derive(Clone)]
+pub struct ProgressHook(pub Arc<dyn Fn(WindowProgress) -> ControlFlow<()> + Send + Sync>);
+
+impl ProgressHook {
+    /// A hook from a closure.
+    pub fn new(hook: impl Fn(WindowProgress) -> ControlFlow<()> + Send + Sync + 'static) -> Self {
+        Self(Arc::new(hook))
+    }
+}
+
+impl std::fmt::Debug for ProgressHook {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ProgressHook(..)")
+    }
+}
+
 /// What an autoregressive generation needs.
 #[derive(Debug, Clone)]
 pub struct Generation<'a> {
@@ -63,6 +99,8 @@ pub struct Generation<'a> {
     /// How each later window's prefix is rebuilt from the motion it decodes to (hand-relative
     /// objects); `None` feeds the generated features back as they are.
     pub prefix_encoding: Option<PrefixEncoding<'a>>,
+    /// Called after each window; `None`: the generation runs to its end unobserved.
+    pub progress: Option<ProgressHook>,
 }
 
 /// What rebuilding a prefix from its motion needs: the hand-relative object features of the
@@ -127,6 +165,8 @@ impl PrefixEncoding<'_> {
 
 /// Generates `frames` frames after the initial prefix, window by window: each window's prefix
 /// is the last `T_p` frames so far, its prompt the timeline entry in force at its first frame.
+/// The request's progress hook, if any, runs after each window and can stop the generation
+/// ([`SampleError::Interrupted`]).
 ///
 /// # Shapes
 /// - returns `[B, 2, frames, D]` (unnormalised features)
@@ -163,6 +203,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     let mut produced = 0;
     let mut windows = Vec::new();
     let frames = request.frames.get();
+    let total_windows = frames.div_ceil(tf.max(1));
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
         let text = in_force(&request.timeline, |t| t.start_frame, produced)
@@ -187,6 +228,17 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             let prefix = encoding.rebuild(&prefix, c.layout())?;
             history = request.normaliser.normalise(&prefix)?;
         }
+        if let Some(hook) = &request.progress {
+            let progress = WindowProgress {
+                windows_done: windows.len(),
+                windows: total_windows,
+                frames_done: produced,
+                frames,
+            };
+            if hook.0(progress).is_break() {
+                return Err(SampleError::Interrupted { frames_done: produced, frames });
+            }
+        }
     }
     Ok(request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)?)
 }
@@ -207,6 +259,8 @@ pub struct Conditioning<'a> {
     /// The body the motion is posed on: the run's built-in skeleton, or a test sequence's own
     /// subject when continuing that sequence.
     pub skeleton: &'a Skeleton,
+    /// Called after each window of the generation (see [`Generation::progress`]).
+    pub progress: Option<ProgressHook>,
 }
 
 /// A generated motion with its features.
@@ -281,6 +335,7 @@ pub fn generate_motion(
             root_start: conditioning.root_start,
             present: conditioning.present,
         }),
+        progress: conditioning.progress.clone(),
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;

@@ -24,6 +24,7 @@
 //!     seed: 0,
 //!     sampler: SamplerConfig::default(),
 //!     table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
+//!     progress: None,
 //! };
 //! let motion = sample(&run, &request)?;
 //! println!("{} frames in {:.1} s", motion.frames, motion.seconds);
@@ -51,7 +52,8 @@ pub use files::{
     RunFiles, STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY, trained_steps,
 };
 pub use generate::{
-    Conditioning, GeneratedMotion, Generation, PrefixEncoding, TimedText, generate, generate_motion,
+    Conditioning, GeneratedMotion, Generation, PrefixEncoding, ProgressHook, TimedText,
+    WindowProgress, generate, generate_motion,
 };
 pub use model_file::{PackSummary, PackedPrecision, pack_run};
 pub use request::{SampleRequest, SampledMotion, sample};

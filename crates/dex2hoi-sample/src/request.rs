@@ -15,7 +15,7 @@ use dex2hoi_model::text::reject_empty;
 use dex2hoi_repr::{BpsBasis, MeshQuery};
 
 use crate::error::{Result, SampleError};
-use crate::generate::{Conditioning, generate_motion};
+use crate::generate::{Conditioning, ProgressHook, generate_motion};
 use crate::run::TrainedRun;
 use crate::scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, SceneObject, default_lone_object_side,
@@ -37,6 +37,9 @@ pub struct SampleRequest {
     pub sampler: SamplerConfig,
     /// Table height for the default places.
     pub table_height: f32,
+    /// Called after each generated window: progress, and a way to stop early
+    /// ([`SampleError::Interrupted`]); `None` runs the generation to its end.
+    pub progress: Option<ProgressHook>,
 }
 
 /// A generated motion.
@@ -112,6 +115,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             prompts,
             root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
             skeleton: &run.skeleton,
+            progress: request.progress.clone(),
         },
         request.frames,
         request.seed,

@@ -12,7 +12,10 @@ use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};
-use dex2hoi_sample::{Generation, Normaliser, PrefixEncoding, TimedText, generate};
+use dex2hoi_sample::{
+    Generation, Normaliser, PrefixEncoding, ProgressHook, SampleError, TimedText, WindowProgress,
+    generate,
+};
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
     let n: usize = shape.iter().product();
@@ -69,6 +72,7 @@ fn generation_runs_window_by_window_with_a_timeline() {
             guidance: Some(2.0),
         },
         prefix_encoding: None,
+        progress: None,
     };
     let run = |request: &Generation<'_>, seed| {
         generate(request, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
@@ -110,6 +114,74 @@ fn generation_runs_window_by_window_with_a_timeline() {
     assert!(generate(&Generation { timeline: late, ..base.clone() }, &mut rng).is_err());
     let short_prefix = base.initial_prefix.narrow(2, 0, 2).unwrap();
     assert!(generate(&Generation { initial_prefix: short_prefix, ..base }, &mut rng).is_err());
+}
+
+#[test]
+fn a_progress_hook_sees_every_window_and_can_stop_the_generation() {
+    use std::ops::ControlFlow;
+    use std::sync::{Arc, Mutex};
+
+    let model = tiny_model();
+    let cfg = model.config().clone();
+    let d = cfg.stream_features();
+    let schedule = CosineSchedule::new(1000).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let normaliser = Normaliser {
+        mean: random(&[d], &mut rng),
+        std: random(&[d], &mut rng).abs().unwrap().affine(1.0, 0.5).unwrap(),
+    };
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let record = |stop_after: usize| {
+        let seen = Arc::clone(&seen);
+        ProgressHook::new(move |progress: WindowProgress| {
+            seen.lock().unwrap().push(progress);
+            if progress.windows_done >= stop_after {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        })
+    };
+    let request = Generation {
+        model: &model,
+        schedule: &schedule,
+        normaliser: &normaliser,
+        initial_prefix: random(&[1, 2, cfg.prefix_frames, d], &mut rng),
+        timeline: vec![TimedText {
+            start_frame: 0,
+            embedding: random(&[1, cfg.text_embedding], &mut rng),
+        }],
+        bps: random(&[1, 2, cfg.bps_points * 3], &mut rng),
+        presence: Tensor::new(&[[1.0f32, 0.0]], &Device::Cpu).unwrap(),
+        frames: std::num::NonZeroUsize::new(25).unwrap(),
+        sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: 2, guidance: None },
+        prefix_encoding: None,
+        progress: Some(record(usize::MAX)),
+    };
+    // Windows of 8 frames: 25 frames take 4, the last cut to one frame.
+    let whole = generate(&request, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
+    let window = |windows_done, frames_done| WindowProgress {
+        windows_done,
+        windows: 4,
+        frames_done,
+        frames: 25,
+    };
+    assert_eq!(*seen.lock().unwrap(), [window(1, 8), window(2, 16), window(3, 24), window(4, 25)]);
+    // The hook does not change the motion.
+    let unobserved = Generation { progress: None, ..request.clone() };
+    let plain = generate(&unobserved, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
+    assert_eq!(
+        whole.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+        plain.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    );
+    // Stopping after the first window: no motion, the error says how far it got.
+    seen.lock().unwrap().clear();
+    let stopped = Generation { progress: Some(record(1)), ..request };
+    match generate(&stopped, &mut ChaCha8Rng::seed_from_u64(3)) {
+        Err(SampleError::Interrupted { frames_done: 8, frames: 25 }) => {}
+        other => panic!("expected an interruption after 8 of 25 frames, got {other:?}"),
+    }
+    assert_eq!(*seen.lock().unwrap(), [window(1, 8)]);
 }
 
 /// Frames of the standing start with a mug on the table, `[1, 2, frames, D]`, and the layout.

@@ -185,6 +185,7 @@ fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
         seed: 7,
         sampler: SamplerConfig { steps: 10, ..SamplerConfig::default() },
         table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
+        progress: None,
     };
     let motions: Vec<_> = [Device::Cpu, gpu]
         .iter()

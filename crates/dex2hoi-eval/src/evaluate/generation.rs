@@ -172,5 +172,6 @@ fn conditioning<'a>(
         prompts: vec![(0, prompt)],
         root_start: sequence.root_start,
         skeleton,
+        progress: None,
     })
 }
