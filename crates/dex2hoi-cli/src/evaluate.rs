@@ -109,6 +109,7 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
         seed: args.seed,
         multimodality,
         long: args.long.then_some(LongOptions { frames: args.long_frames }),
+        free_objects: args.sampling.free_objects(),
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(

@@ -139,6 +139,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         seed: args.seed,
         sampler,
         table_height: args.table_height,
+        free_objects: args.sampling.free_objects(),
         progress: Some(watch.hook()),
     };
     if let Some(mesh) = &body {

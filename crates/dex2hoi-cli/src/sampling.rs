@@ -5,6 +5,7 @@ use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
+use dex2hoi_sample::rest::FreeObjects;
 
 /// The reverse process (docs/CONVENTIONS.md, "Diffusion schedule").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -33,6 +34,24 @@ impl Sampler {
     }
 }
 
+/// What happens to the objects no hand holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FreeObjectsArg {
+    /// As the model generates them (the paper's sampler).
+    AsGenerated,
+    /// Kept where they were put down, standing on their support (beyond the paper).
+    AtRest,
+}
+
+impl FreeObjectsArg {
+    fn default_choice() -> Self {
+        match FreeObjects::default() {
+            FreeObjects::AsGenerated => Self::AsGenerated,
+            FreeObjects::AtRest => Self::AtRest,
+        }
+    }
+}
+
 /// How to sample.
 #[derive(Debug, Clone, Args)]
 pub struct SamplingArgs {
@@ -49,6 +68,10 @@ pub struct SamplingArgs {
         default_value_t = SamplerConfig::default().guidance.unwrap_or(1.0)
     )]
     guidance: f64,
+    /// The objects no hand holds (by the model's mixture): as generated, or at rest where they
+    /// were put down, standing on their support.
+    #[arg(long, value_enum, default_value_t = FreeObjectsArg::default_choice())]
+    free_objects: FreeObjectsArg,
 }
 
 impl SamplingArgs {
@@ -62,5 +85,13 @@ impl SamplingArgs {
         }
         let guidance = (self.guidance != 0.0 && self.guidance != 1.0).then_some(self.guidance);
         Ok(SamplerConfig { kind: self.sampler.kind(), steps: self.denoising_steps, guidance })
+    }
+
+    /// What happens to the objects no hand holds.
+    pub fn free_objects(&self) -> FreeObjects {
+        match self.free_objects {
+            FreeObjectsArg::AsGenerated => FreeObjects::AsGenerated,
+            FreeObjectsArg::AtRest => FreeObjects::AtRest,
+        }
     }
 }

@@ -116,6 +116,21 @@ pub fn run(args: TrainArgs) -> Result<()> {
     });
     bar.finish_and_clear();
     let summary = summary?;
+    if let Some(bridged) = &summary.initialisation {
+        if bridged.words_carried + bridged.words_new > 0 {
+            println!(
+                "vocabulary: {} words carried over from the model, {} new (started as its \
+                 unknown word)",
+                bridged.words_carried, bridged.words_new
+            );
+        }
+        if !bridged.kept.is_empty() {
+            println!(
+                "new in this model, trained from their initialisation: {}",
+                bridged.kept.join(", ")
+            );
+        }
+    }
     let files = RunFiles::new(&args.out);
     if summary.interrupted {
         bail!(

@@ -32,6 +32,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_sample::TrainedRun;
+use dex2hoi_sample::rest::FreeObjects;
 
 use crate::error::{EvalError, Result};
 use crate::evaluator::{Evaluator, MotionClip};
@@ -66,6 +67,9 @@ pub struct EvaluateOptions {
     pub multimodality: metrics::MultimodalityProtocol,
     /// The long-generation protocol too, with these options (`None`: the paper's only).
     pub long: Option<LongOptions>,
+    /// What happens to the objects no hand holds, in both protocols
+    /// (`dex2hoi_sample::rest`).
+    pub free_objects: FreeObjects,
 }
 
 impl Default for EvaluateOptions {
@@ -77,6 +81,7 @@ impl Default for EvaluateOptions {
             seed: 0,
             multimodality: metrics::MultimodalityProtocol::default(),
             long: None,
+            free_objects: FreeObjects::default(),
         }
     }
 }
@@ -190,7 +195,14 @@ pub fn evaluate(
     // The evaluator's configuration holds at least two clip frames (`EvaluatorConfig::validate`).
     let clip_frames = std::num::NonZeroUsize::new(window.frames)
         .ok_or_else(|| EvalError::invalid("evaluator clip_frames", "at least 1", window.frames))?;
-    let generator = Generator::new(run, dataset, clip_frames, options.sampler, options.seed);
+    let generator = Generator::new(
+        run,
+        dataset,
+        &meshes,
+        clip_frames,
+        (options.sampler, options.free_objects),
+        options.seed,
+    );
     let fps = dataset.manifest.fps;
     let truth =
         GroundTruth::measure(&chosen, evaluator, features, (&run.skeleton, &meshes), window, fps)?;
@@ -247,6 +259,7 @@ pub fn evaluate(
             &meshes,
             long_options,
             options.sampler,
+            options.free_objects,
             options.seed,
             progress_callback,
         )?),

@@ -119,6 +119,12 @@ pub struct ModelConfig {
     pub body_fusion: BodyFusion,
     /// What the output head predicts.
     pub prediction: Prediction,
+    /// The prompt clock (beyond the paper): the condition also sees how long the prompt has
+    /// been in force ([`crate::model::ModelInput::elapsed`]), so that a window that starts
+    /// at rest early in a prompt starts the task and one late in it stays at rest. Absent
+    /// (false) in the models made before it.
+    #[serde(default)]
+    pub prompt_clock: bool,
 }
 
 impl ModelConfig {

@@ -52,7 +52,15 @@ pub struct ModelInput<'a> {
     /// Valid frames of the window (prefix then predicted), `[batch, T_p + T_f]`; `None` when
     /// every frame is real.
     pub frame_mask: Option<&'a Tensor>,
+    /// Frames from the start of the prompt in force to the window's first prefix frame,
+    /// `[batch]`: what the prompt clock reads (`ModelConfig::prompt_clock`; ignored without
+    /// it, required with it). Clamped to [`CLOCK_FRAMES`].
+    pub elapsed: Option<&'a Tensor>,
 }
+
+/// The prompt clock stops here (frames): twelve seconds at 20 fps, beyond the longest rest
+/// that follows a task in the procedural data, so every reading it takes was trained on.
+pub const CLOCK_FRAMES: f64 = 240.0;
 
 /// The condition embedding of each stream: timestep MLP + projected text + the stream's object
 /// (BPS MLP and presence), the sum split in the part that changes with the timestep and the
@@ -65,6 +73,9 @@ struct Conditioning {
     bps_in: Dense,
     bps_out: Dense,
     presence: Dense,
+    /// The prompt clock's MLP (its output layer zero-initialised, so that a model that gains
+    /// the clock starts as it was).
+    clock: Option<(Dense, Dense)>,
     latent: usize,
 }
 
@@ -78,19 +89,38 @@ impl Conditioning {
             bps_in: dense(bps_inputs, l, vb.pp("bps_in"))?,
             bps_out: dense(l, l, vb.pp("bps_out"))?,
             presence: dense(2, l, vb.pp("presence"))?,
+            clock: if cfg.prompt_clock {
+                Some((dense(l, l, vb.pp("clock_in"))?, zero_dense(l, l, vb.pp("clock_out"))?))
+            } else {
+                None
+            },
             latent: l,
         })
     }
 
     /// The part that does not change over a sample's diffusion steps: projected text, object
-    /// (BPS MLP) and presence.
+    /// (BPS MLP), presence and, with the prompt clock, the elapsed frames.
     ///
     /// # Shapes
     /// - `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`; `presence`: `[batch, 2]`;
-    ///   returns `[batch, latent]`
-    fn fixed_part(&self, text: &Tensor, bps: &Tensor, presence: &Tensor) -> Result<Tensor> {
+    ///   `elapsed`: `[batch]`; returns `[batch, latent]`
+    fn fixed_part(
+        &self,
+        text: &Tensor,
+        bps: &Tensor,
+        presence: &Tensor,
+        elapsed: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let object = self.bps_out.forward(&self.bps_in.forward(bps)?.silu()?)?;
-        Ok(((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?)
+        let fixed = ((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?;
+        let Some((clock_in, clock_out)) = &self.clock else { return Ok(fixed) };
+        let elapsed = elapsed.ok_or_else(|| {
+            ModelError::shape("elapsed", "the frames since each prompt began (prompt clock)", &[])
+        })?;
+        let elapsed = elapsed.to_dtype(DType::F64)?.clamp(0.0, CLOCK_FRAMES)?;
+        let device = self.time_in.weight.device();
+        let embedded = timestep_embedding(&elapsed, self.latent, fixed.dtype(), device)?;
+        Ok((fixed + clock_out.forward(&clock_in.forward(&embedded)?.silu()?)?)?)
     }
 
     /// The timestep MLP.
@@ -461,7 +491,8 @@ impl DualStream {
     /// # Shapes
     /// - see [`ModelInput`]; returns `[2 batch, latent]`, stream A first
     fn condition(&self, input: &ModelInput<'_>, dtype: DType) -> Result<Tensor> {
-        let fixed = self.fixed_condition(input.text, input.bps, input.presence, dtype)?;
+        let fixed =
+            self.fixed_condition(input.text, input.bps, input.presence, input.elapsed, dtype)?;
         let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
         Ok((self.conditioning.time(&timesteps, dtype)? + fixed)?)
     }
@@ -469,19 +500,27 @@ impl DualStream {
     /// The part of [`Self::condition`] that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`: see [`ModelInput`]; returns `[2 batch, latent]`
+    /// - `text`, `bps`, `presence`, `elapsed`: see [`ModelInput`]; returns
+    ///   `[2 batch, latent]`
     fn fixed_condition(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
+        elapsed: Option<&Tensor>,
         dtype: DType,
     ) -> Result<Tensor> {
         let own = streams_into_batch(&presence.to_dtype(dtype)?.unsqueeze(2)?)?;
         let flags = Tensor::cat(&[&own, &swap_streams(&own)?], 1)?;
         let bps = streams_into_batch(bps)?.broadcast_mul(&own)?;
         let text = text.to_dtype(dtype)?;
-        self.conditioning.fixed_part(&Tensor::cat(&[&text, &text], 0)?, &bps, &flags)
+        let elapsed = elapsed.map(|e| Tensor::cat(&[e, e], 0)).transpose()?;
+        self.conditioning.fixed_part(
+            &Tensor::cat(&[&text, &text], 0)?,
+            &bps,
+            &flags,
+            elapsed.as_ref(),
+        )
     }
 
     /// # Shapes
@@ -555,7 +594,8 @@ impl SingleStream {
     fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         let single = self.frames(input.prefix, input.noisy)?;
         let dtype = single.dtype();
-        let fixed = self.fixed_condition(input.text, input.bps, input.presence, dtype)?;
+        let fixed =
+            self.fixed_condition(input.text, input.bps, input.presence, input.elapsed, dtype)?;
         let condition = (self.conditioning.time(input.timesteps, dtype)? + fixed)?;
         let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
         let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
@@ -577,18 +617,19 @@ impl SingleStream {
     /// The part of the condition that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`: see [`ModelInput`]; returns `[batch, latent]`
+    /// - `text`, `bps`, `presence`, `elapsed`: see [`ModelInput`]; returns `[batch, latent]`
     fn fixed_condition(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
+        elapsed: Option<&Tensor>,
         dtype: DType,
     ) -> Result<Tensor> {
         let batch = text.dim(0)?;
         let presence = presence.to_dtype(dtype)?;
         let bps = bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
-        self.conditioning.fixed_part(&text.to_dtype(dtype)?, &bps, &presence)
+        self.conditioning.fixed_part(&text.to_dtype(dtype)?, &bps, &presence, elapsed)
     }
 
     /// The denoiser's single-stream output as both streams' frames.
@@ -669,6 +710,9 @@ impl Model {
         expect("presence", input.presence, vec![batch, 2])?;
         if let Some(mask) = input.frame_mask {
             expect("frame_mask", mask, vec![batch, c.window_frames()])?;
+        }
+        if let Some(elapsed) = input.elapsed {
+            expect("elapsed", elapsed, vec![batch])?;
         }
         Ok(())
     }

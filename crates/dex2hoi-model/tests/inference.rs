@@ -229,7 +229,8 @@ fn variants() -> Vec<ModelConfig> {
 
 #[test]
 fn the_inference_model_equals_the_composite_forward_for_every_variant() {
-    for cfg in variants() {
+    let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
+    for cfg in variants().into_iter().chain([clocked]) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -244,6 +245,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let bps = random(&[batch, 2, cfg.bps_points * 3], &mut rng);
         let presence = Tensor::new(&[[1f32, 1.0], [1.0, 0.0], [1.0, 1.0]], &Device::Cpu).unwrap();
         let timesteps = Tensor::new(&[0u32, 411, 999], &Device::Cpu).unwrap();
+        let elapsed = Tensor::new(&[0f32, 37.0, 500.0], &Device::Cpu).unwrap();
         let input = ModelInput {
             noisy: &noisy,
             prefix: &prefix,
@@ -252,11 +254,12 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             bps: &bps,
             presence: &presence,
             frame_mask: None,
+            elapsed: cfg.prompt_clock.then_some(&elapsed),
         };
         let expected = model.forward(&input, None).unwrap();
         let scale = expected.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
         assert!(scale.to_scalar::<f32>().unwrap() > 0.1, "{cfg:?}: the randomised model does work");
-        let condition = inference.prepare(&text, &bps, &presence).unwrap();
+        let condition = inference.prepare(&text, &bps, &presence, input.elapsed).unwrap();
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
         assert!(difference < 1e-4, "{cfg:?}: {difference}");
@@ -303,7 +306,7 @@ fn other_dtypes_run_the_composite_model() {
     let bps = f64(random(&[1, 2, cfg.bps_points * 3], &mut rng));
     let presence = f64(Tensor::new(&[[1f32, 1.0]], &Device::Cpu).unwrap());
     let timesteps = Tensor::new(&[3u32], &Device::Cpu).unwrap();
-    let condition = inference.prepare(&text, &bps, &presence).unwrap();
+    let condition = inference.prepare(&text, &bps, &presence, None).unwrap();
     let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
     let input = ModelInput {
         noisy: &noisy,
@@ -313,6 +316,7 @@ fn other_dtypes_run_the_composite_model() {
         bps: &bps,
         presence: &presence,
         frame_mask: None,
+        elapsed: None,
     };
     let expected = model.forward(&input, None).unwrap();
     let difference = (got - expected).unwrap().abs().unwrap().max_all().unwrap();

@@ -20,6 +20,7 @@ struct Inputs {
     bps: Tensor,
     presence: Tensor,
     mask: Tensor,
+    elapsed: Tensor,
 }
 
 impl Inputs {
@@ -58,6 +59,14 @@ impl Inputs {
                 .unwrap()
                 .to_dtype(dtype)
                 .unwrap(),
+            elapsed: Tensor::from_vec(
+                (0..batch).map(|b| 30.0 * b as f64 + 5.0).collect::<Vec<_>>(),
+                batch,
+                &Device::Cpu,
+            )
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap(),
         }
     }
 
@@ -70,6 +79,8 @@ impl Inputs {
             bps: &self.bps,
             presence: &self.presence,
             frame_mask: Some(&self.mask),
+            // Read by the variants with the prompt clock, ignored by the others.
+            elapsed: Some(&self.elapsed),
         }
     }
 }
@@ -366,7 +377,8 @@ fn bad_inputs_and_configs_are_refused() {
 /// the noisy input, in f64, for each variant.
 #[test]
 fn gradients_of_every_parameter_match_finite_differences() {
-    for cfg in variants() {
+    let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
+    for cfg in variants().into_iter().chain([clocked]) {
         let cfg = ModelConfig {
             joints: 2,
             prefix_frames: 2,
@@ -493,4 +505,35 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     std::fs::write(&path, b"not a checkpoint").unwrap();
     assert!(load_file(&path, None).unwrap_err().to_string().contains("model.safetensors"));
     std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_prompt_clock_reads_the_elapsed_frames_up_to_its_limit() {
+    let cfg = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
+    let (model, vars) = build(&cfg, 3, DType::F32);
+    let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
+    // Required with the clock, refused with a wrong shape.
+    let error = model
+        .forward(&ModelInput { elapsed: None, ..inputs.view() }, None)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("elapsed"), "{error}");
+    let elapsed = |values: [f32; 2]| Tensor::new(&values, &Device::Cpu).unwrap();
+    let one = Tensor::new(&[3f32], &Device::Cpu).unwrap();
+    assert!(model.forward(&ModelInput { elapsed: Some(&one), ..inputs.view() }, None).is_err());
+    let run = |values: [f32; 2]| {
+        let e = elapsed(values);
+        model.forward(&ModelInput { elapsed: Some(&e), ..inputs.view() }, None).unwrap()
+    };
+    let difference = |a: &Tensor, b: &Tensor| {
+        (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
+    };
+    // Zero-initialised output layer: the clock changes nothing until it is trained.
+    assert_eq!(difference(&run([0.0, 0.0]), &run([100.0, 7.0])), 0.0);
+    randomise(&vars, 11);
+    assert!(difference(&run([0.0, 0.0]), &run([100.0, 7.0])) > 1e-3, "the clock is read");
+    // It stops at CLOCK_FRAMES: later readings are the same, negative ones read as 0.
+    let limit = dex2hoi_model::CLOCK_FRAMES as f32;
+    assert_eq!(difference(&run([limit, limit]), &run([limit + 50.0, 1e6])), 0.0);
+    assert_eq!(difference(&run([0.0, 0.0]), &run([-5.0, -1.0])), 0.0);
 }

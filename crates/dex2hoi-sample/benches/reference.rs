@@ -43,6 +43,7 @@ fn main() {
             bps: &bps,
             presence: &presence,
             frame_mask: None,
+            elapsed: None,
         };
         let output = model.forward(&input, None).expect("a forward pass");
         let mut tensors: HashMap<String, Tensor> = HashMap::new();

@@ -107,6 +107,7 @@ fn main() {
             )
             .unwrap(),
             presence: Tensor::ones((1, 2), DType::F32, &device).unwrap(),
+            elapsed: None,
         };
         reset_peak_memory();
         let window = median(runs, || {
@@ -135,6 +136,7 @@ fn main() {
                 root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
                 present: [true, true],
             }),
+            free_objects: None,
             progress: None,
         };
         let realtime_at = |steps: usize, rng: &mut ChaCha8Rng| {

@@ -35,6 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         seed: 0,
         sampler: SamplerConfig::default(),
         table_height: DEFAULT_TABLE_HEIGHT,
+        free_objects: Default::default(),
         progress: None,
     };
     let sampled = sample(&run, &request)?;

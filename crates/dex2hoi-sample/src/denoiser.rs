@@ -20,6 +20,9 @@ pub struct WindowCondition {
     pub bps: Tensor,
     /// Object presence, `[B, 2]`.
     pub presence: Tensor,
+    /// Frames from the start of the prompt in force to the window's first prefix frame, `[B]`
+    /// (read by a model with the prompt clock).
+    pub elapsed: Option<Tensor>,
 }
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
@@ -62,8 +65,11 @@ impl<'a> ModelDenoiser<'a> {
         let text = repeat_rows(&self.condition.text, times)?.broadcast_mul(&keep)?;
         let bps = repeat_rows(&self.condition.bps, times)?;
         let presence = repeat_rows(&self.condition.presence, times)?;
-        let prepared =
-            self.model.prepare(&text, &bps, &presence).map_err(DiffusionError::denoiser)?;
+        let elapsed = self.condition.elapsed.as_ref().map(|e| repeat_rows(e, times)).transpose()?;
+        let prepared = self
+            .model
+            .prepare(&text, &bps, &presence, elapsed.as_ref())
+            .map_err(DiffusionError::denoiser)?;
         let prefix = repeat_rows(&self.condition.prefix, times)?;
         *cache = Some((null_condition.to_vec(), prepared.clone(), prefix.clone()));
         Ok((prepared, prefix))

@@ -30,6 +30,7 @@ use dex2hoi_data::timeline::in_force;
 
 use crate::denoiser::{WindowCondition, sample_window};
 use crate::error::{Result, SampleError};
+use crate::rest::ObjectsAtRest;
 use crate::run::TrainedRun;
 
 /// A prompt that applies from a frame on (frames counted from the first generated frame).
@@ -99,6 +100,9 @@ pub struct Generation<'a> {
     /// How each later window's prefix is rebuilt from the motion it decodes to (hand-relative
     /// objects); `None` feeds the generated features back as they are.
     pub prefix_encoding: Option<PrefixEncoding<'a>>,
+    /// Keep the objects no hand holds at rest ([`crate::rest`]; needs `prefix_encoding`);
+    /// `None` leaves them as generated.
+    pub free_objects: Option<ObjectsAtRest<'a>>,
     /// Called after each window; `None`: the generation runs to its end unobserved.
     pub progress: Option<ProgressHook>,
 }
@@ -200,25 +204,51 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             format!("{:?}", history.dims()),
         ));
     }
+    // Objects at rest: the rule's state from the initial prefix (see `crate::rest`).
+    let at_rest = match (&request.prefix_encoding, request.free_objects) {
+        (Some(encoding), Some(rule)) => {
+            Some((encoding, rule, rule.start(encoding, &request.initial_prefix, c.layout())?))
+        }
+        _ => None,
+    };
+    let mut at_rest = at_rest;
+    let batch = history.dims()[0];
     let mut produced = 0;
     let mut windows = Vec::new();
     let frames = request.frames.get();
     let total_windows = frames.div_ceil(tf.max(1));
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
-        let text = in_force(&request.timeline, |t| t.start_frame, produced)
-            .map_or_else(|| request.timeline[0].embedding.clone(), |t| t.embedding.clone());
+        let prompt = in_force(&request.timeline, |t| t.start_frame, produced)
+            .unwrap_or(&request.timeline[0]);
+        // The initial prefix stands for the frames just before frame 0 of a sequence whose
+        // prompt applies from its first frame, so a window whose prefix ends at generated frame
+        // `produced` starts `produced - start_frame` frames into its prompt.
+        let elapsed = (produced - prompt.start_frame) as f32;
         let length = history.dims()[2];
         let condition = WindowCondition {
             prefix: history.narrow(2, length - tp, tp)?,
-            text: text.to_dtype(request.model.dtype())?,
+            text: prompt.embedding.to_dtype(request.model.dtype())?,
             bps: request.bps.to_dtype(request.model.dtype())?,
             presence: request.presence.to_dtype(request.model.dtype())?,
+            elapsed: Some(
+                Tensor::full(elapsed, batch, request.initial_prefix.device())?
+                    .to_dtype(request.model.dtype())?,
+            ),
         };
         let window =
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;
         let keep = tf.min(frames - produced);
-        let window = window.narrow(2, 0, keep)?;
+        let mut window = window.narrow(2, 0, keep)?;
+        if let Some((encoding, rule, states)) = &mut at_rest {
+            let settled = rule.settle(
+                encoding,
+                &request.normaliser.denormalise(&window)?,
+                c.layout(),
+                states,
+            )?;
+            window = request.normaliser.normalise(&settled)?;
+        }
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -259,6 +289,8 @@ pub struct Conditioning<'a> {
     /// The body the motion is posed on: the run's built-in skeleton, or a test sequence's own
     /// subject when continuing that sequence.
     pub skeleton: &'a Skeleton,
+    /// Keep the objects no hand holds at rest (see [`Generation::free_objects`]).
+    pub free_objects: Option<ObjectsAtRest<'a>>,
     /// Called after each window of the generation (see [`Generation::progress`]).
     pub progress: Option<ProgressHook>,
 }
@@ -335,8 +367,18 @@ pub fn generate_motion(
             root_start: conditioning.root_start,
             present: conditioning.present,
         }),
+        free_objects: conditioning.free_objects,
         progress: conditioning.progress.clone(),
     };
+    if generation.free_objects.is_some() && generation.prefix_encoding.is_none() {
+        return Err(SampleError::invalid(
+            "generation",
+            "free objects",
+            "a model with the hand-relative object representation (objects at rest read its \
+             mixture)",
+            "a model with world positions only",
+        ));
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let features: Vec<f32> = generate(&generation, &mut rng)?.flatten_all()?.to_vec1()?;
     let (body_features, object_features) = config.layout().streams_to_frames(&features)?;

@@ -24,6 +24,7 @@
 //!     seed: 0,
 //!     sampler: SamplerConfig::default(),
 //!     table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
+//!     free_objects: Default::default(),
 //!     progress: None,
 //! };
 //! let motion = sample(&run, &request)?;
@@ -38,6 +39,7 @@ pub mod files;
 pub mod generate;
 pub mod model_file;
 pub mod request;
+pub mod rest;
 pub mod run;
 pub mod scene;
 pub mod text;

@@ -16,6 +16,7 @@ use dex2hoi_repr::{BpsBasis, MeshQuery};
 
 use crate::error::{Result, SampleError};
 use crate::generate::{Conditioning, ProgressHook, generate_motion};
+use crate::rest::{FreeObjects, ObjectsAtRest};
 use crate::run::TrainedRun;
 use crate::scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, SceneObject, default_lone_object_side,
@@ -37,6 +38,8 @@ pub struct SampleRequest {
     pub sampler: SamplerConfig,
     /// Table height for the default places.
     pub table_height: f32,
+    /// What happens to the objects no hand holds ([`crate::rest`]).
+    pub free_objects: FreeObjects,
     /// Called after each generated window: progress, and a way to stop early
     /// ([`SampleError::Interrupted`]); `None` runs the generation to its end.
     pub progress: Option<ProgressHook>,
@@ -83,11 +86,12 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
     let bps_basis =
         BpsBasis::new(run.manifest.bps.points, run.manifest.bps.radius, run.manifest.bps.seed)?;
     let mut bps = vec![0.0f32; MAX_OBJECTS * config.bps_points * 3];
+    let mut queries: [Option<MeshQuery>; MAX_OBJECTS] = [None, None];
     for (slot, object) in request.objects.iter().enumerate() {
         poses[slot] = Some(object.start_pose(places[slot], request.table_height));
         present[slot] = true;
-        let query = MeshQuery::new(&object.mesh)?;
-        let features = bps_basis.encode_flat(&query);
+        let query: &MeshQuery = queries[slot].insert(MeshQuery::new(&object.mesh)?);
+        let features = bps_basis.encode_flat(query);
         if features.len() != config.bps_points * 3 {
             return Err(SampleError::invalid(
                 "run",
@@ -115,6 +119,8 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             prompts,
             root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
             skeleton: &run.skeleton,
+            free_objects: (request.free_objects == FreeObjects::AtRest)
+                .then(|| ObjectsAtRest { meshes: queries.each_ref().map(Option::as_ref) }),
             progress: request.progress.clone(),
         },
         request.frames,

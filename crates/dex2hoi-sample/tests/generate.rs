@@ -72,6 +72,7 @@ fn generation_runs_window_by_window_with_a_timeline() {
             guidance: Some(2.0),
         },
         prefix_encoding: None,
+        free_objects: None,
         progress: None,
     };
     let run = |request: &Generation<'_>, seed| {
@@ -156,6 +157,7 @@ fn a_progress_hook_sees_every_window_and_can_stop_the_generation() {
         frames: std::num::NonZeroUsize::new(25).unwrap(),
         sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: 2, guidance: None },
         prefix_encoding: None,
+        free_objects: None,
         progress: Some(record(usize::MAX)),
     };
     // Windows of 8 frames: 25 frames take 4, the last cut to one frame.

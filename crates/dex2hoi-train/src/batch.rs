@@ -76,6 +76,9 @@ pub struct Batch {
     /// The rest offsets of each window's body (its sequence's subject, mirrored with the
     /// window), `[B, J, 3]`: the losses pose the prediction on them.
     pub rest_offsets: Tensor,
+    /// Frames from the start of each window's sequence (where its texts begin to apply) to
+    /// the window's first frame, `[B]`: what the prompt clock reads.
+    pub elapsed: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
 }
@@ -187,8 +190,10 @@ impl TrainingSet {
         let mut root_start = vec![0.0f32; b * 3];
         let mut rest_offsets = Vec::with_capacity(b * joints * 3);
         let mut clouds = Vec::with_capacity(b);
+        let mut elapsed = Vec::with_capacity(b);
         for i in 0..b {
             let window = self.windows[rng.random_range(0..self.windows.len())];
+            elapsed.push(window.start as f32);
             let source = &self.sequences[window.sequence];
             let text = source.texts[rng.random_range(0..source.texts.len())].clone();
             let swap = rng.random_bool(options.swap_probability);
@@ -258,6 +263,7 @@ impl TrainingSet {
             foot_contact: tensor(foot_contact.clone(), &[b, tf, 4])?,
             foot_contact_values: foot_contact,
             root_start: tensor(root_start, &[b, 1, 3])?,
+            elapsed: tensor(elapsed, &[b])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
         })

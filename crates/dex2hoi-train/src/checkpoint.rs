@@ -13,6 +13,8 @@ use dex2hoi_sample::{
     STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, TextModule, VOCABULARY_KEY, trained_steps,
 };
 
+use dex2hoi_model::text::{PAD, UNKNOWN, Vocabulary};
+
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::step::Trainer;
@@ -123,11 +125,17 @@ impl Trainer {
     /// their EMA; AdamW starts afresh (zero moments, its warm-up included) and the step count at
     /// 0, so the learning-rate schedule and the batches are this run's own, while the steps the
     /// weights had behind them are kept ([`STEPS_BEFORE_KEY`]) and counted in a packed model.
-    /// The model must have this configuration's network and text encoder and the dataset's
-    /// vocabulary; the training settings (losses, optimiser, batch) are this run's. The
-    /// normalisation statistics are the dataset's, as for every run: fine-tuning on the model's
-    /// own dataset keeps them as they were.
-    pub fn initialise_from(&mut self, path: &Path) -> Result<()> {
+    /// The model must have this configuration's network and text encoder; the training settings
+    /// (losses, optimiser, batch) are this run's. Two differences are bridged:
+    /// - a dataset with other words: the built-in encoder's word embeddings are carried over
+    ///   by word, and a word the model never saw starts as its unknown-word embedding (what the
+    ///   model read it as);
+    /// - a configuration that adds the prompt clock to a model without it: the clock keeps its
+    ///   initialisation (its output layer is zero, so the model starts as it was).
+    ///
+    /// The normalisation statistics are the dataset's, as for every run: fine-tuning on the
+    /// model's own dataset keeps them as they were. Returns what was bridged.
+    pub fn initialise_from(&mut self, path: &Path) -> Result<Initialisation> {
         if self.step > 0 {
             return Err(TrainError::checkpoint(
                 path,
@@ -144,6 +152,10 @@ impl Trainer {
         let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
+        let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
+        if gains_clock {
+            stored.model.prompt_clock = true;
+        }
         for (section, model, run) in [
             (
                 "[model]",
@@ -174,12 +186,31 @@ impl Trainer {
                 ));
             }
         }
-        self.check_vocabulary(&metadata, path)?;
+        let remap = self.vocabulary_remap(&metadata, path)?;
+        let mut initialisation = Initialisation::default();
+        if let Some(remap) = &remap {
+            // After the two special tokens, which every vocabulary has.
+            let words = &remap[2..];
+            initialisation.words_carried = words.iter().filter(|r| r.is_some()).count();
+            initialisation.words_new = words.len() - initialisation.words_carried;
+        }
         for (k, p) in self.parameters.iter().enumerate() {
             let name = format!("ema.{}", p.name);
-            let t = tensors
-                .get(&name)
-                .ok_or_else(|| TrainError::checkpoint(path, &name, "a tensor", "nothing"))?;
+            let Some(t) = tensors.get(&name) else {
+                if gains_clock && p.name.contains(".clock_") {
+                    initialisation.kept.push(p.name.clone());
+                    continue;
+                }
+                return Err(TrainError::checkpoint(path, &name, "a tensor", "nothing"));
+            };
+            let remapped;
+            let t = match (&remap, p.name.as_str()) {
+                (Some(remap), TOKEN_EMBEDDINGS) => {
+                    remapped = remap_rows(t, remap)?;
+                    &remapped
+                }
+                _ => t,
+            };
             if t.dims() != p.var.dims() {
                 return Err(TrainError::checkpoint(
                     path,
@@ -192,10 +223,43 @@ impl Trainer {
             self.ema.set_value(k, p, t)?;
         }
         self.steps_before = trained_steps(&metadata);
-        Ok(())
+        Ok(initialisation)
     }
 
-    /// Checks that the built-in encoder's vocabulary in a file's metadata is this dataset's.
+    /// For the built-in encoder, where each of this dataset's vocabulary entries (`[PAD]`,
+    /// `[UNK]`, then the words) comes from in a file's: `Some(row)`, or `None` for a word the
+    /// file's model never saw. `None` when the vocabularies are the same or the encoder is a
+    /// frozen one.
+    fn vocabulary_remap(
+        &self,
+        metadata: &BTreeMap<String, String>,
+        path: &Path,
+    ) -> Result<Option<Vec<Option<usize>>>> {
+        let TextModule::Builtin { encoder, .. } = &self.text else { return Ok(None) };
+        let words: Vec<String> = metadata
+            .get(VOCABULARY_KEY)
+            .map(|w| serde_json::from_str(w))
+            .transpose()
+            .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
+            .ok_or_else(|| {
+                TrainError::checkpoint(path, VOCABULARY_KEY, "the built-in encoder's words", "none")
+            })?;
+        if words.as_slice() == encoder.vocabulary().words() {
+            return Ok(None);
+        }
+        let theirs = Vocabulary::from_words(words);
+        let ours = encoder.vocabulary();
+        let specials = [PAD, UNKNOWN].map(|id| Some(id as usize));
+        let by_word = ours.words().iter().map(|word| {
+            // `tokenize` of a known word is its one id; an unknown word is `UNKNOWN`.
+            let id = theirs.tokenize(word).first().copied().unwrap_or(UNKNOWN);
+            (id != UNKNOWN).then_some(id as usize)
+        });
+        Ok(Some(specials.into_iter().chain(by_word).collect()))
+    }
+
+    /// Checks that the built-in encoder's vocabulary in a file's metadata is this dataset's
+    /// (resuming a run).
     fn check_vocabulary(&self, metadata: &BTreeMap<String, String>, path: &Path) -> Result<()> {
         if let TextModule::Builtin { encoder, .. } = &self.text {
             let words: Option<Vec<String>> = metadata
@@ -214,4 +278,30 @@ impl Trainer {
         }
         Ok(())
     }
+}
+
+/// The built-in encoder's word embeddings among the trained parameters, `[vocabulary, width]`.
+const TOKEN_EMBEDDINGS: &str = "text_encoder.tokens";
+
+/// What [`Trainer::initialise_from`] bridged between the model and this run.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Initialisation {
+    /// Words of this dataset's vocabulary whose embeddings came from the model (0 when the
+    /// vocabularies are the same).
+    pub words_carried: usize,
+    /// Words the model never saw, started as its unknown-word embedding.
+    pub words_new: usize,
+    /// Parameters the model does not have, kept at their initialisation (the prompt clock's).
+    pub kept: Vec<String>,
+}
+
+/// The rows of a `[rows, width]` embedding table in a new order: row `k` of the result is
+/// `table[from[k]]`, or the unknown-word row for `None`.
+///
+/// # Shapes
+/// - `table`: `[rows, width]`; returns `[from.len(), width]`
+fn remap_rows(table: &Tensor, from: &[Option<usize>]) -> Result<Tensor> {
+    let ids: Vec<u32> = from.iter().map(|row| row.map_or(UNKNOWN, |r| r as u32)).collect();
+    let ids = Tensor::from_vec(ids, from.len(), table.device())?;
+    Ok(table.index_select(&ids, 0)?)
 }

@@ -87,6 +87,8 @@ pub struct TrainSummary {
     pub last: Option<StepReport>,
     /// The run directory.
     pub run_dir: PathBuf,
+    /// What starting from another model's weights bridged (`None` for other starts).
+    pub initialisation: Option<crate::checkpoint::Initialisation>,
 }
 
 /// Trains into a run directory: writes the resolved `config.toml`, the dataset manifest and
@@ -135,6 +137,7 @@ pub fn train(
     }
     let mut trainer = Trainer::new(config, dataset, dataset_path, options.device)?;
     let mut last_checkpoint = 0;
+    let mut initialisation = None;
     match options.start {
         RunStart::Resume => {
             trainer.restore(&files.checkpoint)?;
@@ -145,7 +148,7 @@ pub fn train(
             let _ = std::fs::remove_file(&files.metrics);
         }
         RunStart::InitialisedFrom(model) => {
-            trainer.initialise_from(model)?;
+            initialisation = Some(trainer.initialise_from(model)?);
             let _ = std::fs::remove_file(&files.metrics);
         }
     }
@@ -190,5 +193,6 @@ pub fn train(
         interrupted,
         last,
         run_dir: run_dir.to_path_buf(),
+        initialisation,
     })
 }

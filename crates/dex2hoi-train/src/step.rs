@@ -199,6 +199,11 @@ impl Trainer {
         self.steps_before
     }
 
+    /// The text module (the built-in encoder's vocabulary among it).
+    pub fn text(&self) -> &TextModule {
+        &self.text
+    }
+
     /// The configuration.
     pub fn config(&self) -> &TrainConfig {
         &self.config
@@ -277,6 +282,7 @@ impl Trainer {
             bps: &batch.bps,
             presence: &batch.presence,
             frame_mask: Some(&batch.frame_mask),
+            elapsed: Some(&batch.elapsed),
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -323,6 +329,7 @@ impl Trainer {
             .map(|(&(start, len), &seed)| -> Result<Tensor> {
                 let rows = |t: &Tensor| t.narrow(0, start, len);
                 let mask = input.frame_mask.map(rows).transpose()?;
+                let elapsed = input.elapsed.map(rows).transpose()?;
                 let group = ModelInput {
                     noisy: &rows(input.noisy)?,
                     prefix: &rows(input.prefix)?,
@@ -331,6 +338,7 @@ impl Trainer {
                     bps: &rows(input.bps)?,
                     presence: &rows(input.presence)?,
                     frame_mask: mask.as_ref(),
+                    elapsed: elapsed.as_ref(),
                 };
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 Ok(model.forward(&group, Some(&mut rng))?)

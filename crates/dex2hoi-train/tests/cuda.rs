@@ -58,6 +58,7 @@ fn input<'a>(t: &[&'a Tensor]) -> ModelInput<'a> {
         bps: t[4],
         presence: t[5],
         frame_mask: None,
+        elapsed: None,
     }
 }
 
@@ -185,6 +186,7 @@ fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
         seed: 7,
         sampler: SamplerConfig { steps: 10, ..SamplerConfig::default() },
         table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
+        free_objects: Default::default(),
         progress: None,
     };
     let motions: Vec<_> = [Device::Cpu, gpu]

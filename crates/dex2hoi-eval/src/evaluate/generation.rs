@@ -9,7 +9,10 @@ use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::Skeleton;
+use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
 use dex2hoi_sample::{Conditioning, GeneratedMotion, TrainedRun, generate_motion};
+
+use super::physical::ObjectMeshes;
 
 use crate::error::Result;
 use crate::evaluator::MotionClip;
@@ -36,7 +39,7 @@ impl<'p> Progress<'p> {
         Self { done: 0, total, report }
     }
 
-    fn clip_done(&mut self) {
+    pub(super) fn clip_done(&mut self) {
         self.done += 1;
         (self.report)(self.done, self.total);
     }
@@ -57,21 +60,25 @@ pub(super) struct GeneratedClip {
 pub(super) struct Generator<'a> {
     run: &'a TrainedRun,
     dataset: &'a Dataset,
+    meshes: &'a ObjectMeshes<'a>,
     frames: NonZeroUsize,
     sampler: SamplerConfig,
+    free_objects: FreeObjects,
     seed: u64,
 }
 
 impl<'a> Generator<'a> {
-    /// A generator of `frames`-frame clips with `sampler`; `seed` is the first replication's.
+    /// A generator of `frames`-frame clips with `sampler` and its rule for free objects; `seed`
+    /// is the first replication's.
     pub(super) fn new(
         run: &'a TrainedRun,
         dataset: &'a Dataset,
+        meshes: &'a ObjectMeshes<'a>,
         frames: NonZeroUsize,
-        sampler: SamplerConfig,
+        (sampler, free_objects): (SamplerConfig, FreeObjects),
         seed: u64,
     ) -> Self {
-        Self { run, dataset, frames, sampler, seed }
+        Self { run, dataset, meshes, frames, sampler, free_objects, seed }
     }
 
     /// One clip for a test sequence after its own prefix, prompted with `prompt`.
@@ -83,7 +90,10 @@ impl<'a> Generator<'a> {
     ) -> Result<GeneratedMotion> {
         // Continuing a test sequence: its own subject's body, like its ground truth.
         let body = sequence.skeleton(&self.run.skeleton)?;
-        let conditioning = conditioning(self.run, self.dataset, sequence, prompt, &body)?;
+        let mut conditioning = conditioning(self.run, self.dataset, sequence, prompt, &body)?;
+        if self.free_objects == FreeObjects::AtRest {
+            conditioning.free_objects = Some(ObjectsAtRest { meshes: self.meshes.of(sequence)? });
+        }
         Ok(generate_motion(self.run, &conditioning, self.frames, seed, self.sampler)?)
     }
 
@@ -172,6 +182,7 @@ fn conditioning<'a>(
         prompts: vec![(0, prompt)],
         root_start: sequence.root_start,
         skeleton,
+        free_objects: None,
         progress: None,
     })
 }

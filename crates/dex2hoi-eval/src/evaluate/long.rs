@@ -21,6 +21,7 @@ use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::{MeshQuery, ObjectPose};
+use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
 use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion};
 
 use crate::error::{EvalError, Result};
@@ -245,6 +246,7 @@ pub(super) fn evaluate_long(
     meshes: &ObjectMeshes<'_>,
     options: LongOptions,
     sampler: SamplerConfig,
+    free_objects: FreeObjects,
     seed: u64,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<LongProtocol> {
@@ -303,6 +305,8 @@ pub(super) fn evaluate_long(
                 prompts: vec![(0, case.prompt)],
                 root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
                 skeleton: &run.skeleton,
+                free_objects: (free_objects == FreeObjects::AtRest)
+                    .then_some(ObjectsAtRest { meshes: slots }),
                 progress: None,
             };
             let seed = seed

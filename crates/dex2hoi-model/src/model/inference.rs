@@ -359,6 +359,7 @@ pub struct PreparedCondition {
     text: Tensor,
     bps: Tensor,
     presence: Tensor,
+    elapsed: Option<Tensor>,
     /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
     /// dual layout (stream A first), `[batch, latent]` in the single one.
     fixed: Tensor,
@@ -380,6 +381,7 @@ impl PreparedCondition {
             text: self.text.narrow(0, start, len)?,
             bps: self.bps.narrow(0, start, len)?,
             presence: self.presence.narrow(0, start, len)?,
+            elapsed: self.elapsed.as_ref().map(|e| e.narrow(0, start, len)).transpose()?,
             fixed: self
                 .fixed
                 .reshape((streams, batch, latent))?
@@ -454,22 +456,27 @@ impl InferenceModel {
     ///
     /// # Shapes
     /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
-    ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`
+    ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `elapsed`: `[batch]` (see
+    ///   [`ModelInput::elapsed`])
     pub fn prepare(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
+        elapsed: Option<&Tensor>,
     ) -> Result<PreparedCondition> {
         let dtype = self.model.dtype();
         let fixed = match &self.model.layout {
-            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, dtype)?,
-            Layout::Single(single) => single.fixed_condition(text, bps, presence, dtype)?,
+            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, elapsed, dtype)?,
+            Layout::Single(single) => {
+                single.fixed_condition(text, bps, presence, elapsed, dtype)?
+            }
         };
         Ok(PreparedCondition {
             text: text.detach(),
             bps: bps.detach(),
             presence: presence.detach(),
+            elapsed: elapsed.map(Tensor::detach),
             fixed: fixed.detach(),
         })
     }
@@ -533,6 +540,7 @@ impl InferenceModel {
             bps: &condition.bps,
             presence: &condition.presence,
             frame_mask: None,
+            elapsed: condition.elapsed.as_ref(),
         }
     }
 
