@@ -164,6 +164,53 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
     assert_eq!(json["setup"]["sampler"], "ddpm");
     assert!(json["setup"]["eta"].is_null() && json["setup"]["guidance"].is_null(), "{json}");
 
+    // The long-generation protocol beside the paper's, with the objects-at-rest rule: a table
+    // per set in report.md, the numbers in report.json; the ground truth does its own task as
+    // asked, once, with nothing off its support.
+    let long = dir.join("long");
+    ok(&evaluate_into(
+        long.to_str().unwrap(),
+        &[
+            "--replications",
+            "1",
+            "--sequences",
+            "4",
+            "--ddim-steps",
+            "2",
+            "--multimodality",
+            "0,1,1",
+            "--long",
+            "--long-frames",
+            "30",
+            "--free-objects",
+            "at-rest",
+        ],
+    ));
+    let report = std::fs::read_to_string(long.join("report.md")).unwrap();
+    assert!(report.contains("\n## Long generations\n"), "{report}");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(long.join("report.json")).unwrap()).unwrap();
+    assert_eq!(json["format"], 3);
+    assert_eq!(json["long"]["frames"], 30);
+    let sets = json["long"]["sets"].as_array().unwrap();
+    let kinds: Vec<&str> = sets.iter().map(|s| s["kind"].as_str().unwrap()).collect();
+    assert_eq!(kinds, ["as-in-data", "moved", "held-out"], "{json}");
+    assert_eq!(report.matches("\n### ").count(), 3, "{report}");
+    for set in sets {
+        let all = &set["rows"][0];
+        assert_eq!(all["family"], "all");
+        assert_eq!(all["truth"]["as_asked"].as_f64(), Some(1.0), "{set}");
+        assert_eq!(all["truth"]["lifted_again"].as_f64(), Some(0.0), "{set}");
+        assert!(all["truth"]["off_support_cm"].as_f64().unwrap() < 0.01, "{set}");
+        let share = all["model"]["as_asked"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&share), "{set}");
+    }
+    // The paper's protocol alone has no long section.
+    assert!(!std::fs::read_to_string(ddpm.join("report.md")).unwrap().contains("Long"));
+    // --long-frames needs --long.
+    let bad = evaluate_into(long.to_str().unwrap(), &["--long-frames", "30"]);
+    assert!(!bad.status.success());
+
     // compare: one series from a report directory, one from a directory of them.
     std::fs::rename(dir.join("report"), dir.join("reports/ddim")).unwrap();
     let compared = dir.join("compare");
