@@ -56,6 +56,13 @@ pub const SCRIPTS_FILE: &str = "animations.json";
 /// reported: HUMOTO's captured stretch leaves well under a millimetre.
 const FOLD_WARNING: f32 = 0.005;
 
+/// The most node poses a GLB is sampled into (keyframes times nodes), per keyframe its tracks
+/// store or node it has: each frame poses every node, and a file of many nodes and one long
+/// track would otherwise ask for gigabytes. HUMOTO's published GLBs sample 0.6 to 1.6 poses per
+/// stored keyframe (about 70 nodes, about 200 tracks of up to 900 keyframes), so 16 leaves a
+/// wide margin.
+pub const POSES_PER_STORED_KEYFRAME: usize = 16;
+
 /// Every sequence below the root (outside the object folder): a `.glb`, or a `.pkl`, per
 /// folder and name; the GLB when both are there (it is the published source). The id is the
 /// file name without its extension, which is the folder name in the published layout.
@@ -256,6 +263,20 @@ fn read_scripts(root: &Path) -> std::result::Result<Scripts, String> {
 fn read_glb(path: &Path) -> Result<Motion> {
     let scene = GlbScene::read(path)?;
     let source = scene.source_name().to_string();
+    let times = scene.keyframe_times();
+    let poses = times.len().saturating_mul(scene.nodes.len());
+    let stored = scene.stored_keyframes() + scene.nodes.len();
+    if poses > stored.saturating_mul(POSES_PER_STORED_KEYFRAME) {
+        return Err(ImportError::format(
+            &source,
+            "animation",
+            format!(
+                "at most {POSES_PER_STORED_KEYFRAME} node poses per stored keyframe or node \
+                 ({stored})"
+            ),
+            format!("{} keyframes of {} nodes", times.len(), scene.nodes.len()),
+        ));
+    }
     let builtin = Skeleton::humoto_character();
     let skin = scene
         .skins
@@ -300,7 +321,6 @@ fn read_glb(path: &Path) -> Result<Motion> {
         .collect();
     let skeleton = builtin.with_rest_offsets(offsets)?;
     let nodes: Vec<usize> = order.iter().map(|&k| skin.joints[k]).collect();
-    let times = scene.keyframe_times();
     let frames = times.len();
     let joints = nodes.len();
     let mut world_rotations = Vec::with_capacity(frames * joints);
@@ -513,4 +533,45 @@ fn assemble(item: &Item, context: &Context, motion: Motion, text: String) -> Res
         }),
         warnings,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::glb::glb_bytes;
+
+    #[test]
+    fn a_long_track_over_many_nodes_is_refused_before_sampling() {
+        // One track of 2,000 keyframes and 2,000 nodes: 4 million poses asked of a 40 kB file
+        // (scaled up, gigabytes of megabytes). The check comes first, before the skin's: this
+        // file has none.
+        let (frames, nodes) = (2000, 2000);
+        let mut bin: Vec<u8> = (0..frames).flat_map(|k| (k as f32 / 30.0).to_le_bytes()).collect();
+        bin.extend((0..frames * 3).flat_map(|_| 0.5f32.to_le_bytes()));
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"nodes":[{}],
+            "buffers":[{{"byteLength":{total}}}],
+            "bufferViews":[{{"buffer":0,"byteLength":{times}}},
+                           {{"buffer":0,"byteOffset":{times},"byteLength":{values}}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":{frames},"type":"SCALAR",
+                           "min":[0],"max":[{last}]}},
+                         {{"bufferView":1,"componentType":5126,"count":{frames},"type":"VEC3"}}],
+            "animations":[{{"channels":[{{"sampler":0,"target":{{"node":0,"path":"translation"}}}}],
+                            "samplers":[{{"input":0,"output":1}}]}}]}}"#,
+            vec!["{}"; nodes].join(","),
+            total = frames * 16,
+            times = frames * 4,
+            values = frames * 12,
+            last = (frames - 1) as f32 / 30.0,
+        );
+        let dir = std::env::temp_dir().join(format!("dex2hoi-humoto-poses-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("many_nodes.glb");
+        std::fs::write(&path, glb_bytes(&json, &bin)).unwrap();
+        let started = std::time::Instant::now();
+        let error = read_glb(&path).err().expect("refused").to_string();
+        assert!(error.contains("many_nodes.glb") && error.contains("node poses"), "{error}");
+        assert!(started.elapsed().as_secs_f32() < 2.0);
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -13,9 +13,16 @@ use crate::error::{ImportError, Result};
 use crate::pickle::read_pickle;
 use crate::value::{NdArray, Value, element_count};
 
-/// The largest archive entry read (decompressed): far above any GRAB, HUMOTO or HIMO file, low
-/// enough that a zip bomb fails instead of filling memory.
-pub const MAX_ENTRY_BYTES: u64 = 8 << 30;
+/// The largest archive entry read (decompressed), 1 GiB: the largest arrays of the real GRAB,
+/// HUMOTO and HIMO files are tens of MB, so this leaves a wide margin while a zip bomb fails
+/// before it fills the memory of a small machine.
+pub const MAX_ENTRY_BYTES: u64 = 1 << 30;
+
+/// The most bytes one compressed byte of an entry can stand for: deflate's limit (a 258-byte
+/// match in at best two bits, about 1032 to 1), the only compression `np.savez_compressed`
+/// uses. An entry declaring more than its compressed size times this is a lie or another
+/// method, and is refused before anything is read: a small file cannot claim gigabytes.
+pub const MAX_EXPANSION: u64 = 1032;
 
 /// The most an archive entry's declared size reserves before its data is read.
 const PREALLOCATE_BYTES: u64 = 64 << 20;
@@ -137,6 +144,8 @@ fn parse_header(text: &str, source_name: &str) -> Result<Header> {
 /// An open `.npz` archive.
 pub struct Npz {
     path: PathBuf,
+    /// The archive's size on disk: no entry's compressed data can be larger.
+    file_bytes: u64,
     archive: npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
 }
 
@@ -156,7 +165,8 @@ impl Npz {
                 ImportError::format(path.display(), "archive", "an .npz (zip) archive", source)
             }
         })?;
-        Ok(Self { path: path.to_path_buf(), archive })
+        let file_bytes = std::fs::metadata(path).map_err(ImportError::io(path))?.len();
+        Ok(Self { path: path.to_path_buf(), file_bytes, archive })
     }
 
     /// The file.
@@ -183,21 +193,39 @@ impl Npz {
             Ok(entry) => entry,
             Err(_) => return Err(ImportError::missing(path.display(), name, expected)),
         };
-        if entry.size() > MAX_ENTRY_BYTES {
+        // What the entry may hold: what it declares, if its compressed data fits in the file,
+        // deflate could expand that data so far, and the cap allows.
+        let compressed = entry.compressed_size();
+        let limit = MAX_ENTRY_BYTES.min(compressed.saturating_mul(MAX_EXPANSION));
+        if compressed > self.file_bytes || entry.size() > limit {
             return Err(ImportError::format(
                 &source_name,
                 "entry size",
-                format!("at most {MAX_ENTRY_BYTES} bytes"),
+                format!(
+                    "at most {limit} bytes ({MAX_EXPANSION} times its {compressed} compressed \
+                     bytes in a file of {}, at most {MAX_ENTRY_BYTES})",
+                    self.file_bytes
+                ),
                 entry.size(),
             ));
         }
-        // The size an entry declares is not trusted for the allocation (a lie would reserve
-        // gigabytes; found by the `npy` fuzz target): reading grows the buffer as data comes.
-        let mut bytes = Vec::with_capacity(entry.size().min(PREALLOCATE_BYTES) as usize);
+        // The declared size is not trusted for the allocation (a lie would reserve gigabytes;
+        // found by the `npy` fuzz target): reading grows the buffer as data comes, and stops
+        // past the declared size.
+        let declared = entry.size();
+        let mut bytes = Vec::with_capacity(declared.min(PREALLOCATE_BYTES) as usize);
         (&mut entry)
-            .take(MAX_ENTRY_BYTES)
+            .take(declared + 1)
             .read_to_end(&mut bytes)
             .map_err(|e| ImportError::format(&source_name, "entry data", "a readable entry", e))?;
+        if bytes.len() as u64 > declared {
+            return Err(ImportError::format(
+                &source_name,
+                "entry data",
+                format!("the {declared} bytes the entry declares"),
+                "more",
+            ));
+        }
         parse_npy(&bytes, &source_name)
     }
 }
@@ -232,6 +260,39 @@ mod tests {
         assert_eq!(h.shape, vec![5]);
         let structured = "{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (2,), }";
         assert!(parse_header(structured, "t").unwrap_err().to_string().contains("structured"));
+    }
+
+    /// An entry whose declared size is more than deflate could make of its compressed bytes is
+    /// refused before it is read (the reader used to reserve up to 64 MiB for it and would read
+    /// up to 8 GiB).
+    #[test]
+    fn entries_declaring_more_than_they_can_hold_are_refused() {
+        use npyz::WriterBuilder;
+        let dir = std::env::temp_dir().join(format!("dex2hoi-npz-size-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("liar.npz");
+        {
+            let mut npz = npyz::npz::NpzWriter::create(&path).unwrap();
+            let mut writer = npz
+                .array::<f64>("a", Default::default())
+                .unwrap()
+                .default_dtype()
+                .shape(&[4])
+                .begin_nd()
+                .unwrap();
+            writer.extend([1.0, 2.0, 3.0, 4.0]).unwrap();
+            writer.finish().unwrap();
+        }
+        assert!(Npz::open(&path).unwrap().read("a", "an array").is_ok());
+        // 4 GiB declared in the central directory and the local header.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let central = bytes.windows(4).rposition(|w| w == b"PK\x01\x02").unwrap();
+        bytes[central + 24..central + 28].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+        bytes[22..26].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let error = Npz::open(&path).unwrap().read("a", "an array").unwrap_err().to_string();
+        assert!(error.contains("liar.npz[a]") && error.contains("entry size"), "{error}");
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

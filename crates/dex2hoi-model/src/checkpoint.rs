@@ -196,8 +196,38 @@ impl Model {
                 serde_json::to_string(&config).unwrap_or_default(),
             ));
         }
+        // The configuration comes from the file: its sizes are held to what the file's tensors
+        // under `prefix` hold before the model is built, so that a hostile one (a latent width
+        // of 10^9) is refused instead of allocated. No size of a model exceeds its count of
+        // parameter values, and each parameter must be in the file (`parameter_budget` leaves
+        // room for a few missing, which `assign_parameters` then names).
+        let elements = tensors
+            .iter()
+            .filter(|(name, _)| name.starts_with(prefix))
+            .map(|(_, tensor)| tensor.elem_count())
+            .fold(0usize, usize::saturating_add);
+        let budget = crate::init::parameter_budget(elements);
+        let within = format!("sizes within the {elements} values of its {prefix}* tensors");
+        if let Ok(serde_json::Value::Object(fields)) = serde_json::to_value(&config) {
+            for (field, value) in fields {
+                if value.as_u64().is_some_and(|v| v > elements as u64) {
+                    return Err(checkpoint_error(
+                        path,
+                        &format!("{CONFIG_KEY} {field}"),
+                        within,
+                        value,
+                    ));
+                }
+            }
+        }
         let vars = SeededVarMap::new(0);
-        let model = Model::new(&config, vars.builder(dtype, device))?;
+        let (model, refused) = crate::init::with_parameter_budget(budget, || {
+            Model::new(&config, vars.builder(dtype, device))
+        });
+        if let Some(refused) = refused {
+            return Err(checkpoint_error(path, CONFIG_KEY, within, refused));
+        }
+        let model = model?;
         assign_parameters(&vars, tensors, prefix, path)?;
         Ok((model, vars))
     }
@@ -213,6 +243,40 @@ mod tests {
         bytes.extend(header.as_bytes());
         bytes.extend(data);
         bytes
+    }
+
+    /// A configuration in the metadata asking for more than the file's tensors hold is refused
+    /// before the model is built (a latent width of 2^30 used to allocate its layers first).
+    #[test]
+    fn hostile_configurations_are_refused_before_building() {
+        let path = Path::new("hostile.safetensors");
+        let config = ModelConfig::tiny();
+        let vars = SeededVarMap::new(0);
+        Model::new(&config, vars.builder(DType::F32, &Device::Cpu)).unwrap();
+        let tensors = named_parameters(&vars, "model.");
+        let load = |config: &ModelConfig| {
+            let started = std::time::Instant::now();
+            let result = Model::from_checkpoint(
+                path,
+                &tensors,
+                &model_metadata(config),
+                "model.",
+                None,
+                DType::F32,
+                &Device::Cpu,
+            );
+            assert!(started.elapsed().as_secs_f32() < 5.0);
+            result.map(|_| ()).map_err(|e| e.to_string())
+        };
+        load(&config).unwrap();
+        // A size past every value the file holds.
+        let huge = ModelConfig { latent: 1 << 30, ..config.clone() };
+        let error = load(&huge).unwrap_err();
+        assert!(error.contains("hostile.safetensors") && error.contains("latent"), "{error}");
+        // Sizes each within the file, whose parameters together are not.
+        let wide = ModelConfig { latent: 4096, feed_forward: 4096, ..config.clone() };
+        let error = load(&wide).unwrap_err();
+        assert!(error.contains("hostile.safetensors") && error.contains("past the"), "{error}");
     }
 
     #[test]

@@ -10,6 +10,74 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+/// What the variables created on a thread may still take ([`with_parameter_budget`]).
+struct Budget {
+    left: usize,
+    total: usize,
+    refused: Option<String>,
+}
+
+thread_local! {
+    static BUDGET: std::cell::RefCell<Option<Budget>> = const { std::cell::RefCell::new(None) };
+}
+
+/// The [`with_parameter_budget`] for loading a file whose tensors hold `file_values` values:
+/// twice those and a million more. A model that fits its file needs at most as many; the slack
+/// lets one that misses a few parameters still be built, so that loading names the missing
+/// parameter rather than the budget, while what a file can make the loader allocate stays
+/// proportional to its size.
+pub fn parameter_budget(file_values: usize) -> usize {
+    file_values.saturating_mul(2).saturating_add(1 << 20)
+}
+
+/// Runs `build` with the new variables of every [`SeededVarMap`] it creates on this thread
+/// limited to `elements` values in all, and returns what `build` returned with the first
+/// parameter refused, if any (a refused parameter is an error inside `build`, raised before
+/// anything is allocated for it). Loading a file builds its networks from sizes in the file's
+/// metadata before the weights are matched to them: with the file's own count of weight
+/// values as the limit, hostile sizes cannot allocate more than the file holds.
+pub fn with_parameter_budget<T>(elements: usize, build: impl FnOnce() -> T) -> (T, Option<String>) {
+    /// Restores the enclosing budget, also when `build` panics.
+    struct Restore(Option<Budget>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            BUDGET.with(|b| *b.borrow_mut() = self.0.take());
+        }
+    }
+    let outer =
+        BUDGET.with(|b| b.replace(Some(Budget { left: elements, total: elements, refused: None })));
+    let restore = Restore(outer);
+    let built = build();
+    let refused = BUDGET.with(|b| b.borrow_mut().as_mut().and_then(|b| b.refused.take()));
+    drop(restore);
+    (built, refused)
+}
+
+/// Takes a new parameter's values from the thread's budget, if one is set; `Err` says why not.
+fn take_from_budget(shape: &Shape, name: &str) -> Result<(), String> {
+    BUDGET.with(|budget| {
+        let mut budget = budget.borrow_mut();
+        let Some(budget) = budget.as_mut() else { return Ok(()) };
+        let count = shape.dims().iter().try_fold(1usize, |n, &d| n.checked_mul(d));
+        match count {
+            Some(count) if count <= budget.left => {
+                budget.left -= count;
+                Ok(())
+            }
+            _ => {
+                let why = format!(
+                    "parameter {name} of shape {:?}, past the {} values left of {}",
+                    shape.dims(),
+                    budget.left,
+                    budget.total
+                );
+                budget.refused.get_or_insert_with(|| why.clone());
+                Err(why)
+            }
+        }
+    })
+}
+
 /// A [`VarMap`] whose new variables are initialised from a seed.
 #[derive(Clone)]
 pub struct SeededVarMap {
@@ -116,6 +184,9 @@ impl SimpleBackend for SeededVarMap {
                 );
             }
             return Ok(var.as_tensor().clone());
+        }
+        if let Err(why) = take_from_budget(&shape, name) {
+            candle_core::bail!("{why}");
         }
         let values = self.initial(&shape, name, init);
         let tensor = Tensor::from_vec(values, shape, device)?.to_dtype(dtype)?;

@@ -17,20 +17,84 @@ pub struct NpzArray {
     pub shape: Vec<usize>,
 }
 
+/// The longest `.npy` header read. numpy writes a few hundred bytes (padded to a multiple of
+/// 64); the length is a `u32` in format versions 2 and 3, which would otherwise let a file of a
+/// few bytes make the reader allocate 4 GiB for its header.
+pub const MAX_HEADER_BYTES: usize = 1 << 20;
+
 /// Reads one numeric array from an open archive; Fortran-ordered arrays are transposed into C
-/// order. Object (pickled) arrays, strings and records are refused with the key's name.
+/// order. Object (pickled) arrays, strings and records are refused with the key's name. The
+/// header's length and the shape's size are checked against the entry's size before anything
+/// is allocated for them.
 pub fn read_npz_array(
     archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
     path: &Path,
     key: &str,
     expected: &str,
 ) -> Result<NpzArray> {
+    use std::io::Read;
     let io_error = |source| ReprError::Io { path: path.to_path_buf(), source };
-    let file = archive.by_name(key).map_err(io_error)?.ok_or_else(|| ReprError::MissingKey {
-        path: path.to_path_buf(),
-        key: key.into(),
-        expected: expected.into(),
-    })?;
+    if !archive.array_names().any(|name| name == key) {
+        return Err(ReprError::MissingKey {
+            path: path.to_path_buf(),
+            key: key.into(),
+            expected: expected.into(),
+        });
+    }
+    let source_name = format!("{}[{key}]", path.display());
+    let entry_name = npyz::npz::file_name_from_array_name(key);
+    let mut entry = archive
+        .zip_archive()
+        .by_name(&entry_name)
+        .map_err(|e| io_error(std::io::Error::other(e)))?;
+    let entry_bytes = entry.size();
+    // The preamble (magic, version, header length) is read here to bound the header before
+    // npyz allocates it, then handed back to npyz in front of the rest of the entry.
+    let mut preamble = vec![0u8; 10];
+    entry.read_exact(&mut preamble).map_err(io_error)?;
+    let header_bytes = match (&preamble[..6], preamble[6]) {
+        (b"\x93NUMPY", 1) => usize::from(u16::from_le_bytes([preamble[8], preamble[9]])),
+        (b"\x93NUMPY", 2 | 3) => {
+            preamble.extend([0, 0]);
+            entry.read_exact(&mut preamble[10..]).map_err(io_error)?;
+            u32::from_le_bytes([preamble[8], preamble[9], preamble[10], preamble[11]]) as usize
+        }
+        _ => {
+            return Err(ReprError::format(
+                source_name,
+                "header",
+                "a numpy array (\\x93NUMPY, version 1, 2 or 3)",
+                format!("{:?}", &preamble[..8]),
+            ));
+        }
+    };
+    let data_start = (preamble.len() + header_bytes) as u64;
+    if header_bytes > MAX_HEADER_BYTES || data_start > entry_bytes {
+        return Err(ReprError::format(
+            source_name,
+            "header length",
+            format!(
+                "at most {MAX_HEADER_BYTES} bytes (numpy writes a few hundred) within the \
+                 entry's {entry_bytes} bytes"
+            ),
+            header_bytes,
+        ));
+    }
+    let mut header = vec![0u8; header_bytes];
+    entry.read_exact(&mut header).map_err(io_error)?;
+    // npyz multiplies the dimensions unchecked (an overflow panics with overflow checks).
+    if let Some(dims) = header_shape(&header)
+        && dims.iter().try_fold(1u64, |n, &d| n.checked_mul(d)).is_none()
+    {
+        return Err(ReprError::format(
+            source_name,
+            "shape",
+            "dimensions whose product fits in 64 bits",
+            format!("{dims:?}"),
+        ));
+    }
+    preamble.extend(header);
+    let file = npyz::NpyFile::new(std::io::Cursor::new(preamble).chain(entry)).map_err(io_error)?;
     let shape: Vec<usize> = file.shape().iter().map(|&d| d as usize).collect();
     let order = file.order();
     let type_string = match file.dtype() {
@@ -38,7 +102,25 @@ pub fn read_npz_array(
         other => other.descr(),
     };
     let kind = type_string.trim_start_matches(['<', '>', '|', '=']);
-    let source_name = format!("{}[{key}]", path.display());
+    let numeric = "a numeric array (f4, f8, i4, i8, u4, u8)";
+    let item_bytes: u64 = match kind {
+        "f4" | "i4" | "u4" => 4,
+        "f8" | "i8" | "u8" => 8,
+        _ => return Err(ReprError::format(source_name, "array type", numeric, type_string)),
+    };
+    // The values must fit in what the entry holds past its header.
+    let data_bytes = file.shape().iter().try_fold(item_bytes, |n, &d| n.checked_mul(d));
+    if data_bytes.is_none_or(|n| n > entry_bytes - data_start) {
+        return Err(ReprError::format(
+            source_name,
+            "shape",
+            format!(
+                "values of {item_bytes} bytes within the entry's {} bytes of data",
+                entry_bytes - data_start
+            ),
+            format!("{shape:?}"),
+        ));
+    }
     let values: Vec<f64> = match kind {
         "f4" => file.into_vec::<f32>().map_err(io_error)?.into_iter().map(f64::from).collect(),
         "f8" => file.into_vec::<f64>().map_err(io_error)?,
@@ -46,14 +128,7 @@ pub fn read_npz_array(
         "i8" => file.into_vec::<i64>().map_err(io_error)?.into_iter().map(|v| v as f64).collect(),
         "u4" => file.into_vec::<u32>().map_err(io_error)?.into_iter().map(f64::from).collect(),
         "u8" => file.into_vec::<u64>().map_err(io_error)?.into_iter().map(|v| v as f64).collect(),
-        _ => {
-            return Err(ReprError::format(
-                source_name,
-                "array type",
-                "a numeric array (f4, f8, i4, i8, u4, u8)",
-                type_string,
-            ));
-        }
+        _ => return Err(ReprError::format(source_name, "array type", numeric, type_string)),
     };
     let count: usize = shape.iter().product();
     if values.len() != count {
@@ -69,6 +144,20 @@ pub fn read_npz_array(
         npyz::Order::Fortran => fortran_to_c(&values, &shape),
     };
     Ok(NpzArray { values, shape })
+}
+
+/// The dimensions of the `'shape': (...)` entry of a numpy header, when it reads as one.
+fn header_shape(header: &[u8]) -> Option<Vec<u64>> {
+    let text = std::str::from_utf8(header).ok()?;
+    let after = &text[text.find("'shape'")? + "'shape'".len()..];
+    let inner = after.trim_start().strip_prefix(':')?.trim_start().strip_prefix('(')?;
+    let inner = &inner[..inner.find(')')?];
+    inner
+        .split(',')
+        .map(str::trim)
+        .filter(|d| !d.is_empty())
+        .map(|d| d.trim_end_matches('L').parse().ok())
+        .collect()
 }
 
 /// [`read_npz_array`] for an entry the file may lack (`None` then).

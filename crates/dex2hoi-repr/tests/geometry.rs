@@ -185,6 +185,51 @@ fn write_fake_smplx(
     (v_template, shapedirs, regressor)
 }
 
+/// An `.npz` with one raw `v_template.npy` entry of the given bytes.
+fn write_raw_entry(path: &std::path::Path, npy: &[u8]) {
+    use std::io::Write;
+    let mut npz = npyz::npz::NpzWriter::create(path).unwrap();
+    npz.zip_writer().start_file("v_template.npy", Default::default()).unwrap();
+    npz.zip_writer().write_all(npy).unwrap();
+    npz.zip_writer().finish().unwrap();
+}
+
+#[test]
+fn hostile_smplx_model_files_are_refused_before_allocating() {
+    let dir = std::env::temp_dir().join(format!("dex2hoi-smplx-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // A version-2 header claiming 4 GiB in a file of a few hundred bytes: npyz allocated the
+    // whole header before reading it.
+    let mut npy = b"\x93NUMPY\x02\x00".to_vec();
+    npy.extend(0xFFFF_FFF0u32.to_le_bytes());
+    npy.extend(b"{'descr': '<f8'");
+    let huge_header = dir.join("huge_header.npz");
+    write_raw_entry(&huge_header, &npy);
+    // Shapes whose size overflows, or exceeds the entry's bytes.
+    let shaped = |shape: &str| {
+        let header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}\n");
+        let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+        npy.extend((header.len() as u16).to_le_bytes());
+        npy.extend(header.as_bytes());
+        npy.extend([0u8; 48]);
+        npy
+    };
+    let overflow = dir.join("overflow.npz");
+    write_raw_entry(&overflow, &shaped("(4294967296, 4294967296, 3)"));
+    let too_big = dir.join("too_big.npz");
+    write_raw_entry(&too_big, &shaped("(1000000000, 3)"));
+    for (path, needle) in
+        [(&huge_header, "header length"), (&overflow, "shape"), (&too_big, "bytes of data")]
+    {
+        let started = std::time::Instant::now();
+        let error = Skeleton::from_smplx_model(path, &[]).unwrap_err().to_string();
+        let name = path.file_name().unwrap().to_str().unwrap();
+        assert!(error.contains(name) && error.contains(needle), "{error}");
+        assert!(started.elapsed().as_secs_f32() < 1.0, "{error}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn rest_joints_from_an_smplx_model_file() {
     let dir = std::env::temp_dir().join(format!("dex2hoi-smplx-{}", std::process::id()));

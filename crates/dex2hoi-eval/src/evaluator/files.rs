@@ -11,6 +11,7 @@ use dex2hoi_data::files::write_atomically;
 use dex2hoi_model::checkpoint::{
     FORMAT_KEY, assign_parameters, named_parameters, read_tensors, write_tensors,
 };
+use dex2hoi_model::init::{parameter_budget, with_parameter_budget};
 use dex2hoi_model::text::Vocabulary;
 
 use crate::error::{EvalError, Result};
@@ -114,6 +115,17 @@ impl Evaluator {
         let stats_text = std::fs::read_to_string(&stats_path)
             .map_err(EvalError::io(&stats_path, "reading the evaluator statistics"))?;
         let stats: ClipStats = parse(&stats_path, "statistics", &stats_text)?;
+        // The joint count sizes the input layer, whose weights must be in the file: a count
+        // past its values is refused before the width is computed from it.
+        let elements = tensors.values().map(|t| t.elem_count()).fold(0usize, usize::saturating_add);
+        if joints > elements {
+            return Err(EvalError::file(
+                &path,
+                JOINTS_KEY,
+                format!("at most the {elements} values of the file's tensors"),
+                joints,
+            ));
+        }
         let width = clip_feature_size(joints);
         if stats.feature_size != width || stats.mean.len() != width || stats.std.len() != width {
             return Err(EvalError::file(
@@ -136,15 +148,29 @@ impl Evaluator {
                 format!("channel {c}"),
             ));
         }
-        let mut evaluator = Self::build(
-            config,
-            Vocabulary::from_words(words),
-            labels,
-            stats,
-            (skeleton, joints, fps),
-            DType::F32,
-            device,
-        )?;
+        // The sizes come from the file: the networks may take no more values than its tensors
+        // hold (each weight must be there), so a hostile configuration (a latent width of 10^9)
+        // is refused instead of allocated.
+        let (evaluator, refused) = with_parameter_budget(parameter_budget(elements), || {
+            Self::build(
+                config,
+                Vocabulary::from_words(words),
+                labels,
+                stats,
+                (skeleton, joints, fps),
+                DType::F32,
+                device,
+            )
+        });
+        if let Some(refused) = refused {
+            return Err(EvalError::file(
+                &path,
+                CONFIG_KEY,
+                format!("sizes within the {elements} values of the file's tensors"),
+                refused,
+            ));
+        }
+        let mut evaluator = evaluator?;
         assign_parameters(&evaluator.motion_vars, &tensors, "motion.", &path)?;
         assign_parameters(&evaluator.text_vars, &tensors, "text.", &path)?;
         if let Some(stray) =
