@@ -139,9 +139,72 @@ def glb():
     put('glb', 'skinned_animated.glb', struct.pack('<4sII', b'glTF', 2, 12 + len(body)) + body)
 
 
+def safetensors_bytes(tensors, metadata=None):
+    """A safetensors file: the 8-byte header length, the JSON header, the data."""
+    header = {'__metadata__': metadata} if metadata else {}
+    data = b''
+    for name, (dtype, shape, raw) in tensors.items():
+        header[name] = {'dtype': dtype, 'shape': shape,
+                        'data_offsets': [len(data), len(data) + len(raw)]}
+        data += raw
+    text = json.dumps(header, separators=(',', ':')).encode()
+    text += b' ' * (-len(text) % 8)
+    return struct.pack('<Q', len(text)) + text + data
+
+
+def checkpoints():
+    """Plain tensors; and checkpoints whose metadata configures a model, one refused for its
+    sizes (the tensors hold too little), one with room for every parameter (a padding tensor
+    under `model.`) that gets as far as matching the parameters."""
+    put('checkpoint', 'plain.safetensors', safetensors_bytes({
+        'a': ('F32', [2, 3], np.arange(6, dtype='<f4').tobytes()),
+        'b': ('F16', [4], np.ones(4, dtype='<f2').tobytes()),
+        'c': ('I64', [0, 3], b''),
+    }))
+    config = {'joints': 52, 'latent': 32, 'layers': 2, 'heads': 2, 'feed_forward': 64,
+              'fusion_layers': 1, 'dropout': 0.0, 'prefix_frames': 4, 'predicted_frames': 8,
+              'text_embedding': 16, 'bps_points': 1024, 'object_representation': 'hand_relative',
+              'stream_layout': 'dual', 'body_fusion': 'network',
+              'prediction': 'prefix_residual_world'}
+    metadata = lambda config: {'dex2hoi.format': 'dex2hoi-checkpoint-1',
+                               'dex2hoi.model_config': json.dumps(config)}
+    put('checkpoint', 'tiny_config.safetensors', safetensors_bytes(
+        {'model.x': ('F32', [2], np.zeros(2, '<f4').tobytes())}, metadata(config)))
+    small = dict(config, joints=2, latent=2, layers=1, heads=1, feed_forward=2, prefix_frames=1,
+                 predicted_frames=1, text_embedding=1, bps_points=1, prediction='absolute')
+    put('checkpoint', 'small_config.safetensors', safetensors_bytes(
+        {'model.pad': ('U8', [4096], bytes(4096))}, metadata(small)))
+
+
+def yamls():
+    """What PyYAML's `yaml.dump` writes for HUMOTO's text files: plain, quoted, folded and
+    block scalars, nested values skipped."""
+    put('yaml', 'scalars.yaml', b"""# a comment
+long_script: The person walks to the table, picks up the mug with the right hand and
+  puts it on the shelf.
+objects:
+- mug
+- shelf
+nested:
+  key: value
+quoted: 'It''s a: test'
+double: "line one\\nline two"
+short_script: pick up the mug  # trailing comment
+block: |
+  first
+  second
+folded: >-
+  one
+  two
+---
+""")
+
+
 if __name__ == '__main__':
     pickles()
     npys()
     meshes()
     glb()
+    checkpoints()
+    yamls()
     sys.exit(0)

@@ -1,9 +1,10 @@
 //! `cargo xtask fuzz`: the fuzz targets of `fuzz/` (cargo-fuzz, libFuzzer) for the readers of
 //! untrusted files.
 //!
-//! - `fuzz NAME [SECONDS]` (NAME: `pickle`, `npy`, `glb`, `mesh`, or `all`): runs libFuzzer with
-//!   its sanitizers for SECONDS (default 600) per target. cargo-fuzz is installed once
-//!   (`cargo install cargo-fuzz`) if missing and runs on the stable toolchain with
+//! - `fuzz NAME [SECONDS]` (NAME: `pickle`, `npy`, `glb`, `mesh`, `checkpoint`, `yaml`, or
+//!   `all`): runs libFuzzer with its sanitizers for SECONDS (default 600) per target.
+//!   cargo-fuzz is installed once (`cargo install cargo-fuzz`) if missing and runs on the
+//!   stable toolchain with
 //!   `RUSTC_BOOTSTRAP=1`. New inputs go to `target/fuzz/corpus/NAME` (the committed seeds of
 //!   `fuzz/corpus/NAME` are read too); a crash, a hang (10 s) or an allocation over 2 GiB stops
 //!   the run and leaves the input in `fuzz/artifacts/NAME`.
@@ -16,7 +17,7 @@ use std::process::Command;
 use anyhow::{Context, Result, bail};
 
 /// The fuzz targets (binaries of `fuzz/Cargo.toml`).
-pub const TARGETS: [&str; 4] = ["pickle", "npy", "glb", "mesh"];
+pub const TARGETS: [&str; 6] = ["pickle", "npy", "glb", "mesh", "checkpoint", "yaml"];
 
 /// The cargo-fuzz version installed when none is.
 const CARGO_FUZZ_VERSION: &str = "0.13.2";
