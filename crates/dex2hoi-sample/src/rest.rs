@@ -51,13 +51,16 @@ pub struct RestState {
     rest: [Option<ObjectPose>; MAX_OBJECTS],
 }
 
-/// A generation's motion decoded from unnormalised features `[B, 2, T, D]`: per batch entry the
-/// two streams' frames and the decoded motion.
+/// One batch entry's frames: the body and object rows `[T, 6J + 3]`, `[T, 2, 18]`, and the
+/// motion they decode to.
+type DecodedEntry = (Vec<f32>, Vec<f32>, dex2hoi_data::features::DecodedMotion);
+
+/// A generation's motion decoded from unnormalised features `[B, 2, T, D]`, per batch entry.
 fn decode(
     encoding: &PrefixEncoding<'_>,
     frames: &Tensor,
     layout: FeatureLayout,
-) -> Result<Vec<(Vec<f32>, Vec<f32>, dex2hoi_data::features::DecodedMotion)>> {
+) -> Result<Vec<DecodedEntry>> {
     let rows = frames.to_dtype(DType::F32)?.to_device(&candle_core::Device::Cpu)?;
     (0..rows.dims()[0])
         .map(|b| {
