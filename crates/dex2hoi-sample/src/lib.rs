@@ -38,6 +38,7 @@ mod error;
 pub mod files;
 pub mod generate;
 pub mod model_file;
+pub mod prefix;
 pub mod request;
 pub mod rest;
 pub mod run;
@@ -54,10 +55,11 @@ pub use files::{
     RunFiles, STEP_KEY, STEPS_BEFORE_KEY, TRAIN_CONFIG_KEY, VOCABULARY_KEY, trained_steps,
 };
 pub use generate::{
-    Conditioning, GeneratedMotion, Generation, PrefixEncoding, ProgressHook, TimedText,
-    WindowProgress, generate, generate_motion,
+    Conditioning, GeneratedMotion, Generation, ProgressHook, TimedText, WindowProgress, generate,
+    generate_motion,
 };
 pub use model_file::{PackSummary, PackedPrecision, pack_run};
+pub use prefix::PrefixEncoding;
 pub use request::{SampleRequest, SampledMotion, sample};
 pub use run::{TrainedRun, Weights};
 pub use scene::{

@@ -20,7 +20,7 @@ use dex2hoi_data::layout::FeatureLayout;
 use dex2hoi_repr::{HandRelativeObject, MeshQuery, ObjectPose, Wrists};
 
 use crate::error::{Result, SampleError};
-use crate::generate::PrefixEncoding;
+use crate::prefix::PrefixEncoding;
 
 /// What happens to the objects no hand holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
