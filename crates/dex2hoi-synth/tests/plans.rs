@@ -6,7 +6,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::character::Hand;
-use dex2hoi_synth::plan::{ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task};
+use dex2hoi_synth::plan::{
+    IDLE_BEFORE_TASK, ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task,
+};
 use dex2hoi_synth::{SynthSequence, generate};
 
 fn plans(task: Task, seeds: std::ops::Range<u64>) -> impl Iterator<Item = Plan> {
@@ -110,4 +112,22 @@ fn objects_no_hand_holds_stand_on_the_table_top() {
             }
         }
     }
+}
+
+#[test]
+fn a_share_of_plans_stand_still_for_longer_than_a_prefix_before_the_task() {
+    // The demo preset's prefix: 20 frames at 20 fps.
+    let prefix_seconds = 1.0;
+    let mut longer = 0;
+    let mut all = 0;
+    for task in Task::ALL {
+        for plan in plans(task, 0..60) {
+            let first = plan.attachments.iter().map(|a| a.reach_start).fold(f32::INFINITY, f32::min);
+            assert!(IDLE_BEFORE_TASK.contains(&first), "{task:?}: first reach at {first} s");
+            longer += usize::from(first > prefix_seconds + 0.25);
+            all += 1;
+        }
+    }
+    let share = longer as f32 / all as f32;
+    assert!((0.3..0.8).contains(&share), "{share} of plans stand still for over 1.25 s");
 }
