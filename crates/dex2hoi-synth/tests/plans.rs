@@ -122,7 +122,8 @@ fn a_share_of_plans_stand_still_for_longer_than_a_prefix_before_the_task() {
     let mut all = 0;
     for task in Task::ALL {
         for plan in plans(task, 0..60) {
-            let first = plan.attachments.iter().map(|a| a.reach_start).fold(f32::INFINITY, f32::min);
+            let first =
+                plan.attachments.iter().map(|a| a.reach_start).fold(f32::INFINITY, f32::min);
             assert!(IDLE_BEFORE_TASK.contains(&first), "{task:?}: first reach at {first} s");
             longer += usize::from(first > prefix_seconds + 0.25);
             all += 1;
