@@ -66,7 +66,7 @@ pub use instruction::{
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use long_generation::{
     HandsUsed, LIFT_M, LongCounts, MIN_HOLD_S, MIN_LIFT_S, ObjectCourse, PUT_DOWN_GAP_S,
-    lift_count, long_generation, long_medians, object_courses,
+    judge_courses, lift_count, long_generation, long_medians, object_courses,
 };
 pub use matching::{
     R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_of_ranks,

@@ -991,7 +991,7 @@ fn long_generation_by_hand() {
     // support or moving while untouched.
     let same = long_generation(&truth, &truth, start, support, 20.0).unwrap();
     assert_eq!((same.as_asked, same.lifted_again), (1, 0));
-    assert_eq!(same.off_support_m, vec![0.0, 0.0]);
+    assert_eq!(same.off_support_m(), vec![0.0, 0.0]);
     assert!(same.untouched_speeds.iter().all(|&v| v == 0.0) && !same.untouched_speeds.is_empty());
     // The other hand, the other side: not as asked.
     let wrong = Scene::new(

@@ -26,10 +26,10 @@ use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion};
 
 use crate::error::{EvalError, Result};
 use crate::evaluator::MotionClip;
-use crate::metrics::{self, HandsUsed, LongCounts, MotionSample};
+use crate::metrics::{self, HandsUsed, LongCounts, ObjectCourse};
 
 use super::generation::Progress;
-use super::physical::ObjectMeshes;
+use super::physical::{ObjectMeshes, clip_sample, object_positions_at, object_rotations_at};
 
 /// Frames of a long generation by default: ten seconds at the procedural dataset's 20 fps.
 pub const DEFAULT_LONG_FRAMES: usize = 200;
@@ -154,8 +154,10 @@ impl Default for LongOptions {
     }
 }
 
-/// One generation to make: a test sequence, where its objects start and its prompt.
+/// One generation to make: a test sequence (and its index among those evaluated), where its
+/// objects start and its prompt.
 struct LongCase<'a> {
+    index: usize,
     sequence: &'a ProcessedSequence,
     placed: [Option<ObjectPose>; MAX_OBJECTS],
     prompt: &'a str,
@@ -163,26 +165,22 @@ struct LongCase<'a> {
 
 /// The object poses of a sequence's frame (`None` for an empty slot).
 fn frame_poses(sequence: &ProcessedSequence, t: usize) -> [Option<ObjectPose>; MAX_OBJECTS] {
+    let (rotations, positions) =
+        (object_rotations_at(sequence, t), object_positions_at(sequence, t));
     std::array::from_fn(|slot| {
-        sequence.object_present[slot].then(|| {
-            let r = (t * MAX_OBJECTS + slot) * 9;
-            let p = (t * MAX_OBJECTS + slot) * 3;
-            ObjectPose {
-                rotation: metrics::rotation_from_rows(&sequence.object_rotations[r..r + 9]),
-                position: Vec3::from_slice(&sequence.object_positions[p..p + 3]),
-            }
-        })
+        sequence.object_present[slot]
+            .then(|| ObjectPose { rotation: rotations[slot], position: positions[slot] })
     })
 }
 
-/// The cases of a set, with the ground-truth courses the moved set needs.
+/// The cases of a set; the moved set reads the hands of the ground truth's courses.
 fn cases<'a>(
     kind: LongSetKind,
     sequences: &[&'a ProcessedSequence],
-    hands: &[[Option<HandsUsed>; MAX_OBJECTS]],
+    truth_courses: &[[Option<ObjectCourse>; MAX_OBJECTS]],
 ) -> Vec<LongCase<'a>> {
     let mut out = Vec::new();
-    for (k, (&sequence, hands)) in sequences.iter().zip(hands).enumerate() {
+    for (k, (&sequence, courses)) in sequences.iter().zip(truth_courses).enumerate() {
         let mut placed = frame_poses(sequence, 0);
         let prompt = match kind {
             LongSetKind::AsInData | LongSetKind::Moved => sequence.texts[0].as_str(),
@@ -196,7 +194,7 @@ fn cases<'a>(
             // for being nearest.
             let present: Vec<usize> = (0..MAX_OBJECTS).filter(|&s| placed[s].is_some()).collect();
             let [slot] = present[..] else { continue };
-            let side = match hands[slot] {
+            let side = match courses[slot].as_ref().map(|c| c.hands) {
                 Some(HandsUsed { left: true, right: false }) => 1.0,
                 Some(HandsUsed { left: false, right: true }) => -1.0,
                 _ => continue,
@@ -205,7 +203,7 @@ fn cases<'a>(
             pose.position.x =
                 if k % 2 == 0 { 0.0 } else { -side * pose.position.x.abs().max(ACROSS_THE_BODY_M) };
         }
-        out.push(LongCase { sequence, placed, prompt });
+        out.push(LongCase { index: k, sequence, placed, prompt });
     }
     out
 }
@@ -221,20 +219,9 @@ fn support_heights(
     })
 }
 
-fn sample_of<'a>(
-    clip: &'a MotionClip,
-    run: &'a TrainedRun,
-    meshes: [Option<&'a MeshQuery>; MAX_OBJECTS],
-) -> MotionSample<'a> {
-    MotionSample {
-        skeleton: &run.skeleton,
-        joints: &clip.joints,
-        object_rotations: &clip.object_rotations,
-        object_positions: &clip.object_positions,
-        present: clip.present,
-        objects: meshes,
-        mixture_weights: None,
-    }
+/// Where each object was placed (the origin for an empty slot, which is not judged).
+fn positions(placed: &[Option<ObjectPose>; MAX_OBJECTS]) -> [Vec3; MAX_OBJECTS] {
+    placed.map(|p| p.map_or(Vec3::ZERO, |p| p.position))
 }
 
 /// Runs the protocol on `sequences` (the test split's, in order).
@@ -264,22 +251,20 @@ pub(super) fn evaluate_long(
         .iter()
         .map(|s| MotionClip::from_processed(s, 0, s.frames))
         .collect::<Result<_>>()?;
+    let mut truth_courses = Vec::with_capacity(sequences.len());
     let mut truth_counts = Vec::with_capacity(sequences.len());
-    let mut hands = Vec::with_capacity(sequences.len());
     for (sequence, truth) in sequences.iter().zip(&truths) {
         let slots = meshes.of(sequence)?;
         let placed = frame_poses(sequence, 0);
-        let support = support_heights(&placed, slots);
-        let sample = sample_of(truth, run, slots);
-        let courses = metrics::object_courses(&sample, support, fps)?;
-        hands.push(courses.map(|c| c.map(|c| c.hands)));
-        let at = placed.map(|p| p.map_or(Vec3::ZERO, |p| p.position));
-        truth_counts.push(metrics::long_generation(&sample, &sample, at, support, fps)?);
+        let sample = clip_sample(truth, &run.skeleton, slots, None);
+        let courses = metrics::object_courses(&sample, support_heights(&placed, slots), fps)?;
+        truth_counts.push(metrics::judge_courses(&courses, &courses, positions(&placed))?);
+        truth_courses.push(courses);
     }
     let all_cases: Vec<(usize, LongSetKind, Vec<LongCase<'_>>)> = LongSetKind::ALL
         .into_iter()
         .enumerate()
-        .map(|(k, kind)| (k, kind, cases(kind, sequences, &hands)))
+        .map(|(k, kind)| (k, kind, cases(kind, sequences, &truth_courses)))
         .filter(|(.., cases)| !cases.is_empty())
         .collect();
     let mut progress = Progress::new(all_cases.iter().map(|(.., c)| c.len()).sum(), progress);
@@ -288,10 +273,6 @@ pub(super) fn evaluate_long(
         let mut judged: Vec<(Option<&str>, LongCounts, LongCounts)> = Vec::new();
         for (k, case) in cases.iter().enumerate() {
             let sequence = case.sequence;
-            let index = sequences
-                .iter()
-                .position(|s| std::ptr::eq(*s, sequence))
-                .expect("a case of the given sequences");
             let slots = meshes.of(sequence)?;
             let (body_row, object_rows) = standing_features(case.placed)?;
             let prefix = config.layout().frames_to_streams(
@@ -314,12 +295,14 @@ pub(super) fn evaluate_long(
                 .wrapping_add(set_index as u64 * SET_STRIDE + k as u64);
             let generated = generate_motion(run, &conditioning, options.frames, seed, sampler)?;
             let clip = MotionClip::from_decoded(&generated.motion)?;
-            let support = support_heights(&case.placed, slots);
-            let at = case.placed.map(|p| p.map_or(Vec3::ZERO, |p| p.position));
-            let truth = sample_of(&truths[index], run, slots);
+            let ours = metrics::object_courses(
+                &clip_sample(&clip, &run.skeleton, slots, None),
+                support_heights(&case.placed, slots),
+                fps,
+            )?;
             let counts =
-                metrics::long_generation(&sample_of(&clip, run, slots), &truth, at, support, fps)?;
-            judged.push((sequence.action.as_deref(), counts, truth_counts[index].clone()));
+                metrics::judge_courses(&ours, &truth_courses[case.index], positions(&case.placed))?;
+            judged.push((sequence.action.as_deref(), counts, truth_counts[case.index].clone()));
             progress.clip_done();
         }
         sets.push(LongSet { kind, rows: rows(&judged) });

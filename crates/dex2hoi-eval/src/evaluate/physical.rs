@@ -81,7 +81,10 @@ pub(super) struct Physical {
 }
 
 /// Each object's position on frame `frame` of the sequence.
-fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX_OBJECTS] {
+pub(super) fn object_positions_at(
+    sequence: &ProcessedSequence,
+    frame: usize,
+) -> [Vec3; MAX_OBJECTS] {
     std::array::from_fn(|slot| {
         let base = (frame * MAX_OBJECTS + slot) * 3;
         Vec3::from_slice(&sequence.object_positions[base..base + 3])
@@ -89,7 +92,10 @@ fn object_positions_at(sequence: &ProcessedSequence, frame: usize) -> [Vec3; MAX
 }
 
 /// Each object's rotation on frame `frame` of the sequence.
-fn object_rotations_at(sequence: &ProcessedSequence, frame: usize) -> [Mat3; MAX_OBJECTS] {
+pub(super) fn object_rotations_at(
+    sequence: &ProcessedSequence,
+    frame: usize,
+) -> [Mat3; MAX_OBJECTS] {
     std::array::from_fn(|slot| {
         let base = (frame * MAX_OBJECTS + slot) * 9;
         metrics::rotation_from_rows(&sequence.object_rotations[base..base + 9])
@@ -157,7 +163,7 @@ fn measure(
 }
 
 /// A clip with its skeleton, meshes and mixture weights as the physical metrics read it.
-fn clip_sample<'a>(
+pub(super) fn clip_sample<'a>(
     clip: &'a MotionClip,
     skeleton: &'a Skeleton,
     objects: [Option<&'a MeshQuery>; MAX_OBJECTS],

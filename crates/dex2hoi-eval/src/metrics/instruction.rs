@@ -154,7 +154,8 @@ impl InstructionCounts {
     }
 }
 
-fn ratio(part: usize, whole: usize) -> Option<f64> {
+/// `part / whole`, `None` for an empty whole.
+pub(super) fn ratio(part: usize, whole: usize) -> Option<f64> {
     (whole > 0).then(|| part as f64 / whole as f64)
 }
 

@@ -32,7 +32,7 @@ use glam::Vec3;
 use crate::error::{EvalError, Result};
 
 use super::contact::{CONTACT_RADIUS_M, hand_object_distances};
-use super::instruction::{Side, left_axis, moves};
+use super::instruction::{Side, left_axis, moves, ratio};
 use super::sample::MotionSample;
 use super::{UNTOUCHED_DISTANCE_M, median};
 
@@ -73,6 +73,8 @@ pub struct ObjectCourse {
     pub highest_float_m: f64,
     /// Its speeds on untouched frames, m/s.
     pub untouched_speeds: Vec<f64>,
+    /// Its position on the first frame.
+    pub first_position: Vec3,
 }
 
 /// What every present object of a motion does; `support` is each slot's support height (the
@@ -139,6 +141,7 @@ pub fn object_courses(
             deepest_sink_m: deepest,
             highest_float_m: highest,
             untouched_speeds: speeds,
+            first_position: start,
         });
     }
     Ok(courses)
@@ -185,8 +188,6 @@ pub struct LongCounts {
     pub deepest_sink_m: Vec<f64>,
     /// Per object, the highest floating while untouched, metres.
     pub highest_float_m: Vec<f64>,
-    /// Per object, the worst of the two.
-    pub off_support_m: Vec<f64>,
     /// Untouched objects' speeds over every untouched frame, m/s.
     pub untouched_speeds: Vec<f64>,
     /// Per object, the distance between where it was placed and the first generated frame, m.
@@ -206,7 +207,6 @@ impl LongCounts {
         self.lifted_again += other.lifted_again;
         self.deepest_sink_m.extend_from_slice(&other.deepest_sink_m);
         self.highest_float_m.extend_from_slice(&other.highest_float_m);
-        self.off_support_m.extend_from_slice(&other.off_support_m);
         self.untouched_speeds.extend_from_slice(&other.untouched_speeds);
         self.start_jumps_m.extend_from_slice(&other.start_jumps_m);
         self
@@ -236,16 +236,18 @@ impl LongCounts {
     pub fn lifted_again_share(&self) -> Option<f64> {
         ratio(self.lifted_again, self.objects)
     }
+
+    /// Per object, the worst of its sinking and floating while untouched, metres.
+    pub fn off_support_m(&self) -> Vec<f64> {
+        self.deepest_sink_m.iter().zip(&self.highest_float_m).map(|(s, f)| s.max(*f)).collect()
+    }
 }
 
-fn ratio(part: usize, whole: usize) -> Option<f64> {
-    (whole > 0).then(|| part as f64 / whole as f64)
-}
-
-/// Medians of [`LongCounts`]' per-object lists (`None` when empty).
+/// Medians of [`LongCounts`]' per-object lists (`None` when empty): off support, sinking,
+/// floating, untouched speed, start jump.
 pub fn long_medians(counts: &LongCounts) -> [Option<f64>; 5] {
     [
-        median(&counts.off_support_m),
+        median(&counts.off_support_m()),
         median(&counts.deepest_sink_m),
         median(&counts.highest_float_m),
         median(&counts.untouched_speeds),
@@ -275,11 +277,33 @@ pub fn long_generation(
         ));
     }
     let ours = object_courses(generated, support, fps)?;
-    let theirs = object_courses(truth, support, fps)?;
+    judge_courses(&ours, &object_courses(truth, support, fps)?, placed)
+}
+
+/// [`long_generation`] on the motions' [`object_courses`], so that a ground truth judged
+/// against many generations is traced once.
+///
+/// # Errors
+/// Courses of different present slots.
+pub fn judge_courses(
+    ours: &[Option<ObjectCourse>; MAX_OBJECTS],
+    theirs: &[Option<ObjectCourse>; MAX_OBJECTS],
+    placed: [Vec3; MAX_OBJECTS],
+) -> Result<LongCounts> {
     let mut counts = LongCounts { generations: 1, ..LongCounts::default() };
     let mut as_asked = true;
     for slot in 0..MAX_OBJECTS {
-        let (Some(ours), Some(theirs)) = (&ours[slot], &theirs[slot]) else { continue };
+        let (ours, theirs) = match (&ours[slot], &theirs[slot]) {
+            (Some(ours), Some(theirs)) => (ours, theirs),
+            (None, None) => continue,
+            _ => {
+                return Err(EvalError::invalid(
+                    "generated motion",
+                    "the ground truth's objects",
+                    format!("slot {slot} present in only one of them"),
+                ));
+            }
+        };
         counts.objects += 1;
         let moved_agree = ours.moved == theirs.moved;
         counts.moved_agree += usize::from(moved_agree);
@@ -295,10 +319,8 @@ pub fn long_generation(
         counts.lifted_again += usize::from(ours.lifts > theirs.lifts);
         counts.deepest_sink_m.push(ours.deepest_sink_m);
         counts.highest_float_m.push(ours.highest_float_m);
-        counts.off_support_m.push(ours.deepest_sink_m.max(ours.highest_float_m));
         counts.untouched_speeds.extend_from_slice(&ours.untouched_speeds);
-        let first = generated.object_pose(0, slot).position;
-        counts.start_jumps_m.push(f64::from((first - placed[slot]).length()));
+        counts.start_jumps_m.push(f64::from((ours.first_position - placed[slot]).length()));
     }
     counts.as_asked = usize::from(as_asked);
     Ok(counts)
