@@ -145,13 +145,12 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
         ));
     }
     // Objects at rest: the rule's state from the initial prefix (see `crate::rest`).
-    let at_rest = match (&request.prefix_encoding, request.free_objects) {
+    let mut at_rest = match (&request.prefix_encoding, request.free_objects) {
         (Some(encoding), Some(rule)) => {
             Some((encoding, rule, rule.start(encoding, &request.initial_prefix, c.layout())?))
         }
         _ => None,
     };
-    let mut at_rest = at_rest;
     let batch = history.dims()[0];
     let mut produced = 0;
     let mut windows = Vec::new();

@@ -11,13 +11,12 @@
 //! settled poses are encoded back into the window's features, so that the next window's prefix
 //! is the settled motion.
 
-use candle_core::{DType, Tensor};
+use candle_core::Tensor;
 use glam::Vec3;
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::features::{ObjectDecoding, decode_features};
 use dex2hoi_data::layout::FeatureLayout;
-use dex2hoi_repr::{HandRelativeObject, MeshQuery, ObjectPose, Wrists};
+use dex2hoi_repr::{MeshQuery, ObjectPose};
 
 use crate::error::{Result, SampleError};
 use crate::prefix::PrefixEncoding;
@@ -51,34 +50,6 @@ pub struct RestState {
     rest: [Option<ObjectPose>; MAX_OBJECTS],
 }
 
-/// One batch entry's frames: the body and object rows `[T, 6J + 3]`, `[T, 2, 18]`, and the
-/// motion they decode to.
-type DecodedEntry = (Vec<f32>, Vec<f32>, dex2hoi_data::features::DecodedMotion);
-
-/// A generation's motion decoded from unnormalised features `[B, 2, T, D]`, per batch entry.
-fn decode(
-    encoding: &PrefixEncoding<'_>,
-    frames: &Tensor,
-    layout: FeatureLayout,
-) -> Result<Vec<DecodedEntry>> {
-    let rows = frames.to_dtype(DType::F32)?.to_device(&candle_core::Device::Cpu)?;
-    (0..rows.dims()[0])
-        .map(|b| {
-            let streams: Vec<f32> = rows.get(b)?.flatten_all()?.to_vec1()?;
-            let (body, objects) = layout.streams_to_frames(&streams)?;
-            let motion = decode_features(
-                encoding.skeleton,
-                &body,
-                &objects,
-                encoding.present,
-                encoding.root_start,
-                ObjectDecoding::Mixture,
-            )?;
-            Ok((body, objects, motion))
-        })
-        .collect()
-}
-
 impl ObjectsAtRest<'_> {
     /// The state at the start: every object rests where the last frame of the (unnormalised)
     /// initial prefix `[B, 2, T_p, D]` puts it.
@@ -88,9 +59,10 @@ impl ObjectsAtRest<'_> {
         prefix: &Tensor,
         layout: FeatureLayout,
     ) -> Result<Vec<RestState>> {
-        decode(encoding, prefix, layout)?
+        encoding
+            .decode(prefix, layout)?
             .into_iter()
-            .map(|(.., motion)| {
+            .map(|motion| {
                 let mut state = RestState { support: [0.0; MAX_OBJECTS], rest: [None; 2] };
                 for slot in 0..MAX_OBJECTS {
                     let (Some((rotations, positions)), Some(mesh)) =
@@ -128,51 +100,31 @@ impl ObjectsAtRest<'_> {
         layout: FeatureLayout,
         states: &mut [RestState],
     ) -> Result<Tensor> {
-        let (device, dtype) = (frames.device().clone(), frames.dtype());
-        let decoded = decode(encoding, frames, layout)?;
-        if decoded.len() != states.len() {
+        let batch = frames.dims()[0];
+        if batch != states.len() {
             return Err(SampleError::invalid(
                 "objects at rest",
                 "states",
-                format!("one per batch entry ({})", decoded.len()),
+                format!("one per batch entry ({batch})"),
                 states.len(),
             ));
         }
-        let groups = encoding.skeleton.groups();
-        let mut settled = Vec::with_capacity(frames.elem_count());
-        for ((body, mut objects, motion), state) in decoded.into_iter().zip(states) {
-            for slot in 0..MAX_OBJECTS {
-                let (Some((rotations, positions)), Some(mesh)) =
-                    (&motion.objects[slot], self.meshes[slot])
-                else {
-                    continue;
-                };
-                for (t, (&rotation, &position)) in rotations.iter().zip(positions).enumerate() {
-                    let range = layout.object_row(t, slot);
-                    let predicted = HandRelativeObject::from_slice(&objects[range.clone()])?;
-                    let logits = predicted.mixture_logits;
-                    let free = logits[GLOBAL_BRANCH] >= logits[0].max(logits[1]);
-                    let pose = if free {
-                        *state.rest[slot].get_or_insert_with(|| {
-                            // Released: straight down (or up) onto the support.
-                            let lowest = mesh.lowest_height(rotation, position);
-                            ObjectPose {
-                                rotation,
-                                position: position + Vec3::Y * (state.support[slot] - lowest),
-                            }
-                        })
-                    } else {
-                        state.rest[slot] = None;
-                        ObjectPose { rotation, position }
-                    };
-                    let wrists = Wrists::from_fk(&motion.joints, t, groups);
-                    objects[range].copy_from_slice(
-                        &HandRelativeObject::encode(pose, wrists, logits).to_array(),
-                    );
-                }
+        encoding.reencode(frames, layout, |(b, slot, _), pose, logits| {
+            // Every present object has a mesh (`start` checked).
+            let (Some(mesh), state) = (self.meshes[slot], &mut states[b]) else { return Ok(pose) };
+            if logits[GLOBAL_BRANCH] < logits[0].max(logits[1]) {
+                // A hand holds it: as generated.
+                state.rest[slot] = None;
+                return Ok(pose);
             }
-            settled.extend(layout.frames_to_streams(&body, &objects)?);
-        }
-        Ok(Tensor::from_vec(settled, frames.dims(), &device)?.to_dtype(dtype)?)
+            Ok(*state.rest[slot].get_or_insert_with(|| {
+                // Released: straight down (or up) onto the support.
+                let lowest = mesh.lowest_height(pose.rotation, pose.position);
+                ObjectPose {
+                    rotation: pose.rotation,
+                    position: pose.position + Vec3::Y * (state.support[slot] - lowest),
+                }
+            }))
+        })
     }
 }
