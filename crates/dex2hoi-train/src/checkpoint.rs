@@ -236,14 +236,9 @@ impl Trainer {
         path: &Path,
     ) -> Result<Option<Vec<Option<usize>>>> {
         let TextModule::Builtin { encoder, .. } = &self.text else { return Ok(None) };
-        let words: Vec<String> = metadata
-            .get(VOCABULARY_KEY)
-            .map(|w| serde_json::from_str(w))
-            .transpose()
-            .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?
-            .ok_or_else(|| {
-                TrainError::checkpoint(path, VOCABULARY_KEY, "the built-in encoder's words", "none")
-            })?;
+        let words = stored_words(metadata, path)?.ok_or_else(|| {
+            TrainError::checkpoint(path, VOCABULARY_KEY, "the built-in encoder's words", "none")
+        })?;
         if words.as_slice() == encoder.vocabulary().words() {
             return Ok(None);
         }
@@ -262,11 +257,7 @@ impl Trainer {
     /// (resuming a run).
     fn check_vocabulary(&self, metadata: &BTreeMap<String, String>, path: &Path) -> Result<()> {
         if let TextModule::Builtin { encoder, .. } = &self.text {
-            let words: Option<Vec<String>> = metadata
-                .get(VOCABULARY_KEY)
-                .map(|w| serde_json::from_str(w))
-                .transpose()
-                .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))?;
+            let words = stored_words(metadata, path)?;
             if words.as_deref() != Some(encoder.vocabulary().words()) {
                 return Err(TrainError::checkpoint(
                     path,
@@ -304,4 +295,13 @@ fn remap_rows(table: &Tensor, from: &[Option<usize>]) -> Result<Tensor> {
     let ids: Vec<u32> = from.iter().map(|row| row.map_or(UNKNOWN, |r| r as u32)).collect();
     let ids = Tensor::from_vec(ids, from.len(), table.device())?;
     Ok(table.index_select(&ids, 0)?)
+}
+
+/// The built-in encoder's word list a file's metadata holds (`None` when it holds none).
+fn stored_words(metadata: &BTreeMap<String, String>, path: &Path) -> Result<Option<Vec<String>>> {
+    metadata
+        .get(VOCABULARY_KEY)
+        .map(|w| serde_json::from_str(w))
+        .transpose()
+        .map_err(|e| TrainError::checkpoint(path, VOCABULARY_KEY, "a word list", e))
 }
