@@ -76,6 +76,33 @@ fn sample_exports_four_files_and_refuses_bad_input() {
         std::fs::read(again.join("motion.npz")).unwrap()
     );
 
+    // Objects at rest: the same seed with the rule keeps the objects no hand holds where they
+    // stand, so the motion differs from the one as generated.
+    let resting = dir.join("resting");
+    ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--text",
+        "A person picks up the mug with the right hand.",
+        "--object",
+        "mug",
+        "--frames",
+        "12",
+        "--ddim-steps",
+        "3",
+        "--seed",
+        "5",
+        "--free-objects",
+        "at-rest",
+        "--out",
+        resting.to_str().unwrap(),
+    ]));
+    assert_ne!(
+        std::fs::read(one.join("motion.npz")).unwrap(),
+        std::fs::read(resting.join("motion.npz")).unwrap()
+    );
+
     // Two objects, one from the user's OBJ file, placed explicitly; a timeline.
     let obj = dir.join("cube.obj");
     std::fs::write(
