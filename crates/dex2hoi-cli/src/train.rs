@@ -9,6 +9,7 @@ use clap::Args;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_sample::RunFiles;
+use dex2hoi_train::checkpoint::Fresh;
 use dex2hoi_train::{RunStart, TrainConfig, TrainOptions, train};
 
 use crate::device::DeviceArgs;
@@ -38,6 +39,11 @@ pub struct TrainArgs {
     /// must be those of the configuration and dataset.
     #[arg(long, value_name = "MODEL")]
     init_from: Option<PathBuf>,
+    /// With `--init-from`: a part of the model that starts from this run's seed instead of the
+    /// model's weights (`text-encoder`: the built-in text encoder, with this configuration's
+    /// `[text]` settings and this dataset's words; the denoiser is the model's).
+    #[arg(long, value_enum, requires = "init_from")]
+    fresh: Option<FreshPart>,
     /// Keep a snapshot every N steps in `--out/snapshots/step-NNNNNN/` (each a run directory
     /// that `sample` and `evaluate` take as `--run`), for metrics against training steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(usize))]
@@ -102,7 +108,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
         println!("starting from the EMA weights of {}", model.display());
     }
     let start = match (&init_from, args.resume) {
-        (Some(model), _) => RunStart::InitialisedFrom(model),
+        (Some(model), _) => {
+            RunStart::InitialisedFrom(model, args.fresh.map_or(Fresh::Nothing, Fresh::from))
+        }
         (None, true) => RunStart::Resume,
         (None, false) => RunStart::Fresh,
     };
@@ -122,6 +130,13 @@ pub fn run(args: TrainArgs) -> Result<()> {
                 "vocabulary: {} words carried over from the model, {} new (started as its \
                  unknown word)",
                 bridged.words_carried, bridged.words_new
+            );
+        }
+        if !bridged.fresh.is_empty() {
+            println!(
+                "started afresh from this run's seed ({} tensors): {}",
+                bridged.fresh.len(),
+                bridged.fresh.join(", ")
             );
         }
         if !bridged.kept.is_empty() {
@@ -158,4 +173,19 @@ pub fn run(args: TrainArgs) -> Result<()> {
     println!("metrics:    {}", files.metrics.display());
     println!("loss curve: {}", files.loss_curve.display());
     Ok(())
+}
+
+/// `--fresh`: what a fine-tuning run trains from its own seed ([`Fresh`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum FreshPart {
+    /// The built-in text encoder.
+    TextEncoder,
+}
+
+impl From<FreshPart> for Fresh {
+    fn from(part: FreshPart) -> Self {
+        match part {
+            FreshPart::TextEncoder => Fresh::TextEncoder,
+        }
+    }
 }

@@ -205,6 +205,61 @@ fn fine_tune_a_packed_model() {
     ]);
     assert!(from_run.status.success(), "{}", String::from_utf8_lossy(&from_run.stderr));
     assert!(String::from_utf8_lossy(&from_run.stdout).contains("trained 1 steps (10 in all"));
+    // The text encoder started afresh: another encoder size is then no mismatch.
+    let wider = dir.join("wider-text.toml");
+    let text = std::fs::read_to_string(config()).unwrap();
+    let widened = text.replace(
+        "[text]\nencoder = \"builtin\"\nwidth = 16",
+        "[text]\nencoder = \"builtin\"\nwidth = 32",
+    );
+    assert_ne!(widened, text, "tiny.toml has a built-in encoder of width 16");
+    std::fs::write(&wider, widened).unwrap();
+    let fresh = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--fresh",
+        "text-encoder",
+        "--config",
+        wider.to_str().unwrap(),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("fresh-text"),
+        "--steps",
+        "1",
+    ]);
+    let stdout = String::from_utf8_lossy(&fresh.stdout);
+    assert!(fresh.status.success(), "{}", String::from_utf8_lossy(&fresh.stderr));
+    assert!(
+        stdout.contains("started afresh from this run's seed")
+            && stdout.contains("text_encoder.tokens"),
+        "{stdout}"
+    );
+    let wider_refused = dex2hoi(&[
+        "train",
+        "--init-from",
+        &path("base.st"),
+        "--config",
+        wider.to_str().unwrap(),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("wider-refused"),
+    ]);
+    assert!(String::from_utf8_lossy(&wider_refused.stderr).contains("[text]"));
+    let alone = dex2hoi(&[
+        "train",
+        "--fresh",
+        "text-encoder",
+        "--config",
+        &config(),
+        "--data",
+        &path("data"),
+        "--out",
+        &path("alone"),
+    ]);
+    assert!(String::from_utf8_lossy(&alone.stderr).contains("--init-from"));
 
     // Bad input: with --resume, into a run that exists, a model of another network, no model.
     let both = dex2hoi(&[

@@ -136,6 +136,15 @@ impl Trainer {
     /// The normalisation statistics are the dataset's, as for every run: fine-tuning on the
     /// model's own dataset keeps them as they were. Returns what was bridged.
     pub fn initialise_from(&mut self, path: &Path) -> Result<Initialisation> {
+        self.initialise_from_except(path, Fresh::Nothing)
+    }
+
+    /// [`Trainer::initialise_from`], with the parts named by `fresh` left at this run's own
+    /// initialisation (its seed) instead of taking the model's weights. With
+    /// [`Fresh::TextEncoder`] the built-in text encoder starts afresh: its `[text]` settings
+    /// and vocabulary are this run's, whatever the model's were, and only the denoiser is
+    /// carried over.
+    pub fn initialise_from_except(&mut self, path: &Path, fresh: Fresh) -> Result<Initialisation> {
         if self.step > 0 {
             return Err(TrainError::checkpoint(
                 path,
@@ -164,6 +173,9 @@ impl Trainer {
             ),
             ("[text]", serde_json::to_value(&stored.text), serde_json::to_value(&self.config.text)),
         ] {
+            if section == "[text]" && fresh == Fresh::TextEncoder {
+                continue;
+            }
             let (model, run) =
                 (model.expect("a config serialises"), run.expect("a config serialises"));
             let differing: Vec<String> = run
@@ -186,7 +198,10 @@ impl Trainer {
                 ));
             }
         }
-        let remap = self.vocabulary_remap(&metadata, path)?;
+        let remap = match fresh {
+            Fresh::Nothing => self.vocabulary_remap(&metadata, path)?,
+            Fresh::TextEncoder => None,
+        };
         let mut initialisation = Initialisation::default();
         if let Some(remap) = &remap {
             // After the two special tokens, which every vocabulary has.
@@ -195,6 +210,10 @@ impl Trainer {
             initialisation.words_new = words.len() - initialisation.words_carried;
         }
         for (k, p) in self.parameters.iter().enumerate() {
+            if fresh == Fresh::TextEncoder && p.name.starts_with(TEXT_ENCODER_PREFIX) {
+                initialisation.fresh.push(p.name.clone());
+                continue;
+            }
             let name = format!("ema.{}", p.name);
             let Some(t) = tensors.get(&name) else {
                 if gains_clock && p.name.contains(".clock_") {
@@ -274,6 +293,22 @@ impl Trainer {
 /// The built-in encoder's word embeddings among the trained parameters, `[vocabulary, width]`.
 const TOKEN_EMBEDDINGS: &str = "text_encoder.tokens";
 
+/// The start of the names of the built-in text encoder's parameters.
+const TEXT_ENCODER_PREFIX: &str = "text_encoder.";
+
+/// Parts of a model that a run started from it ([`Trainer::initialise_from_except`]) does not
+/// take over but trains from its own initialisation.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Fresh {
+    /// Every weight comes from the model.
+    #[default]
+    Nothing,
+    /// The built-in text encoder starts from this run's seed: for a model whose encoder learned
+    /// to pass over words its data never needed (the hand in "with the left hand" when the
+    /// object's side already told it), which fine-tuning alone does not undo.
+    TextEncoder,
+}
+
 /// What [`Trainer::initialise_from`] bridged between the model and this run.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Initialisation {
@@ -284,6 +319,8 @@ pub struct Initialisation {
     pub words_new: usize,
     /// Parameters the model does not have, kept at their initialisation (the prompt clock's).
     pub kept: Vec<String>,
+    /// Parameters started afresh on request ([`Fresh`]), though the model has them.
+    pub fresh: Vec<String>,
 }
 
 /// The rows of a `[rows, width]` embedding table in a new order: row `k` of the result is

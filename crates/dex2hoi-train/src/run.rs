@@ -9,6 +9,7 @@ use candle_core::Device;
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_sample::RunFiles;
 
+use crate::checkpoint::Fresh;
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::metrics::{append_metrics, read_metrics, truncate_metrics, write_static};
@@ -21,9 +22,9 @@ pub enum RunStart<'a> {
     Fresh,
     /// Continue the run in the output directory from its checkpoint, bit for bit.
     Resume,
-    /// A new run from the EMA weights of this packed model or checkpoint
-    /// ([`Trainer::initialise_from`]).
-    InitialisedFrom(&'a Path),
+    /// A new run from the EMA weights of this packed model or checkpoint, but for the parts
+    /// started afresh ([`Trainer::initialise_from_except`]).
+    InitialisedFrom(&'a Path, Fresh),
 }
 
 /// How [`train`] runs.
@@ -147,8 +148,8 @@ pub fn train(
         RunStart::Fresh => {
             let _ = std::fs::remove_file(&files.metrics);
         }
-        RunStart::InitialisedFrom(model) => {
-            initialisation = Some(trainer.initialise_from(model)?);
+        RunStart::InitialisedFrom(model, fresh) => {
+            initialisation = Some(trainer.initialise_from_except(model, fresh)?);
             let _ = std::fs::remove_file(&files.metrics);
         }
     }

@@ -9,6 +9,7 @@ use candle_core::Device;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_model::checkpoint::read_tensors;
+use dex2hoi_train::checkpoint::Fresh;
 use dex2hoi_train::{RunStart, Term, TrainConfig, TrainError, TrainOptions, Trainer, train};
 
 fn dataset(sequences: usize) -> Dataset {
@@ -395,7 +396,7 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         tuned.clone(),
         &data,
         Path::new("d"),
-        options(RunStart::InitialisedFrom(&packed)),
+        options(RunStart::InitialisedFrom(&packed, Fresh::Nothing)),
         &mut |_, _| {},
     )
     .unwrap();
@@ -433,7 +434,7 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         other,
         &data,
         Path::new("d"),
-        options(RunStart::InitialisedFrom(&packed)),
+        options(RunStart::InitialisedFrom(&packed, Fresh::Nothing)),
         &mut |_, _| {},
     )
     .unwrap_err()
@@ -445,20 +446,57 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         panic!("the tiny preset has the built-in text encoder")
     };
     *width *= 2;
-    let mut trainer = Trainer::new(other, &data, Path::new("d"), &Device::Cpu).unwrap();
+    let mut trainer = Trainer::new(other.clone(), &data, Path::new("d"), &Device::Cpu).unwrap();
     let error = trainer.initialise_from(&packed).unwrap_err().to_string();
     assert!(error.contains("[text]") && error.contains("width"), "{error}");
+    // Unless the text encoder starts afresh: then it is this run's, at its seed's weights, with
+    // its own settings and a vocabulary with a word the model never saw, and the denoiser is
+    // the model's.
+    let mut trainer =
+        Trainer::new(other.clone(), &renamed_with(&data, " zebra"), Path::new("d"), &Device::Cpu)
+            .unwrap();
+    let seeded: Vec<Vec<f32>> = trainer
+        .parameters()
+        .iter()
+        .map(|p| p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap())
+        .collect();
+    let bridged = trainer.initialise_from_except(&packed, Fresh::TextEncoder).unwrap();
+    assert_eq!((bridged.words_carried, bridged.words_new), (0, 0));
+    assert!(
+        bridged.fresh.iter().all(|name| name.starts_with("text_encoder.")),
+        "{:?}",
+        bridged.fresh
+    );
+    for (p, seeded) in trainer.parameters().iter().zip(&seeded) {
+        let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        if p.name.starts_with("text_encoder.") {
+            assert!(bridged.fresh.contains(&p.name), "{}", p.name);
+            assert_eq!(&values, seeded, "{} keeps the seed's weights", p.name);
+        } else {
+            assert_eq!(values, ema[&format!("ema.{}", p.name)], "{} is the model's", p.name);
+        }
+    }
+    assert!(bridged.fresh.len() >= 4, "{:?}", bridged.fresh);
+    // Trained from there: the fresh encoder is part of the run, resumed and packed as usual.
+    let fresh_run = dir.join("fresh-text");
+    let mut short = other.clone();
+    short.training.steps = 2;
+    let summary = train(
+        &fresh_run,
+        short,
+        &data,
+        Path::new("d"),
+        options(RunStart::InitialisedFrom(&packed, Fresh::TextEncoder)),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!((summary.steps, summary.steps_before), (2, 6));
     // Dropout is a training setting: a fine-tuning may change it.
     let mut other = tuned.clone();
     other.model.dropout = 0.25;
     let mut trainer = Trainer::new(other, &data, Path::new("d"), &Device::Cpu).unwrap();
     trainer.initialise_from(&packed).unwrap();
-    let mut renamed = data.clone();
-    for sequences in renamed.splits.values_mut() {
-        for s in sequences {
-            s.texts.iter_mut().for_each(|t| t.push_str(" zebra"));
-        }
-    }
+    let renamed = renamed_with(&data, " zebra");
     // A dataset with a new word: the words' embeddings carry over by word, the new one starts
     // as the model's unknown word.
     let mut trainer = Trainer::new(tuned.clone(), &renamed, Path::new("d"), &Device::Cpu).unwrap();
@@ -508,6 +546,17 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
     trainer.initialise_from(&base.join("checkpoint.safetensors")).unwrap();
     assert_eq!(trainer.steps_before(), 6);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A dataset whose every text ends with `suffix`.
+fn renamed_with(data: &Dataset, suffix: &str) -> Dataset {
+    let mut renamed = data.clone();
+    for sequences in renamed.splits.values_mut() {
+        for s in sequences {
+            s.texts.iter_mut().for_each(|t| t.push_str(suffix));
+        }
+    }
+    renamed
 }
 
 fn tempfile_dir(name: &str) -> std::path::PathBuf {
