@@ -30,6 +30,8 @@ pub struct TrainingSet {
     skeleton: Skeleton,
     sequences: Vec<ProcessedSequence>,
     windows: Vec<Window>,
+    /// Indices into `windows` of each sequence's first window (starting at frame 0).
+    first_windows: Vec<usize>,
     window: WindowConfig,
     /// Per sequence and slot, the index of the object asset.
     assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
@@ -92,6 +94,9 @@ pub struct BatchOptions {
     pub swap_probability: f64,
     /// Probability of mirroring.
     pub mirror_probability: f64,
+    /// Share of windows drawn from the first windows of sequences
+    /// ([`crate::LoopConfig::first_window_share`]).
+    pub first_window_share: f64,
 }
 
 impl TrainingSet {
@@ -109,6 +114,7 @@ impl TrainingSet {
         }
         let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
         let windows = windows(&counts, &window)?;
+        let first_windows = (0..windows.len()).filter(|&i| windows[i].start == 0).collect();
         let assets_of = sequences
             .iter()
             .map(|s| dataset.slot_assets(s))
@@ -127,6 +133,7 @@ impl TrainingSet {
             skeleton,
             sequences,
             windows,
+            first_windows,
             window,
             assets_of,
             bps,
@@ -162,7 +169,8 @@ impl TrainingSet {
         &self.stats
     }
 
-    /// Draws a batch: windows uniformly, one of each window's texts, then a swap and a mirror
+    /// Draws a batch: windows uniformly (a share of them from the sequences' first windows
+    /// when asked), one of each window's texts, then a swap and a mirror
     /// with their probabilities, all from `rng`.
     pub fn batch(
         &self,
@@ -192,7 +200,15 @@ impl TrainingSet {
         let mut clouds = Vec::with_capacity(b);
         let mut elapsed = Vec::with_capacity(b);
         for i in 0..b {
-            let window = self.windows[rng.random_range(0..self.windows.len())];
+            // No draw for the share when it is 0, so that such runs keep their random stream.
+            let first = options.first_window_share > 0.0
+                && !self.first_windows.is_empty()
+                && rng.random_bool(options.first_window_share);
+            let window = if first {
+                self.windows[self.first_windows[rng.random_range(0..self.first_windows.len())]]
+            } else {
+                self.windows[rng.random_range(0..self.windows.len())]
+            };
             elapsed.push(window.start as f32);
             let source = &self.sequences[window.sequence];
             let text = source.texts[rng.random_range(0..source.texts.len())].clone();

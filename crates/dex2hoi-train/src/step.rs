@@ -264,6 +264,7 @@ impl Trainer {
             size: c.training.batch_size,
             swap_probability: c.training.swap_probability,
             mirror_probability: c.training.mirror_probability,
+            first_window_share: c.training.first_window_share,
         };
         let batch = self.data.batch(&options, rng, &self.device)?;
         let text = self.encode_text(&batch.texts, rng)?;

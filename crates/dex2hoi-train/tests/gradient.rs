@@ -29,7 +29,12 @@ impl Setup {
             Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
         let device = Device::Cpu;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let options = BatchOptions { size: 3, swap_probability: 0.5, mirror_probability: 0.5 };
+        let options = BatchOptions {
+            size: 3,
+            swap_probability: 0.5,
+            mirror_probability: 0.5,
+            first_window_share: 0.0,
+        };
         let batch = trainer.training_set().batch(&options, &mut rng, &device).unwrap();
         let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
         let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();

@@ -33,7 +33,12 @@ fn the_ground_truth_has_no_joint_error_on_its_own_body() {
     let trainer =
         Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
-    let options = BatchOptions { size: 6, swap_probability: 0.5, mirror_probability: 0.5 };
+    let options = BatchOptions {
+        size: 6,
+        swap_probability: 0.5,
+        mirror_probability: 0.5,
+        first_window_share: 0.0,
+    };
     let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
     let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
     let truth = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
@@ -44,4 +49,40 @@ fn the_ground_truth_has_no_joint_error_on_its_own_body() {
     let value = joint_velocity.to_scalar::<f64>().unwrap();
     // In cm^2 per frame^2; the built-in body instead gives errors of centimetres.
     assert!(value < 1e-6, "joint velocity of the ground truth: {value}");
+}
+
+/// `first_window_share`: all of a batch from the sequences' first windows at 1, about that
+/// share at 0.5, and at 0 the same batch as a configuration without it.
+#[test]
+fn a_share_of_windows_comes_from_the_first_windows() {
+    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    let starts = |share: f64, size: usize| -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let options = BatchOptions {
+            size,
+            swap_probability: 0.5,
+            mirror_probability: 0.5,
+            first_window_share: share,
+        };
+        let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
+        batch.elapsed.to_vec1::<f32>().unwrap()
+    };
+    let windows = trainer.training_set().windows();
+    let firsts = windows.iter().filter(|w| w.start == 0).count();
+    assert!(firsts * 4 < windows.len(), "{firsts} first windows of {}", windows.len());
+    assert!(starts(1.0, 64).iter().all(|&s| s == 0.0));
+    let uniform = starts(0.0, 64);
+    let at_zero = uniform.iter().filter(|&&s| s == 0.0).count();
+    assert!(at_zero < 24, "{at_zero} of 64 first windows drawn uniformly");
+    let half = starts(0.5, 64);
+    let at_zero = half.iter().filter(|&&s| s == 0.0).count();
+    assert!((20..=48).contains(&at_zero), "{at_zero} of 64 first windows at a share of 0.5");
+    // A share of 0 is left out of a written configuration, so those written before read the same.
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    let toml = toml::to_string(&config).unwrap();
+    assert!(!toml.contains("first_window_share"), "{toml}");
 }
