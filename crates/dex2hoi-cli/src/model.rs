@@ -81,6 +81,21 @@ pub enum ModelCommand {
     Pack(PackArgs),
     /// Describe a model: where it comes from, its size, training steps, data and vocabulary.
     Info(InfoArgs),
+    /// How far apart the model's text encoder puts prompts: a word it passes over (the hand
+    /// in "with the left hand", say) changes the embedding little, and then the motion.
+    Texts(TextsArgs),
+}
+
+/// Arguments of `dex2hoi model texts`.
+#[derive(Debug, Args)]
+pub struct TextsArgs {
+    /// A run directory or packed model file (default: `DEX2HOI_MODEL`, else the shipped
+    /// model).
+    #[arg(long)]
+    run: Option<PathBuf>,
+    /// The prompts to compare: two or more.
+    #[arg(long = "text", value_name = "TEXT", required = true)]
+    texts: Vec<String>,
 }
 
 /// Arguments of `dex2hoi model pack`.
@@ -157,5 +172,45 @@ pub fn run(command: ModelCommand) -> Result<()> {
             }
             Ok(())
         }
+        ModelCommand::Texts(args) => compare_texts(&args),
     }
+}
+
+/// `dex2hoi model texts`: each prompt's embedding norm and unknown words, then the Euclidean
+/// distances between the embeddings.
+fn compare_texts(args: &TextsArgs) -> Result<()> {
+    if args.texts.len() < 2 {
+        bail!("--text: give two or more prompts to compare, got {}", args.texts.len());
+    }
+    let source = ModelSource::resolve(args.run.as_deref());
+    let run = source.load(&Device::Cpu)?;
+    let texts: Vec<&str> = args.texts.iter().map(String::as_str).collect();
+    let embeddings = run.text.encode(&texts).context("encoding the prompts")?.to_vec2::<f32>()?;
+    let distance =
+        |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f32>().sqrt();
+    println!("model: {}", source.describe());
+    for (i, (text, embedding)) in texts.iter().zip(&embeddings).enumerate() {
+        let norm = distance(embedding, &vec![0.0; embedding.len()]);
+        let unknown = run.text.vocabulary().map(|v| v.unknown_words(text)).unwrap_or_default();
+        let unknown = if unknown.is_empty() {
+            String::new()
+        } else {
+            format!(", unknown words: {}", unknown.join(" "))
+        };
+        println!("{:>3}  norm {norm:.3}{unknown}  {text}", i + 1);
+    }
+    println!("distances between the embeddings:");
+    print!("   ");
+    for j in 0..texts.len() {
+        print!("{:>8}", j + 1);
+    }
+    println!();
+    for (i, a) in embeddings.iter().enumerate() {
+        print!("{:>3}", i + 1);
+        for b in &embeddings {
+            print!("{:>8.3}", distance(a, b));
+        }
+        println!();
+    }
+    Ok(())
 }

@@ -124,6 +124,25 @@ fn packed_models_sample_like_their_runs_and_are_found_by_the_variable() {
     ok(&warned);
     let stderr = String::from_utf8_lossy(&warned.stderr);
     assert!(stderr.contains("`juggles`") && !stderr.contains("`mug`"), "{stderr}");
+    // How far apart the encoder puts prompts: a symmetric table with zeros on its diagonal.
+    let (a, b) = ("The person picks up the mug.", "The person juggles the mug.");
+    let texts =
+        ok(&common::dex2hoi(&["model", "texts", "--run", &f16_file, "--text", a, "--text", b]));
+    assert!(
+        texts.contains("1  norm ") && texts.contains(&format!("unknown words: juggles  {b}")),
+        "{texts}"
+    );
+    let rows: Vec<Vec<f32>> = texts
+        .lines()
+        .skip_while(|line| !line.starts_with("distances"))
+        .skip(2)
+        .map(|line| line.split_whitespace().skip(1).map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 2, "{texts}");
+    assert_eq!((rows[0][0], rows[1][1]), (0.0, 0.0), "{texts}");
+    assert!(rows[0][1] > 0.0 && rows[0][1] == rows[1][0], "{texts}");
+    let one = common::dex2hoi(&["model", "texts", "--run", &f16_file, "--text", a]);
+    assert!(!one.status.success() && String::from_utf8_lossy(&one.stderr).contains("two or more"));
 
     // Bad input.
     let not_a_model = path("notes.txt");
