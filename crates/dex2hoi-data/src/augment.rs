@@ -48,21 +48,43 @@ fn mirror_sixd(sixd: &[f32]) -> [f32; 6] {
     [sixd[0], -sixd[1], -sixd[2], -sixd[3], sixd[4], sixd[5]]
 }
 
-/// Swaps the words "left" and "right" (any capitalisation of the first letter).
+/// Words that name a side, each with its mirror image; a capitalised or upper-case form is
+/// swapped for the same form of its image. Other words that begin with a side ("leftover",
+/// "rights") are left as they are.
+const MIRRORED_WORDS: [(&str, &str); 3] =
+    [("left", "right"), ("leftwards", "rightwards"), ("leftward", "rightward")];
+
+/// The mirror image of one word ([`MIRRORED_WORDS`]), or the word itself.
+fn mirror_word(word: &str) -> String {
+    let lower = word.to_lowercase();
+    let Some(image) = MIRRORED_WORDS.iter().find_map(|&(a, b)| {
+        if lower == a {
+            Some(b)
+        } else if lower == b {
+            Some(a)
+        } else {
+            None
+        }
+    }) else {
+        return word.to_string();
+    };
+    if word.chars().all(char::is_uppercase) {
+        image.to_uppercase()
+    } else if word.starts_with(char::is_uppercase) {
+        let mut chars = image.chars();
+        chars.next().map(|c| c.to_uppercase().chain(chars).collect()).unwrap_or_default()
+    } else {
+        image.to_string()
+    }
+}
+
+/// Swaps the words that name a side ([`MIRRORED_WORDS`]: "left" and "right", "leftwards" and
+/// "rightwards", ...), keeping their capitalisation.
 pub fn mirror_text(text: &str) -> String {
     let mut out = String::with_capacity(text.len());
     let mut word = String::new();
     let flush = |word: &mut String, out: &mut String| {
-        let swapped = match word.as_str() {
-            "left" => "right",
-            "right" => "left",
-            "Left" => "Right",
-            "Right" => "Left",
-            "LEFT" => "RIGHT",
-            "RIGHT" => "LEFT",
-            other => other,
-        };
-        out.push_str(swapped);
+        out.push_str(&mirror_word(word));
         word.clear();
     };
     for c in text.chars() {

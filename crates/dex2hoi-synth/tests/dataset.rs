@@ -5,6 +5,7 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::window::{WindowConfig, resample, windows};
 use dex2hoi_repr::Skeleton;
 use dex2hoi_synth::build_dataset;
+use dex2hoi_synth::text::{Phrasing, grammar_words};
 
 fn temp_dir(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("dex2hoi-{name}-{}", std::process::id()));
@@ -146,6 +147,18 @@ fn mirroring_and_swapping_twice_is_the_identity() {
         "The right hand passes the Right cup to the left."
     );
     assert_eq!(mirror_text("leftover rights"), "leftover rights");
+    assert_eq!(mirror_text("Leftwards, then RIGHTWARD."), "Rightwards, then LEFTWARD.");
+    // Every word of the description grammar that names a side is mirrored, so a mirrored
+    // window's text says what its motion does.
+    for phrasing in [Phrasing::Training, Phrasing::HeldOut] {
+        for word in grammar_words(phrasing) {
+            if word.contains("left") || word.contains("right") {
+                let image = mirror_text(&word);
+                assert_ne!(image, word, "{word} is not mirrored");
+                assert_eq!(mirror_text(&image), word);
+            }
+        }
+    }
 }
 
 #[test]
