@@ -179,9 +179,6 @@ const DEMO_SEED: &str = "0";
 /// Steps of the demo's evaluator.
 const DEMO_EVALUATOR_STEPS: &str = "100";
 
-/// Frames of the demo's motions: ten seconds at 20 fps, what a user meets first.
-const DEMO_FRAMES: &str = "200";
-
 /// The two demo prompts: a name, the text and the objects.
 const DEMO_PROMPTS: [(&str, &str, &[&str]); 2] = [
     (
@@ -191,7 +188,7 @@ const DEMO_PROMPTS: [(&str, &str, &[&str]); 2] = [
     ),
     (
         "two-objects",
-        "The person picks up the bottle with the left hand and the can with the right hand, holds both up and puts them back.",
+        "The person picks up the bottle with the left hand and the can with the right hand, holds both and puts them back.",
         &["bottle", "can"],
     ),
 ];
@@ -329,7 +326,7 @@ fn demo(root: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Samples the demo prompts ([`DEMO_FRAMES`], seed 1) with a run, or the shipped model without one,
+/// Samples the demo prompts (160 frames, seed 1) with a run, or the shipped model without one,
 /// each into its folder under `folder`; returns each prompt with its folder.
 fn sample_demo_prompts(
     root: &Path,
@@ -346,7 +343,7 @@ fn sample_demo_prompts(
         if let Some(run) = run {
             args.extend(["--run", run]);
         }
-        args.extend(["--text", text, "--frames", DEMO_FRAMES, "--seed", "1", "--out", &out]);
+        args.extend(["--text", text, "--frames", "160", "--seed", "1", "--out", &out]);
         for object in objects {
             args.extend(["--object", object]);
         }
