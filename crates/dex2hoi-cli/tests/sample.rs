@@ -30,47 +30,36 @@ fn sample_exports_four_files_and_refuses_bad_input() {
     ok(&dex2hoi(&["data", "synth", "--out", data, "--sequences", "8", "--seed", "4"]));
     ok(&dex2hoi(&["train", "--config", &config, "--data", data, "--out", run, "--steps", "3"]));
 
+    // One prompt with the mug, 12 frames, seed 5, into `out`, with `extra` options.
+    let sample_mug = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "sample",
+            "--run",
+            run,
+            "--text",
+            "A person picks up the mug with the right hand.",
+            "--object",
+            "mug",
+            "--frames",
+            "12",
+            "--ddim-steps",
+            "3",
+            "--seed",
+            "5",
+        ];
+        args.extend_from_slice(extra);
+        args.extend(["--out", out.to_str().unwrap()]);
+        ok(&dex2hoi(&args))
+    };
     let one = dir.join("one");
-    let stdout = ok(&dex2hoi(&[
-        "sample",
-        "--run",
-        run,
-        "--text",
-        "A person picks up the mug with the right hand.",
-        "--object",
-        "mug",
-        "--frames",
-        "12",
-        "--ddim-steps",
-        "3",
-        "--seed",
-        "5",
-        "--out",
-        one.to_str().unwrap(),
-    ]));
+    let stdout = sample_mug(&one, &[]);
     assert!(stdout.contains("generated 12 frames") && stdout.contains("real time"), "{stdout}");
     for file in ["motion.npz", "motion.glb", "motion.bvh", "preview.gif", "preview.png"] {
         assert!(one.join(file).metadata().unwrap().len() > 100, "{file}");
     }
     // The same seed gives the same motion.
     let again = dir.join("again");
-    ok(&dex2hoi(&[
-        "sample",
-        "--run",
-        run,
-        "--text",
-        "A person picks up the mug with the right hand.",
-        "--object",
-        "mug",
-        "--frames",
-        "12",
-        "--ddim-steps",
-        "3",
-        "--seed",
-        "5",
-        "--out",
-        again.to_str().unwrap(),
-    ]));
+    sample_mug(&again, &[]);
     assert_eq!(
         std::fs::read(one.join("motion.npz")).unwrap(),
         std::fs::read(again.join("motion.npz")).unwrap()
@@ -79,25 +68,7 @@ fn sample_exports_four_files_and_refuses_bad_input() {
     // Objects at rest: the same seed with the rule keeps the objects no hand holds where they
     // stand, so the motion differs from the one as generated.
     let resting = dir.join("resting");
-    ok(&dex2hoi(&[
-        "sample",
-        "--run",
-        run,
-        "--text",
-        "A person picks up the mug with the right hand.",
-        "--object",
-        "mug",
-        "--frames",
-        "12",
-        "--ddim-steps",
-        "3",
-        "--seed",
-        "5",
-        "--free-objects",
-        "at-rest",
-        "--out",
-        resting.to_str().unwrap(),
-    ]));
+    sample_mug(&resting, &["--free-objects", "at-rest"]);
     assert_ne!(
         std::fs::read(one.join("motion.npz")).unwrap(),
         std::fs::read(resting.join("motion.npz")).unwrap()
