@@ -190,7 +190,7 @@ fn compare_texts(args: &TextsArgs) -> Result<()> {
         |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f32>().sqrt();
     println!("model: {}", source.describe());
     for (i, (text, embedding)) in texts.iter().zip(&embeddings).enumerate() {
-        let norm = distance(embedding, &vec![0.0; embedding.len()]);
+        let norm = embedding.iter().map(|x| x * x).sum::<f32>().sqrt();
         let unknown = run.text.vocabulary().map(|v| v.unknown_words(text)).unwrap_or_default();
         let unknown = if unknown.is_empty() {
             String::new()
