@@ -3,7 +3,7 @@
 mod long_generation;
 
 use std::num::NonZeroUsize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -15,17 +15,21 @@ use crate::body::BodyArgs;
 use crate::device::DeviceArgs;
 use crate::model::ModelSource;
 use crate::sampling::SamplingArgs;
+use dex2hoi_data::dataset::Dataset;
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
 use dex2hoi_sample::{
     DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleError, SampleRequest, SceneObject,
-    parse_timeline, sample,
+    SequenceScene, parse_timeline, sample,
 };
 
 use long_generation::{
     AvailableMemory, FrameCost, GenerationShape, GenerationWatch, check_length, install_ctrl_c,
 };
+
+/// Frames `sample` generates unless told.
+const DEFAULT_FRAMES: NonZeroUsize = NonZeroUsize::new(120).expect("120 is not zero");
 
 /// Arguments of `dex2hoi sample`.
 #[derive(Debug, Args)]
@@ -35,23 +39,35 @@ pub struct SampleArgs {
     /// model shipped with dex2hoi.
     #[arg(long)]
     run: Option<PathBuf>,
-    /// The prompt (or use --timeline).
+    /// The prompt (or use --timeline; with --sequence, the sequence's first description by
+    /// default).
     #[arg(long)]
     text: Option<String>,
     /// A timeline file: one `SECONDS TEXT` line per prompt, the first at 0.
     #[arg(long, conflicts_with = "text")]
     timeline: Option<PathBuf>,
-    /// An object: a catalogue name (mug, bottle, box, ball, bowl, book, can, plate) or an
-    /// OBJ/PLY file, optionally `@x,y,z` (metres; +Z ahead, +X left, +Y up). Once or twice.
-    /// Unplaced, it stands on the table in front: one object on the side of the hand the
-    /// (first) prompt names, else in the middle; two objects side by side, the first on the
-    /// left.
-    #[arg(long = "object", required = true)]
+    /// An object: a catalogue name (mug, bottle, box, ball, bowl, book, can, plate; with
+    /// --data, first the names of that dataset's objects) or an OBJ/PLY file, optionally
+    /// `@x,y,z` (metres; +Z ahead, +X left, +Y up). Once or twice. Unplaced, it stands on the
+    /// table in front: one object on the side of the hand the (first) prompt names, else in
+    /// the middle; two objects side by side, the first on the left.
+    #[arg(long = "object", required_unless_present = "sequence", conflicts_with = "sequence")]
     objects: Vec<String>,
-    /// Frames to generate (at the run's frame rate; at least 1). A length whose motion and
-    /// exports would not fit in the memory available is refused before any work.
-    #[arg(long, default_value = "120")]
-    frames: NonZeroUsize,
+    /// A dataset directory (`data prepare`, `data synth`) whose objects --object can name and
+    /// whose sequences --sequence can name: for a model trained on real data, whose objects
+    /// are not in the built-in catalogue.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Start from the scene of this sequence of --data (its source id, or the part after the
+    /// last `/`): its objects where they are on its first frame, no table; its first
+    /// description unless --text or --timeline is given; its length unless --frames is.
+    #[arg(long, requires = "data")]
+    sequence: Option<String>,
+    /// Frames to generate (at the run's frame rate; at least 1; default 120, or the length of
+    /// --sequence). A length whose motion and exports would not fit in the memory available is
+    /// refused before any work.
+    #[arg(long)]
+    frames: Option<NonZeroUsize>,
     /// Seed of the noise: the same seed gives the same motion.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -84,11 +100,31 @@ pub fn run(args: SampleArgs) -> Result<()> {
     if !(args.table_height.is_finite() && (0.3..=1.5).contains(&args.table_height)) {
         bail!("--table-height must be between 0.3 and 1.5 m, got {}", args.table_height);
     }
-    let objects = args
-        .objects
-        .iter()
-        .map(|spec| SceneObject::parse(spec).with_context(|| format!("--object `{spec}`")))
-        .collect::<Result<Vec<_>>>()?;
+    let dataset = match &args.data {
+        Some(dir) => Some(Dataset::load(dir).with_context(|| format!("--data {}", dir.display()))?),
+        None => None,
+    };
+    let scene = match (&args.sequence, &dataset) {
+        (Some(id), Some(dataset)) => Some(SequenceScene::of(dataset, id).with_context(|| {
+            format!("--sequence in {}", args.data.as_deref().unwrap_or(Path::new("")).display())
+        })?),
+        _ => None,
+    };
+    let objects = match &scene {
+        Some(scene) => scene.objects.clone(),
+        None => args
+            .objects
+            .iter()
+            .map(|spec| {
+                SceneObject::parse(spec, dataset.as_ref())
+                    .with_context(|| format!("--object `{spec}`"))
+            })
+            .collect::<Result<Vec<_>>>()?,
+    };
+    let frames = args
+        .frames
+        .or_else(|| scene.as_ref().and_then(|s| NonZeroUsize::new(s.frames)))
+        .unwrap_or(DEFAULT_FRAMES);
     let body = args.body.load()?;
     let source = ModelSource::resolve(args.run.as_deref());
     let run = source.load(&device)?;
@@ -101,11 +137,23 @@ pub fn run(args: SampleArgs) -> Result<()> {
         preview_width: preview.width,
         preview_height: preview.height,
     };
-    check_length(args.frames.get(), fps, &cost, &AvailableMemory::of_this_machine())?;
+    if let Some(dataset) = &dataset
+        && dataset.manifest.skeleton != run.manifest.skeleton
+    {
+        bail!(
+            "--data {} is on the {} skeleton, the model on {}",
+            args.data.as_deref().unwrap_or(Path::new("")).display(),
+            dataset.manifest.skeleton,
+            run.manifest.skeleton
+        );
+    }
+    check_length(frames.get(), fps, &cost, &AvailableMemory::of_this_machine())?;
     println!("sampling with {} ({} training steps)", source.describe(), run.step);
-    let prompts = match (&args.text, &args.timeline) {
-        (Some(text), None) => vec![Prompt { start_frame: 0, text: text.clone() }],
-        (None, Some(path)) => {
+    let prompts = match (&args.text, &args.timeline, scene.as_ref().and_then(|s| s.texts.first())) {
+        (Some(text), None, _) | (None, None, Some(text)) => {
+            vec![Prompt { start_frame: 0, text: text.clone() }]
+        }
+        (None, Some(path), _) => {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("reading the timeline {}", path.display()))?;
             parse_timeline(&text, fps, &path.display().to_string())?
@@ -135,7 +183,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let request = SampleRequest {
         prompts: prompts.clone(),
         objects,
-        frames: args.frames,
+        frames,
         seed: args.seed,
         sampler,
         table_height: args.table_height,
@@ -179,7 +227,8 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let half_depth = 0.3;
     let options = ExportOptions {
         preview: PreviewOptions {
-            table: Some(TableBox {
+            // A sequence's furniture is not in the data (only the objects that move are).
+            table: scene.is_none().then_some(TableBox {
                 height: args.table_height,
                 centre: Vec2::new(0.0, DEFAULT_TABLE_NEAR_EDGE + half_depth),
                 half_extents: Vec2::new(0.55, half_depth),

@@ -6,9 +6,7 @@ use glam::{Mat3, Quat, Vec3};
 
 use dex2hoi_repr::fk::forward_kinematics_frame;
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
-use dex2hoi_repr::{MeshQuery, Skeleton, forward_kinematics};
-
-use crate::error::Result;
+use dex2hoi_repr::{MeshQuery, Skeleton};
 
 /// Height of the default character's pelvis.
 pub const PELVIS_HEIGHT: f32 = 0.975;
@@ -333,41 +331,4 @@ impl Poser {
 /// The smallest rotation taking direction `from` to direction `to`.
 pub fn swing(from: Vec3, to: Vec3) -> Mat3 {
     Mat3::from_quat(Quat::from_rotation_arc(from.normalize(), to.normalize()))
-}
-
-/// One frame of features for the default character standing relaxed (hands hanging) at the
-/// canonical origin, with objects at the given poses (canonical frame) and nobody holding them:
-/// the starting state of generation. Returns the body row `[6J + 3]` and the object rows
-/// `[2, 18]` (zeros for an empty slot).
-pub fn standing_features(
-    objects: [Option<dex2hoi_repr::ObjectPose>; crate::MAX_OBJECTS],
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    use dex2hoi_repr::object_repr::{
-        HandRelativeObject, MixtureTargetConfig, Wrists, mixture_targets,
-    };
-    let poser = Poser::new(Vec3::new(0.0, PELVIS_HEIGHT, 0.0));
-    let idle = [poser.idle_hand(Hand::Left), poser.idle_hand(Hand::Right)];
-    let local = poser.pose(0.0, 0.0, &idle);
-    let skeleton = poser.skeleton();
-    let layout = crate::layout::FeatureLayout::of_skeleton(skeleton);
-    let root = Vec3::new(0.0, PELVIS_HEIGHT, 0.0);
-    let fk = forward_kinematics(skeleton, &local, &[root])?;
-    // One frame: the joint rotations, then a zero root displacement (the frame is the start).
-    let mut body: Vec<f32> =
-        local.iter().flat_map(|r| dex2hoi_repr::rotation::matrix_to_sixd(*r)).collect();
-    body.extend([0.0; crate::layout::ROOT_FEATURE_SIZE]);
-    debug_assert_eq!(body.len(), layout.body_width());
-    let g = skeleton.groups();
-    let wrists = Wrists::from_fk(&fk, 0, g);
-    // Nobody holds anything: the mixture target of "neither hand".
-    let free =
-        mixture_targets(&[f32::INFINITY], &[f32::INFINITY], &MixtureTargetConfig::default())?[0];
-    let mut rows = vec![0.0f32; layout.objects_width()];
-    for (slot, pose) in objects.iter().enumerate() {
-        if let Some(pose) = pose {
-            let encoded = HandRelativeObject::encode(*pose, wrists, free).to_array();
-            rows[layout.object_row(0, slot)].copy_from_slice(&encoded);
-        }
-    }
-    Ok((body, rows))
 }

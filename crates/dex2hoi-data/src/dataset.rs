@@ -17,13 +17,14 @@ use crate::features::{ObjectAsset, ProcessedSequence};
 use crate::files::{io_error, temporary_path, write_atomically};
 use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
+use crate::start::StartPose;
 
 /// The version of the format this code writes. Version 2 added each sequence's rest offsets
 /// (`rest_offsets`); version 3 each sequence's held-out descriptions (`held_out_texts`, absent
-/// when there are none).
-pub const FORMAT_VERSION: u32 = 3;
-/// The oldest version this code reads: version 2 reads as version 3 without held-out
-/// descriptions; version 1 files are refused (prepare them again).
+/// when there are none); version 4 the manifest's `start_pose` (real data).
+pub const FORMAT_VERSION: u32 = 4;
+/// The oldest version this code reads: versions 2 and 3 read as version 4 without what
+/// later versions added; version 1 files are refused (prepare them again).
 pub const OLDEST_READABLE_FORMAT: u32 = 2;
 
 /// The least standard deviation a feature channel is normalised with: channels that never
@@ -106,6 +107,10 @@ pub struct Manifest {
     pub splits: BTreeMap<Split, SplitSummary>,
     /// The generator's seed, when generated.
     pub seed: Option<u64>,
+    /// The pose generation starts from, for data of real motion capture (see
+    /// [`Manifest::start_pose`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_pose: Option<StartPose>,
 }
 
 /// One sequence's texts and labels, in `<split>.json`.
@@ -251,8 +256,23 @@ impl Dataset {
             objects: objects.iter().map(|a| a.name.clone()).collect(),
             splits: summaries,
             seed,
+            start_pose: None,
         };
         Ok(Self { manifest, splits, objects, stats })
+    }
+
+    /// Stores the training split's most typical first frame as the pose generations start
+    /// from ([`StartPose::typical_first_frame`]; the test split's when there is no training
+    /// split): for real motion capture, whose character and stance the built-in one does not
+    /// match.
+    pub fn with_typical_start_pose(mut self) -> Result<Self> {
+        let skeleton = self.manifest.builtin_skeleton()?;
+        let sequences = match self.splits.get(&Split::Train) {
+            Some(train) if !train.is_empty() => train,
+            _ => self.splits.get(&Split::Test).map_or(&[][..], Vec::as_slice),
+        };
+        self.manifest.start_pose = Some(StartPose::typical_first_frame(sequences, &skeleton)?);
+        Ok(self)
     }
 
     /// The layout of the dataset's features.
@@ -326,6 +346,27 @@ impl Manifest {
     /// [`ProcessedSequence::skeleton`].
     pub fn builtin_skeleton(&self) -> Result<dex2hoi_repr::Skeleton> {
         Ok(dex2hoi_repr::Skeleton::builtin(SkeletonKind::from_name(&self.skeleton)?))
+    }
+
+    /// The pose a generation from scratch starts from, on [`Manifest::builtin_skeleton`]:
+    /// the dataset's own (written by `data prepare`), else the default character's stance on
+    /// the SMPL-X body. A Mixamo dataset without one was prepared before it had one.
+    pub fn start_pose(&self) -> Result<StartPose> {
+        let skeleton = self.builtin_skeleton()?;
+        let start = match &self.start_pose {
+            Some(start) => start.clone(),
+            None if skeleton.kind() == SkeletonKind::Smplx52 => StartPose::smplx_standing(),
+            None => {
+                return Err(DataError::invalid(
+                    format!("the manifest of {} data on {}", self.source, self.skeleton),
+                    "a start pose of the data's character (dataset format 4: run `dex2hoi data \
+                     prepare` again)",
+                    format!("none (format {})", self.format_version),
+                ));
+            }
+        };
+        start.check(&skeleton, "the manifest's start_pose")?;
+        Ok(start)
     }
 }
 
@@ -502,6 +543,11 @@ impl Dataset {
         }
         SkeletonKind::from_name(&manifest.skeleton)
             .map_err(|e| DataError::format(&path, "skeleton", "smplx52 or mixamo65", e))?;
+        if manifest.start_pose.is_some() {
+            manifest.start_pose().map_err(|e| {
+                DataError::format(&path, "start_pose", "a standing pose on the skeleton", e)
+            })?;
+        }
         // Every reader indexes features through the layout of the joint count, so widths that
         // disagree with it would be read wrongly rather than fail.
         let layout = manifest.layout();

@@ -1,9 +1,9 @@
 //! What the feature pipeline produces ([`crate::features`]) and the layout indexes
 //! ([`crate::layout`]): a processed sequence and the per-mesh object assets.
 
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 
-use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, Skeleton, SurfaceSamples};
+use dex2hoi_repr::{BpsBasis, Mesh, MeshQuery, ObjectPose, Skeleton, SurfaceSamples};
 
 use crate::error::Result;
 use crate::sequence::MAX_OBJECTS;
@@ -83,6 +83,21 @@ pub struct ProcessedSequence {
 }
 
 impl ProcessedSequence {
+    /// The object poses on frame `frame` (`None` for an empty slot), in the canonical frame.
+    pub fn object_poses_at(&self, frame: usize) -> [Option<ObjectPose>; MAX_OBJECTS] {
+        std::array::from_fn(|slot| {
+            self.object_present[slot].then(|| {
+                let base = frame * MAX_OBJECTS + slot;
+                ObjectPose {
+                    // Stored row by row.
+                    rotation: Mat3::from_cols_slice(&self.object_rotations[base * 9..][..9])
+                        .transpose(),
+                    position: Vec3::from_slice(&self.object_positions[base * 3..][..3]),
+                }
+            })
+        })
+    }
+
     /// The sequence's own body: the topology, names and groups of `topology` (the dataset's
     /// built-in skeleton, [`crate::dataset::Manifest::builtin_skeleton`]) on the sequence's
     /// rest offsets.

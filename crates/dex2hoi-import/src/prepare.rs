@@ -326,7 +326,8 @@ pub fn prepare(
         assets,
         bps,
         None,
-    )?;
+    )?
+    .with_typical_start_pose()?;
     Ok(Prepared { dataset: Some(dataset), report })
 }
 

@@ -11,11 +11,12 @@ use crate::error::{ModelError, Result};
 /// The presets of `configs/` at the repository root, compiled in: the one source of every
 /// preset's numbers. Each is a whole training configuration; the model reads its `[model]`
 /// table ([`ModelConfig::preset`]) and `dex2hoi-train` the rest.
-pub const PRESETS: [(&str, &str); 4] = [
+pub const PRESETS: [(&str, &str); 5] = [
     ("tiny", include_str!("../../../configs/tiny.toml")),
     ("demo", include_str!("../../../configs/demo.toml")),
     ("small", include_str!("../../../configs/small.toml")),
     ("paper", include_str!("../../../configs/paper.toml")),
+    ("humoto", include_str!("../../../configs/humoto.toml")),
 ];
 
 /// How object motion is represented (paper Sec. 3.1; Table 3 "w/o hand-relative").

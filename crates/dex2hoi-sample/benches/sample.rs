@@ -11,7 +11,7 @@ use glam::Vec3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_data::character::PELVIS_HEIGHT;
+use dex2hoi_data::start::StartPose;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig};
 use dex2hoi_model::{BodyFusion, InferenceModel, Model, ModelConfig, SeededVarMap, StreamLayout};
 use dex2hoi_repr::{Skeleton, SkeletonKind};
@@ -133,7 +133,7 @@ fn main() {
             // As `dex2hoi sample` does with the hand-relative objects of these presets.
             prefix_encoding: Some(PrefixEncoding {
                 skeleton: &skeleton,
-                root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+                root_start: StartPose::smplx_standing().root(),
                 present: [true, true],
             }),
             free_objects: None,

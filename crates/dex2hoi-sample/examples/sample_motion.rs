@@ -23,7 +23,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let prompt = args.next().ok_or(usage)?;
     let mut objects = Vec::new();
     for spec in args {
-        objects.push(SceneObject::parse(&spec)?);
+        objects.push(SceneObject::parse(&spec, None)?);
     }
 
     // The EMA weights are the ones meant for sampling; any candle device works.

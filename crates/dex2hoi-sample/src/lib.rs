@@ -19,7 +19,7 @@
 //! let run = TrainedRun::load("runs/demo".as_ref(), Weights::Ema, &Device::Cpu)?;
 //! let request = SampleRequest {
 //!     prompts: vec![Prompt { start_frame: 0, text: "The person picks up the mug.".into() }],
-//!     objects: vec![SceneObject::parse("mug")?],
+//!     objects: vec![SceneObject::parse("mug", None)?],
 //!     frames: std::num::NonZeroUsize::new(120).unwrap(),
 //!     seed: 0,
 //!     sampler: SamplerConfig::default(),
@@ -64,7 +64,7 @@ pub use request::{SampleRequest, SampledMotion, sample};
 pub use run::{TrainedRun, Weights};
 pub use scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE,
-    SceneObject, default_lone_object_side,
+    SceneObject, SequenceScene, default_lone_object_side,
 };
 pub use text::TextModule;
 pub use timeline::{Prompt, parse_timeline};

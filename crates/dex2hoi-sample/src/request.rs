@@ -5,10 +5,7 @@
 use std::num::NonZeroUsize;
 use std::time::Instant;
 
-use glam::Vec3;
-
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_data::features::DecodedMotion;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_model::text::reject_empty;
@@ -103,7 +100,8 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
         bps[slot * config.bps_points * 3..(slot + 1) * config.bps_points * 3]
             .copy_from_slice(&features);
     }
-    let (body_row, object_rows) = standing_features(poses)?;
+    let start = run.manifest.start_pose()?;
+    let (body_row, object_rows) = start.features(&run.skeleton, poses)?;
     let prefix = config.layout().frames_to_streams(
         &body_row.repeat(config.prefix_frames),
         &object_rows.repeat(config.prefix_frames),
@@ -117,7 +115,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             bps,
             present,
             prompts,
-            root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+            root_start: start.root(),
             skeleton: &run.skeleton,
             free_objects: (request.free_objects == FreeObjects::AtRest)
                 .then(|| ObjectsAtRest { meshes: queries.each_ref().map(Option::as_ref) }),

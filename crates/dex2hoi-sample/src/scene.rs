@@ -7,6 +7,7 @@ use glam::{Mat3, Vec3};
 
 use dex2hoi_data::catalogue::{CATALOGUE, catalogue_object};
 use dex2hoi_data::character::Hand;
+use dex2hoi_data::dataset::Dataset;
 use dex2hoi_model::text::words;
 use dex2hoi_repr::{Mesh, ObjectPose};
 
@@ -49,14 +50,15 @@ pub struct SceneObject {
     pub name: String,
     /// Mesh, centred on its bounding box.
     pub mesh: Mesh,
-    /// Where the object frame's origin is at the start; `None` puts it on the table.
-    pub position: Option<Vec3>,
+    /// The object frame's pose at the start; `None` puts it upright on the table.
+    pub placed: Option<ObjectPose>,
 }
 
 impl SceneObject {
-    /// An object from a specification: a catalogue name (`mug`) or an OBJ/PLY file, optionally
-    /// followed by `@x,y,z` (metres, character frame: +Z ahead, +X to the left, +Y up).
-    pub fn parse(spec: &str) -> Result<Self> {
+    /// An object from a specification: a catalogue name (`mug`; with `dataset`, first a name
+    /// of its object catalogue) or an OBJ/PLY file, optionally followed by `@x,y,z` (metres,
+    /// character frame: +Z ahead, +X to the left, +Y up).
+    pub fn parse(spec: &str, dataset: Option<&Dataset>) -> Result<Self> {
         let (what, position) = match spec.split_once('@') {
             Some((what, at)) => {
                 let values: Vec<f32> = at
@@ -77,8 +79,12 @@ impl SceneObject {
             None => (spec, None),
         };
         let what = what.trim();
+        let placed = position.map(|position| ObjectPose { rotation: Mat3::IDENTITY, position });
+        if let Some(asset) = dataset.and_then(|d| d.objects.iter().find(|o| o.name == what)) {
+            return Ok(Self { name: asset.name.clone(), mesh: asset.mesh.clone(), placed });
+        }
         if let Some(object) = catalogue_object(what) {
-            return Ok(Self { name: object.name.to_string(), mesh: object.mesh(), position });
+            return Ok(Self { name: object.name.to_string(), mesh: object.mesh(), placed });
         }
         let path = Path::new(what);
         let is_mesh = path
@@ -86,7 +92,10 @@ impl SceneObject {
             .and_then(|e| e.to_str())
             .is_some_and(|e| e.eq_ignore_ascii_case("obj") || e.eq_ignore_ascii_case("ply"));
         if !is_mesh {
-            let names: Vec<&str> = CATALOGUE.iter().map(|o| o.name).collect();
+            let mut names: Vec<&str> = CATALOGUE.iter().map(|o| o.name).collect();
+            if let Some(dataset) = dataset {
+                names.extend(dataset.objects.iter().map(|o| o.name.as_str()));
+            }
             return Err(SampleError::invalid(
                 "object",
                 what,
@@ -97,16 +106,74 @@ impl SceneObject {
         let mut mesh = Mesh::load(path)?;
         mesh.recenter();
         let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object").to_string();
-        Ok(Self { name, mesh, position })
+        Ok(Self { name, mesh, placed })
     }
 
-    /// The starting pose: the given position, or standing on the table at `default_place`.
+    /// The starting pose: the given one, or upright on the table at `default_place`.
     pub fn start_pose(&self, default_place: (f32, f32), table_height: f32) -> ObjectPose {
-        let (low, high) = self.mesh.bounding_box();
-        let position = self.position.unwrap_or_else(|| {
-            Vec3::new(default_place.0, table_height + (high.y - low.y) / 2.0, default_place.1)
-        });
-        ObjectPose { rotation: Mat3::IDENTITY, position }
+        self.placed.unwrap_or_else(|| {
+            let (low, high) = self.mesh.bounding_box();
+            let position =
+                Vec3::new(default_place.0, table_height + (high.y - low.y) / 2.0, default_place.1);
+            ObjectPose { rotation: Mat3::IDENTITY, position }
+        })
+    }
+}
+
+/// The scene a sequence of a dataset starts in: its objects where they are on its first frame,
+/// and its descriptions.
+#[derive(Debug, Clone)]
+pub struct SequenceScene {
+    /// The sequence's source id.
+    pub source_id: String,
+    /// Its objects in slot order, placed as on its first frame.
+    pub objects: Vec<SceneObject>,
+    /// Its descriptions.
+    pub texts: Vec<String>,
+    /// Its length in frames.
+    pub frames: usize,
+}
+
+impl SequenceScene {
+    /// The sequence of `dataset` (either split) whose source id is `id`, or ends in `/id`
+    /// (`examining_cutting_board-141` for `humoto/examining_cutting_board-141`).
+    pub fn of(dataset: &Dataset, id: &str) -> Result<Self> {
+        let sequences = || dataset.splits.values().flatten();
+        let sequence = sequences()
+            .find(|s| {
+                s.source_id == id || s.source_id.rsplit_once('/').is_some_and(|(_, n)| n == id)
+            })
+            .ok_or_else(|| {
+                let some: Vec<&str> = sequences().take(3).map(|s| s.source_id.as_str()).collect();
+                SampleError::invalid(
+                    "sequence",
+                    id,
+                    format!(
+                        "the source id of one of the dataset's sequences ({}, ...)",
+                        some.join(", ")
+                    ),
+                    "none with that id",
+                )
+            })?;
+        let poses = sequence.object_poses_at(0);
+        let objects = sequence
+            .object_names
+            .iter()
+            .zip(poses)
+            .filter_map(|(name, pose)| Some((name.as_ref()?, pose?)))
+            .map(|(name, pose)| {
+                let asset = dataset.objects.iter().find(|o| &o.name == name).ok_or_else(|| {
+                    SampleError::invalid("sequence", id, "objects of the dataset's catalogue", name)
+                })?;
+                Ok(SceneObject { name: name.clone(), mesh: asset.mesh.clone(), placed: Some(pose) })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            source_id: sequence.source_id.clone(),
+            objects,
+            texts: sequence.texts.clone(),
+            frames: sequence.frames,
+        })
     }
 }
 

@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::FeatureLayout;
-use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
+use dex2hoi_data::start::StartPose;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};
@@ -190,7 +190,8 @@ fn a_progress_hook_sees_every_window_and_can_stop_the_generation() {
 fn standing_frames(frames: usize) -> (Vec<f32>, Vec<f32>, FeatureLayout) {
     let mug =
         ObjectPose { rotation: Mat3::from_rotation_y(0.3), position: Vec3::new(-0.16, 0.95, 0.39) };
-    let (body, objects) = standing_features([Some(mug), None]).unwrap();
+    let (body, objects) =
+        StartPose::smplx_standing().features(&Skeleton::smplx(), [Some(mug), None]).unwrap();
     let layout = FeatureLayout::new(52);
     (body.repeat(frames), objects.repeat(frames), layout)
 }
@@ -205,7 +206,7 @@ fn a_rebuilt_prefix_agrees_with_its_motion_in_every_branch() {
     let skeleton = Skeleton::builtin(SkeletonKind::Smplx52);
     let encoding = PrefixEncoding {
         skeleton: &skeleton,
-        root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+        root_start: StartPose::smplx_standing().root(),
         present: [true, false],
     };
     let frames = 5;

@@ -4,9 +4,9 @@ use candle_core::{Device, Tensor};
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_data::features::{ObjectDecoding, decode_features};
 use dex2hoi_data::layout::FeatureLayout;
+use dex2hoi_data::start::StartPose;
 use dex2hoi_repr::mesh::box_mesh;
 use dex2hoi_repr::object_repr::{GLOBAL_POSITION_RANGE, MIXTURE_RANGE};
 use dex2hoi_repr::{MeshQuery, ObjectPose, Skeleton};
@@ -20,7 +20,8 @@ const TABLE: f32 = 0.9;
 /// streams, and its pose.
 fn standing(frames: usize) -> (Vec<f32>, Vec<f32>, ObjectPose) {
     let pose = ObjectPose { rotation: Mat3::IDENTITY, position: Vec3::new(0.1, TABLE + HALF, 0.4) };
-    let (body, objects) = standing_features([Some(pose), None]).unwrap();
+    let (body, objects) =
+        StartPose::smplx_standing().features(&Skeleton::smplx(), [Some(pose), None]).unwrap();
     (body.repeat(frames), objects.repeat(frames), pose)
 }
 
@@ -50,7 +51,7 @@ fn free_objects_stay_at_rest_on_their_support_and_held_ones_move() {
     let layout = FeatureLayout::of_skeleton(&skeleton);
     let encoding = PrefixEncoding {
         skeleton: &skeleton,
-        root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+        root_start: StartPose::smplx_standing().root(),
         present: [true, false],
     };
     let query = MeshQuery::new(&box_mesh(Vec3::splat(HALF))).unwrap();

@@ -325,7 +325,9 @@ fn decode_features_gives_back_the_canonical_motion() {
 fn the_standing_start_is_a_rest_pose_with_free_objects() {
     use dex2hoi_repr::ObjectPose;
     let pose = ObjectPose { rotation: Mat3::IDENTITY, position: Vec3::new(0.1, 0.95, 0.4) };
-    let (body, objects) = dex2hoi_data::character::standing_features([Some(pose), None]).unwrap();
+    let (body, objects) = dex2hoi_data::start::StartPose::smplx_standing()
+        .features(&dex2hoi_repr::Skeleton::smplx(), [Some(pose), None])
+        .unwrap();
     assert_eq!(body.len(), 6 * 52 + 3);
     assert_eq!(objects.len(), 36);
     assert!(objects[18..].iter().all(|v| *v == 0.0));

@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use dex2hoi_data::dataset::{Manifest, Split};
 use dex2hoi_model::ModelConfig;
 use dex2hoi_optim::OptimizerConfig;
+use dex2hoi_repr::SkeletonKind;
 use dex2hoi_sample::{RunConfig, TextConfig};
 
 use crate::error::{Result, TrainError};
@@ -388,10 +389,14 @@ impl TrainConfig {
         };
         let m = &self.model;
         if manifest.joints != m.joints {
+            let preset = match SkeletonKind::from_name(&manifest.skeleton) {
+                Ok(SkeletonKind::Mixamo65) => "; the `humoto` preset is for it",
+                _ => "",
+            };
             return mismatch(
                 "joints",
                 format!("{} (model.joints)", m.joints),
-                format!("{} ({})", manifest.joints, manifest.skeleton),
+                format!("{} ({}{preset})", manifest.joints, manifest.skeleton),
             );
         }
         if manifest.stream_feature_size != m.stream_features() {

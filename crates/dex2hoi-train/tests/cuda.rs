@@ -181,7 +181,7 @@ fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
             start_frame: 0,
             text: data.splits.values().flatten().next().unwrap().texts[0].clone(),
         }],
-        objects: vec![SceneObject::parse("mug").unwrap()],
+        objects: vec![SceneObject::parse("mug", None).unwrap()],
         frames: std::num::NonZeroUsize::new(30).unwrap(),
         seed: 7,
         sampler: SamplerConfig { steps: 10, ..SamplerConfig::default() },

@@ -15,7 +15,6 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use dex2hoi_data::MAX_OBJECTS;
-use dex2hoi_data::character::{PELVIS_HEIGHT, standing_features};
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_data::layout::slot_bps;
@@ -24,12 +23,12 @@ use dex2hoi_repr::{MeshQuery, ObjectPose};
 use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
 use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion};
 
-use crate::error::{EvalError, Result};
+use crate::error::Result;
 use crate::evaluator::MotionClip;
 use crate::metrics::{self, HandsUsed, LongCounts, ObjectCourse};
 
 use super::generation::Progress;
-use super::physical::{ObjectMeshes, clip_sample, object_positions_at, object_rotations_at};
+use super::physical::{ObjectMeshes, clip_sample};
 
 /// Frames of a long generation by default: ten seconds at the procedural dataset's 20 fps.
 pub const DEFAULT_LONG_FRAMES: usize = 200;
@@ -163,16 +162,6 @@ struct LongCase<'a> {
     prompt: &'a str,
 }
 
-/// The object poses of a sequence's frame (`None` for an empty slot).
-fn frame_poses(sequence: &ProcessedSequence, t: usize) -> [Option<ObjectPose>; MAX_OBJECTS] {
-    let (rotations, positions) =
-        (object_rotations_at(sequence, t), object_positions_at(sequence, t));
-    std::array::from_fn(|slot| {
-        sequence.object_present[slot]
-            .then(|| ObjectPose { rotation: rotations[slot], position: positions[slot] })
-    })
-}
-
 /// The cases of a set; the moved set reads the hands of the ground truth's courses.
 fn cases<'a>(
     kind: LongSetKind,
@@ -181,7 +170,7 @@ fn cases<'a>(
 ) -> Vec<LongCase<'a>> {
     let mut out = Vec::new();
     for (k, (&sequence, courses)) in sequences.iter().zip(truth_courses).enumerate() {
-        let mut placed = frame_poses(sequence, 0);
+        let mut placed = sequence.object_poses_at(0);
         let prompt = match kind {
             LongSetKind::AsInData | LongSetKind::Moved => sequence.texts[0].as_str(),
             LongSetKind::HeldOut => match sequence.held_out_texts.first() {
@@ -237,13 +226,7 @@ pub(super) fn evaluate_long(
     seed: u64,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<LongProtocol> {
-    if run.skeleton.joint_count() != dex2hoi_repr::Skeleton::smplx().joint_count() {
-        return Err(EvalError::invalid(
-            "long-generation protocol",
-            "a run on the built-in SMPL-X body (generations start from its standing pose)",
-            format!("a body of {} joints", run.skeleton.joint_count()),
-        ));
-    }
+    let start = run.manifest.start_pose()?;
     let fps = dataset.manifest.fps;
     let config = &run.config.model;
     // The ground truth of every sequence, judged once.
@@ -255,7 +238,7 @@ pub(super) fn evaluate_long(
     let mut truth_counts = Vec::with_capacity(sequences.len());
     for (sequence, truth) in sequences.iter().zip(&truths) {
         let slots = meshes.of(sequence)?;
-        let placed = frame_poses(sequence, 0);
+        let placed = sequence.object_poses_at(0);
         let sample = clip_sample(truth, &run.skeleton, slots, None);
         let courses = metrics::object_courses(&sample, support_heights(&placed, slots), fps)?;
         truth_counts.push(metrics::judge_courses(&courses, &courses, positions(&placed))?);
@@ -274,7 +257,7 @@ pub(super) fn evaluate_long(
         for (k, case) in cases.iter().enumerate() {
             let sequence = case.sequence;
             let slots = meshes.of(sequence)?;
-            let (body_row, object_rows) = standing_features(case.placed)?;
+            let (body_row, object_rows) = start.features(&run.skeleton, case.placed)?;
             let prefix = config.layout().frames_to_streams(
                 &body_row.repeat(config.prefix_frames),
                 &object_rows.repeat(config.prefix_frames),
@@ -284,7 +267,7 @@ pub(super) fn evaluate_long(
                 bps: slot_bps(&dataset.objects, dataset.slot_assets(sequence)?, config.bps_points)?,
                 present: sequence.object_present,
                 prompts: vec![(0, case.prompt)],
-                root_start: Vec3::new(0.0, PELVIS_HEIGHT, 0.0),
+                root_start: start.root(),
                 skeleton: &run.skeleton,
                 free_objects: (free_objects == FreeObjects::AtRest)
                     .then_some(ObjectsAtRest { meshes: slots }),
