@@ -58,6 +58,7 @@ const LAYERING: [(&str, &[&str], &[&str]); 14] = [
     (
         "dex2hoi-cli",
         &[
+            "dex2hoi-repr",
             "dex2hoi-data",
             "dex2hoi-synth",
             "dex2hoi-import",

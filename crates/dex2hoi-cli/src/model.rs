@@ -84,6 +84,21 @@ pub enum ModelCommand {
     /// How far apart the model's text encoder puts prompts: a word it passes over (the hand
     /// in "with the left hand", say) changes the embedding little, and then the motion.
     Texts(TextsArgs),
+    /// Write the licence of the data a model was trained on (the file `data prepare` found
+    /// beside the data, such as HUMOTO's Adobe Research License), which the model carries.
+    Licence(LicenceArgs),
+}
+
+/// Arguments of `dex2hoi model licence`.
+#[derive(Debug, Args)]
+pub struct LicenceArgs {
+    /// A run directory or packed model file (default: `DEX2HOI_MODEL`, else the shipped
+    /// model).
+    #[arg(long)]
+    run: Option<PathBuf>,
+    /// Where to write the licence file (default: its own name in the current directory).
+    #[arg(long)]
+    out: Option<PathBuf>,
 }
 
 /// Arguments of `dex2hoi model texts`.
@@ -166,6 +181,14 @@ pub fn run(command: ModelCommand) -> Result<()> {
                 run.manifest.fps,
                 run.manifest.objects.join(", ")
             );
+            match &run.manifest.licence {
+                Some(licence) => println!(
+                    "  the data's licence: {} (`dex2hoi model licence` writes it); what the \
+                     licence allows for the data applies to this model",
+                    licence.file_name
+                ),
+                None => println!("  the data's licence: none kept with the data"),
+            }
             if let Some(vocabulary) = run.text.vocabulary() {
                 let words = vocabulary.words();
                 println!("  the text encoder knows {} words: {}", words.len(), words.join(" "));
@@ -173,7 +196,27 @@ pub fn run(command: ModelCommand) -> Result<()> {
             Ok(())
         }
         ModelCommand::Texts(args) => compare_texts(&args),
+        ModelCommand::Licence(args) => write_licence(&args),
     }
+}
+
+/// `dex2hoi model licence`: the data's licence file, written atomically.
+fn write_licence(args: &LicenceArgs) -> Result<()> {
+    let source = ModelSource::resolve(args.run.as_deref());
+    let run = source.load(&Device::Cpu)?;
+    let Some(licence) = &run.manifest.licence else {
+        bail!(
+            "{} keeps no licence of its data (`data prepare` keeps the licence file it finds \
+             beside the data, or the one given with --licence)",
+            source.describe()
+        );
+    };
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(&licence.file_name));
+    let bytes = licence.bytes()?;
+    dex2hoi_data::files::write_atomically(&out, &bytes)
+        .with_context(|| format!("writing {}", out.display()))?;
+    println!("wrote {} ({} bytes) to {}", licence.file_name, bytes.len(), out.display());
+    Ok(())
 }
 
 /// `dex2hoi model texts`: each prompt's embedding norm and unknown words, then the Euclidean

@@ -105,6 +105,11 @@ pub struct PrepareArgs {
     /// HUMOTO pickles: the rig the authors' scripts transferred them to.
     #[arg(long, value_enum, default_value_t = PickleRigArg::UpBone)]
     humoto_rig: PickleRigArg,
+    /// The data's licence file, kept in the dataset, in every run trained on it and in every
+    /// model packed from one (default: a file named like `*licen[cs]e*` in --root or its
+    /// parent, such as HUMOTO's `Adobe Research License v1.1.pdf`).
+    #[arg(long)]
+    licence: Option<PathBuf>,
 }
 
 /// Runs `dex2hoi data prepare`.
@@ -144,6 +149,12 @@ pub fn run(args: PrepareArgs) -> Result<()> {
         PickleRigArg::UpBone => PickleRig::UpBone,
         PickleRigArg::MixamoBone => PickleRig::MixamoBone,
     };
+    if let Some(path) = &args.licence
+        && !path.is_file()
+    {
+        bail!("--licence {}: no such file", path.display());
+    }
+    options.licence = args.licence;
 
     let start = Instant::now();
     let bar = indicatif::ProgressBar::new(0);

@@ -11,7 +11,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use glam::Vec2;
 
-use crate::body::BodyArgs;
+use crate::body::{BodyArgs, LoadedBody};
 use crate::device::DeviceArgs;
 use crate::model::ModelSource;
 use crate::sampling::SamplingArgs;
@@ -125,14 +125,14 @@ pub fn run(args: SampleArgs) -> Result<()> {
         .frames
         .or_else(|| scene.as_ref().and_then(|s| NonZeroUsize::new(s.frames)))
         .unwrap_or(DEFAULT_FRAMES);
-    let body = args.body.load()?;
     let source = ModelSource::resolve(args.run.as_deref());
     let run = source.load(&device)?;
+    let body = args.body.load(&run.skeleton)?;
     let fps = run.manifest.fps;
     let preview = PreviewOptions::default();
     let cost = FrameCost {
         stream_features: run.config.model.stream_features(),
-        joints: body.as_ref().map_or(&run.skeleton, |mesh| &mesh.skeleton).joint_count(),
+        joints: body.as_ref().map_or(&run.skeleton, |b| b.skeleton()).joint_count(),
         objects: objects.len(),
         preview_width: preview.width,
         preview_height: preview.height,
@@ -212,17 +212,22 @@ pub fn run(args: SampleArgs) -> Result<()> {
     if watch.was_announced() {
         eprintln!("rendering the preview of {} frames and writing the outputs", sampled.frames);
     }
+    // On a character, the root path scaled to its height.
+    let mut motion = sampled.motion;
+    if let Some(body) = &body {
+        motion.root_positions = body.root_positions(&run.skeleton, &motion.root_positions);
+    }
     let export = ExportMotion {
-        skeleton: body.as_ref().map_or(&run.skeleton, |mesh| &mesh.skeleton),
+        skeleton: body.as_ref().map_or(&run.skeleton, |b| b.skeleton()),
         fps,
         prompts: prompts.iter().map(|p| (p.start_frame, p.text.clone())).collect(),
-        motion: &sampled.motion,
+        motion: &motion,
         objects: sampled
             .objects
             .iter()
             .map(|(slot, o)| ExportObject { name: o.name.clone(), mesh: &o.mesh, slot: *slot })
             .collect(),
-        body: body.as_ref(),
+        body: body.as_ref().map(LoadedBody::as_body),
     };
     let half_depth = 0.3;
     let options = ExportOptions {

@@ -80,9 +80,9 @@ pub fn run(args: ShowArgs) -> Result<()> {
         ),
     };
     let manifest = &dataset.manifest;
-    let body = args.body.load()?;
+    let body = args.body.load(&manifest.builtin_skeleton()?)?;
     // The sequence's own body (a subject's proportions), as `prepare` measured it.
-    let (skeleton, motion) = sequence
+    let (skeleton, mut motion) = sequence
         .decode(&manifest.builtin_skeleton()?, ObjectDecoding::GlobalOnly)
         .with_context(|| format!("decoding {}", sequence.source_id))?;
     let mut objects = Vec::new();
@@ -93,17 +93,19 @@ pub fn run(args: ShowArgs) -> Result<()> {
         })?;
         objects.push(ExportObject { name: name.clone(), mesh: &asset.mesh, slot });
     }
-    if let Some(mesh) = &body {
-        mesh.fits(&skeleton)?;
+    if let Some(body) = &body {
+        body.fits(&skeleton)?;
+        motion.root_positions = body.root_positions(&skeleton, &motion.root_positions);
     }
     let export = ExportMotion {
-        // With a model, its skeleton replaces the sequence's (the pelvis path stays).
-        skeleton: body.as_ref().map_or(&skeleton, |mesh| &mesh.skeleton),
+        // With a model, its skeleton replaces the sequence's (the pelvis path stays; a
+        // character's is scaled to its height).
+        skeleton: body.as_ref().map_or(&skeleton, |b| b.skeleton()),
         fps: manifest.fps,
         prompts: sequence.texts.first().map(|t| (0, t.clone())).into_iter().collect(),
         motion: &motion,
         objects,
-        body: body.as_ref(),
+        body: body.as_ref().map(crate::body::LoadedBody::as_body),
     };
     let options = ExportOptions {
         preview: PreviewOptions { caption: !args.no_caption, ..PreviewOptions::default() },

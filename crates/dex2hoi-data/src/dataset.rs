@@ -111,6 +111,41 @@ pub struct Manifest {
     /// [`Manifest::start_pose`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start_pose: Option<StartPose>,
+    /// The licence file found beside the source data, which travels with everything made from
+    /// them (runs, packed models).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub licence: Option<DataLicence>,
+}
+
+/// A licence file of the source data, kept whole inside the manifest: every run trained on the
+/// data copies the manifest, and every model packed from a run carries it in its metadata, so
+/// the licence reaches whoever receives the model (HUMOTO's Adobe Research License asks that
+/// redistribution come with a copy of it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DataLicence {
+    /// The file's name as found beside the data.
+    pub file_name: String,
+    /// The file's bytes, base64 (a licence may be a PDF).
+    pub base64: String,
+}
+
+impl DataLicence {
+    /// Reads a licence file.
+    pub fn read(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(io_error(path, "reading the licence"))?;
+        let file_name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .ok_or_else(|| DataError::invalid(path.display(), "a licence file", "no file name"))?;
+        Ok(Self { file_name, base64: base64::encode(bytes) })
+    }
+
+    /// The file's bytes.
+    pub fn bytes(&self) -> Result<Vec<u8>> {
+        base64::decode(&self.base64).map_err(|e| {
+            DataError::invalid(format!("licence {}", self.file_name), "base64 bytes", e)
+        })
+    }
 }
 
 /// One sequence's texts and labels, in `<split>.json`.
@@ -257,6 +292,7 @@ impl Dataset {
             splits: summaries,
             seed,
             start_pose: None,
+            licence: None,
         };
         Ok(Self { manifest, splits, objects, stats })
     }

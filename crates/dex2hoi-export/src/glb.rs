@@ -10,7 +10,8 @@
 //!   three more nodes under the head, at rest.
 //! - A skin over those joints whose inverse bind matrices are the inverse rest transforms
 //!   `(T(rest_j) B_j)^-1`, and a body node carrying the body mesh: the SMPL-X model's
-//!   ([`mod@crate::smplx_body`], its four largest weights per vertex) or the capsules of
+//!   ([`mod@crate::smplx_body`], its four largest weights per vertex), a Mixamo character's
+//!   ([`mod@crate::character`]: its bone names and frames, its other bones at rest) or the capsules of
 //!   [`mod@crate::body_mesh`] (one joint per vertex, weight 1). `POSITION` (with exact
 //!   `min`/`max`), `NORMAL`, `JOINTS_0` (unsigned byte, or unsigned short beyond 256 joints),
 //!   `WEIGHTS_0`, unsigned int indices.
@@ -32,7 +33,7 @@ use dex2hoi_repr::rotation::matrix_to_quaternion;
 use crate::body_mesh::body_mesh;
 use crate::error::{ExportError, Result};
 use crate::smplx_body::FACE_JOINT_NAMES;
-use crate::{Checked, ExportMotion, write_file};
+use crate::{Body, Checked, ExportMotion, write_file};
 
 /// glTF component types.
 const FLOAT: u32 = 5126;
@@ -200,16 +201,31 @@ impl Rig {
         let mut orientations = skeleton.rest_orientations();
         let mut rest_positions = skeleton.rest_positions();
         let mut parents = skeleton.parents().to_vec();
-        if let Some(body) = motion.body {
-            let head = skeleton.joint_index("head").unwrap_or(0);
-            for (name, position) in FACE_JOINT_NAMES.iter().zip(body.face_joints) {
-                children[head].push(names.len());
-                names.push((*name).to_string());
-                children.push(Vec::new());
-                orientations.push(Quat::IDENTITY);
-                rest_positions.push(position);
-                parents.push(Some(head));
+        let mut add = |name: String, parent: usize, position: Vec3, orientation: Quat| {
+            children[parent].push(names.len());
+            names.push(name);
+            children.push(Vec::new());
+            orientations.push(orientation);
+            rest_positions.push(position);
+            parents.push(Some(parent));
+        };
+        match motion.body {
+            Some(Body::Smplx(body)) => {
+                let head = skeleton.joint_index("head").unwrap_or(0);
+                for (name, position) in FACE_JOINT_NAMES.iter().zip(body.face_joints) {
+                    add((*name).to_string(), head, position, Quat::IDENTITY);
+                }
             }
+            // The character's own bone names and frames, so the file drops onto its rig.
+            Some(Body::Character(character)) => {
+                for extra in &character.extra_joints {
+                    add(extra.name.clone(), extra.parent, extra.rest_position, extra.orientation);
+                }
+                let joints = skeleton.joint_count();
+                names[..joints].clone_from_slice(&character.bone_names);
+                orientations[..joints].copy_from_slice(&character.orientations);
+            }
+            None => {}
         }
         let mut rig = Self {
             names,
@@ -279,12 +295,19 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
 
     // The body mesh: the SMPL-X model's, or capsules bound rigidly to the joints.
     let body = match motion.body {
-        Some(mesh) => BodyMesh {
+        Some(Body::Smplx(mesh)) => BodyMesh {
             vertices: &mesh.vertices,
             normals: &mesh.normals,
             faces: &mesh.faces,
             joints: mesh.joints.iter().map(|j| j.map(u16::from)).collect(),
             weights: mesh.weights.clone(),
+        },
+        Some(Body::Character(character)) => BodyMesh {
+            vertices: &character.vertices,
+            normals: &character.normals,
+            faces: &character.faces,
+            joints: character.joints.clone(),
+            weights: character.weights.clone(),
         },
         None => {
             capsules = body_mesh(skeleton);
@@ -330,7 +353,7 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
     };
     let body_indices = indices(body.faces, &mut builder);
     let mut meshes = vec![json!({
-        "name": if motion.body.is_some() { "smplx" } else { "body" },
+        "name": motion.body.map_or("body", |b| b.kind_name()),
         "primitives": [{
             "attributes": {
                 "POSITION": positions,
@@ -426,8 +449,8 @@ fn document(motion: &Checked<'_>) -> Result<(Value, Vec<u8>)> {
                 "text": motion.text,
                 "fps": motion.fps,
                 "skeleton": skeleton.kind().name(),
-                "body": if motion.body.is_some() { "smplx" } else { "capsules" },
-                "betas": motion.body.map(|b| b.betas.clone()),
+                "body": motion.body.map_or("capsules", |b| b.kind_name()),
+                "betas": motion.body.and_then(|b| b.betas().map(<[f32]>::to_vec)),
             },
         }],
         "nodes": nodes,

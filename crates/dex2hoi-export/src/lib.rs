@@ -3,7 +3,8 @@
 //! - [`npz`]: `motion.npz`, SMPL-X-style parameters that numpy loads and the `smplx` Python
 //!   package's layer takes as they are (documented in `docs/FORMATS.md`);
 //! - [`glb`]: `motion.glb`, glTF 2.0 binary with the skeleton as a skin, a body skinned to it
-//!   (the SMPL-X mesh of a user's model, [`smplx_body`], or a capsule body) and the objects as
+//!   (the SMPL-X mesh of a user's model, [`smplx_body`], a user's Mixamo character,
+//!   [`character`], or a capsule body) and the objects as
 //!   animated nodes (Blender, three.js, Unreal's glTF importer, Unity with glTFast);
 //! - [`bvh`]: `motion.bvh`, the skeleton's animation in BioVision hierarchy form;
 //! - [`preview`]: `preview.gif`, an animation drawn by a small software rasteriser.
@@ -15,6 +16,7 @@
 
 pub mod body_mesh;
 pub mod bvh;
+pub mod character;
 pub mod error;
 pub mod glb;
 pub mod npz;
@@ -33,6 +35,7 @@ use dex2hoi_repr::{FkOutput, Mesh, Skeleton, forward_kinematics};
 
 pub use body_mesh::{SkinnedMesh, body_mesh};
 pub use bvh::{BvhMotion, encode_bvh, parse_bvh, read_bvh, write_bvh};
+pub use character::{CharacterMesh, ExtraJoint, RigBone};
 pub use error::{ExportError, Result};
 pub use glb::{encode_glb, write_glb};
 pub use npz::{encode_npz, write_npz};
@@ -73,10 +76,53 @@ pub struct ExportMotion<'a> {
     pub motion: &'a DecodedMotion,
     /// The objects to export, each naming the slot of `motion.objects` that holds its poses.
     pub objects: Vec<ExportObject<'a>>,
-    /// The SMPL-X body mesh to skin in `motion.glb` (and its `betas` in `motion.npz`); `None`
-    /// for the capsule body. With a mesh, `skeleton` must be the mesh's
-    /// ([`SmplxMesh::skeleton`]).
-    pub body: Option<&'a SmplxMesh>,
+    /// The body mesh to skin in `motion.glb` (an SMPL-X model's also puts its `betas` in
+    /// `motion.npz`); `None` for the capsule body. With a mesh, `skeleton` must be the mesh's
+    /// ([`Body::skeleton`]).
+    pub body: Option<Body<'a>>,
+}
+
+/// A body mesh skinned to the motion's skeleton.
+#[derive(Debug, Clone, Copy)]
+pub enum Body<'a> {
+    /// A user's SMPL-X model shaped by its betas.
+    Smplx(&'a SmplxMesh),
+    /// A user's Mixamo-rigged character.
+    Character(&'a CharacterMesh),
+}
+
+impl<'a> Body<'a> {
+    /// The skeleton a motion shown with this body must be posed on.
+    pub fn skeleton(self) -> &'a Skeleton {
+        match self {
+            Self::Smplx(mesh) => &mesh.skeleton,
+            Self::Character(character) => &character.skeleton,
+        }
+    }
+
+    /// The file the body comes from.
+    pub fn path(self) -> &'a Path {
+        match self {
+            Self::Smplx(mesh) => &mesh.path,
+            Self::Character(character) => &character.path,
+        }
+    }
+
+    /// How the GLB's extras name the body.
+    pub fn kind_name(self) -> &'static str {
+        match self {
+            Self::Smplx(_) => "smplx",
+            Self::Character(_) => "character",
+        }
+    }
+
+    /// The SMPL-X body-shape coefficients, for an SMPL-X model.
+    pub fn betas(self) -> Option<&'a [f32]> {
+        match self {
+            Self::Smplx(mesh) => Some(&mesh.betas),
+            Self::Character(_) => None,
+        }
+    }
 }
 
 /// One object of an [`ExportMotion`].
@@ -102,7 +148,7 @@ pub(crate) struct Checked<'a> {
     pub root_positions: &'a [Vec3],
     pub fk: FkOutput,
     pub objects: Vec<CheckedObject<'a>>,
-    pub body: Option<&'a SmplxMesh>,
+    pub body: Option<Body<'a>>,
 }
 
 impl Checked<'_> {
@@ -291,22 +337,23 @@ impl<'a> ExportMotion<'a> {
     }
 }
 
-/// How far (metres) a motion's rest offsets may be from an SMPL-X mesh's skeleton's.
+/// How far (metres) a motion's rest offsets may be from a body mesh's skeleton's.
 const BODY_SKELETON_TOLERANCE: f32 = 1e-6;
 
-/// A motion skinned to an SMPL-X mesh must be posed on the mesh's own skeleton.
-fn check_body_skeleton(body: &SmplxMesh, skeleton: &Skeleton) -> Result<()> {
-    let same = skeleton.kind() == body.skeleton.kind()
-        && skeleton.joint_count() == body.skeleton.joint_count()
+/// A motion skinned to a body mesh must be posed on the body's own skeleton.
+fn check_body_skeleton(body: Body<'_>, skeleton: &Skeleton) -> Result<()> {
+    let own = body.skeleton();
+    let same = skeleton.kind() == own.kind()
+        && skeleton.joint_count() == own.joint_count()
         && skeleton
             .rest_offsets()
             .iter()
-            .zip(body.skeleton.rest_offsets())
+            .zip(own.rest_offsets())
             .all(|(a, b)| (*a - *b).abs().max_element() <= BODY_SKELETON_TOLERANCE);
     if !same {
         return Err(ExportError::invalid(
-            format!("skeleton of a motion skinned to {}", body.path.display()),
-            "the model's own skeleton (SmplxMesh::skeleton)",
+            format!("skeleton of a motion skinned to {}", body.path().display()),
+            "the body's own skeleton (Body::skeleton)",
             format!("a {} skeleton with other rest offsets", skeleton.kind().name()),
         ));
     }

@@ -134,11 +134,11 @@ fn arrays(motion: &Checked<'_>) -> Vec<Array> {
             ),
             Array::f32("pelvis_rest", &[3], pelvis_rest.to_array().to_vec()),
         ]);
-        if let Some(body) = motion.body {
+        if let Some(betas) = motion.body.and_then(|b| b.betas()) {
             // The shape the skeleton was made from, per frame as the layer takes it (at least
             // the layer's default number of coefficients, zeros after the given ones).
-            let count = body.betas.len().max(SMPLX_DEFAULT_BETAS);
-            let mut row = body.betas.clone();
+            let count = betas.len().max(SMPLX_DEFAULT_BETAS);
+            let mut row = betas.to_vec();
             row.resize(count, 0.0);
             out.push(Array::f32("betas", &[frames, count], row.repeat(frames)));
         }

@@ -169,7 +169,7 @@ fn strongest_influences(
 }
 
 /// Area-weighted vertex normals, unit length (`+Y` for a vertex no face uses).
-fn vertex_normals(vertices: &[Vec3], faces: &[[u32; 3]]) -> Vec<Vec3> {
+pub(crate) fn vertex_normals(vertices: &[Vec3], faces: &[[u32; 3]]) -> Vec<Vec3> {
     let mut normals = vec![Vec3::ZERO; vertices.len()];
     for face in faces {
         let [a, b, c] = face.map(|i| vertices[i as usize]);

@@ -9,7 +9,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use dex2hoi_export::{ExportMotion, ExportOptions, SmplxMesh, export_all};
+use dex2hoi_export::{Body, ExportMotion, ExportOptions, SmplxMesh, export_all};
 use dex2hoi_repr::Skeleton;
 
 use common::gltf::{node_worlds, parse_glb, skinned_vertices};
@@ -76,7 +76,7 @@ fn the_skinned_smplx_mesh_of_the_glb_equals_numpy_lbs_and_the_npz_joints_its_kin
     let motion = common::wavy_motion(&mesh.skeleton, frames, 1);
     let meshes = common::object_meshes();
     let export = ExportMotion {
-        body: Some(&mesh),
+        body: Some(Body::Smplx(&mesh)),
         ..common::export(&mesh.skeleton, &motion, &meshes[..1], "lift")
     };
     let out = dir.join("export");
@@ -162,7 +162,10 @@ fn a_broken_model_file_is_a_clear_error_and_writes_nothing() {
     assert!(mesh.fits(&Skeleton::mixamo()).is_err());
     let builtin = Skeleton::smplx();
     let motion = common::wavy_motion(&builtin, 2, 0);
-    let export = ExportMotion { body: Some(&mesh), ..common::export(&builtin, &motion, &[], "") };
+    let export = ExportMotion {
+        body: Some(Body::Smplx(&mesh)),
+        ..common::export(&builtin, &motion, &[], "")
+    };
     let out = dir.join("out");
     let error = export_all(&out, &export, &ExportOptions::default()).expect_err("wrong skeleton");
     assert!(error.to_string().contains("the model's own skeleton"), "{error}");

@@ -6,13 +6,16 @@ compares what Blender plays with motion.npz.
   position and rotation against `object_translations` / `object_rotations`; with --model, the
   skinned mesh's vertices (Blender's own armature deformation) against an `smplx`-style linear
   blend skinning of the npz's parameters with that model file (the four largest weights per
-  vertex, no pose blend shapes, as motion.glb carries it).
+  vertex, no pose blend shapes, as motion.glb carries it); with --character, the skinned mesh
+  against a linear blend skinning of that character file (read by Blender's importer) by the
+  npz's pose (`character_lbs.py`).
 - BVH: every bone's head against the npz `joints`.
 
 Blender is Z up; our files are Y up, and both importers turn Y up into Z up the same way:
 Blender (x, y, z) = ours (x, -z, y).
 
-Usage: python blender_check.py EXPORT_DIR [--model SMPLX.npz] [--frames 0,3,6]
+Usage: python blender_check.py EXPORT_DIR [--model SMPLX.npz | --character CHARACTER.glb]
+       [--frames 0,3,6]
 Prints one JSON object (errors in metres and radians); exits 1 on a broken import.
 """
 
@@ -25,7 +28,8 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from smplx_lbs import smplx_lbs  # noqa: E402  (beside this script)
+from character_lbs import character_lbs  # noqa: E402  (beside this script)
+from smplx_lbs import smplx_lbs  # noqa: E402
 
 
 def to_ours(v):
@@ -63,10 +67,13 @@ def bone_heads(arm, names):
     return np.array(out)
 
 
-def check_glb(path, d, frames, model):
+def check_glb(path, d, frames, model, character):
     names = [str(n) for n in d["joint_names"]]
     if str(d["skeleton"]) == "mixamo65":
         names = ["mixamorig:" + n for n in names]
+    if character:
+        fresh_scene(float(d["fps"]))
+        character_posed, character_rest = character_lbs(character, d, frames)
     scene = fresh_scene(float(d["fps"]))
     bpy.ops.import_scene.gltf(filepath=path)
     arm = armature("glTF")
@@ -86,6 +93,16 @@ def check_glb(path, d, frames, model):
             sys.exit("glTF: the imported rest mesh is not the model's shaped template in order")
         order = np.arange(len(rest))
         result["mesh_vertices"] = len(order)
+        result["mesh_error"] = 0.0
+    if character:
+        mesh_object = skinned[0]
+        rest_blender = np.array([to_ours(mesh_object.matrix_world @ v.co)
+                                 for v in mesh_object.data.vertices])
+        if rest_blender.shape != character_rest.shape:
+            sys.exit(f"glTF: {len(rest_blender)} vertices, the character has "
+                     f"{len(character_rest)}")
+        result["mesh_vertices"] = len(rest_blender)
+        result["rest_mesh_error"] = float(np.abs(rest_blender - character_rest).max())
         result["mesh_error"] = 0.0
     for t in frames:
         scene.frame_set(t)
@@ -116,6 +133,14 @@ def check_glb(path, d, frames, model):
             evaluated.to_mesh_clear()
             result["mesh_error"] = max(result["mesh_error"],
                                        float(np.abs(posed - reference[t][order]).max()))
+        if character:
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            evaluated = mesh_object.evaluated_get(depsgraph)
+            posed = np.array([to_ours(evaluated.matrix_world @ v.co)
+                              for v in evaluated.to_mesh().vertices])
+            evaluated.to_mesh_clear()
+            result["mesh_error"] = max(result["mesh_error"],
+                                       float(np.abs(posed - character_posed[t]).max()))
     return result
 
 
@@ -143,6 +168,7 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("export_dir")
     parser.add_argument("--model")
+    parser.add_argument("--character")
     parser.add_argument("--frames", default="0")
     args = parser.parse_args()
     d = np.load(os.path.join(args.export_dir, "motion.npz"))
@@ -151,7 +177,8 @@ def main():
         "blender": bpy.app.version_string,
         "skeleton": str(d["skeleton"]),
         "frames": frames,
-        "glb": check_glb(os.path.join(args.export_dir, "motion.glb"), d, frames, args.model),
+        "glb": check_glb(os.path.join(args.export_dir, "motion.glb"), d, frames, args.model,
+                         args.character),
         "bvh": check_bvh(os.path.join(args.export_dir, "motion.bvh"), d, frames),
     }
     print(json.dumps(report))

@@ -66,6 +66,16 @@ pub struct Skin {
     pub inverse_bind_matrices: Vec<Mat4>,
 }
 
+/// Four skin joints and weights per vertex (glTF's `JOINTS_0`, `WEIGHTS_0`), weights as
+/// floats.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Skinning {
+    /// Skin joint indices.
+    pub joints: Vec<[u16; 4]>,
+    /// Their weights.
+    pub weights: Vec<[f32; 4]>,
+}
+
 /// A GLB scene read into memory.
 #[derive(Debug, Clone)]
 pub struct GlbScene {
@@ -75,6 +85,9 @@ pub struct GlbScene {
     /// The skins.
     pub skins: Vec<Skin>,
     meshes: Vec<(Vec<Vec3>, Vec<[u32; 3]>)>,
+    /// Per mesh, the skin joints (indices into a skin's joints) and weights of each vertex,
+    /// when every primitive has `JOINTS_0` and `WEIGHTS_0`.
+    skinning: Vec<Option<Skinning>>,
     tracks: Vec<Track>,
     /// Every node, each after its parent.
     order: Vec<usize>,
@@ -228,9 +241,11 @@ impl GlbScene {
             skins.push(Skin { joints, inverse_bind_matrices });
         }
         let mut meshes = Vec::new();
+        let mut skinning = Vec::new();
         for mesh in document.meshes() {
             let mut vertices = Vec::new();
             let mut faces = Vec::new();
+            let mut mesh_skinning = Some(Skinning { joints: Vec::new(), weights: Vec::new() });
             for primitive in mesh.primitives() {
                 let what = format!("mesh {} ({})", mesh.index(), mesh.name().unwrap_or_default());
                 if primitive.mode() != gltf::mesh::Mode::Triangles {
@@ -272,8 +287,39 @@ impl GlbScene {
                 faces.extend(
                     indices.chunks_exact(3).map(|f| [f[0], f[1], f[2]].map(|i| i + base as u32)),
                 );
+                let joints = primitive.get(&gltf::Semantic::Joints(0));
+                let weights = primitive.get(&gltf::Semantic::Weights(0));
+                let (Some(joints), Some(weights), Some(kept)) =
+                    (joints, weights, &mut mesh_skinning)
+                else {
+                    mesh_skinning = None;
+                    continue;
+                };
+                check_accessor(
+                    &joints,
+                    Dimensions::Vec4,
+                    &[DataType::U8, DataType::U16],
+                    blob.len(),
+                )
+                .map_err(|got| bad(&what, "JOINTS_0 of unsigned byte or short VEC4", &got))?;
+                let types = [DataType::F32, DataType::U8, DataType::U16];
+                check_accessor(&weights, Dimensions::Vec4, &types, blob.len())
+                    .map_err(|got| bad(&what, "WEIGHTS_0 of float or normalised VEC4", &got))?;
+                if joints.count() != count || weights.count() != count {
+                    return Err(bad(
+                        &what,
+                        &format!("JOINTS_0 and WEIGHTS_0 for each of the {count} vertices"),
+                        &format!("{} and {}", joints.count(), weights.count()),
+                    ));
+                }
+                budget.take(&joints, 8).map_err(|got| bad(&what, WITHIN_BUDGET, &got))?;
+                budget.take(&weights, 16).map_err(|got| bad(&what, WITHIN_BUDGET, &got))?;
+                let unreadable = || bad(&what, "readable JOINTS_0 and WEIGHTS_0", &"none");
+                kept.joints.extend(reader.read_joints(0).ok_or_else(unreadable)?.into_u16());
+                kept.weights.extend(reader.read_weights(0).ok_or_else(unreadable)?.into_f32());
             }
             meshes.push((vertices, faces));
+            skinning.push(mesh_skinning.filter(|s| !s.joints.is_empty()));
         }
         let mut tracks = Vec::new();
         for animation in document.animations() {
@@ -343,7 +389,15 @@ impl GlbScene {
                 tracks.push(Track { node, property, times, values, step });
             }
         }
-        Ok(Self { source_name: source_name.to_string(), nodes, skins, meshes, tracks, order })
+        Ok(Self {
+            source_name: source_name.to_string(),
+            nodes,
+            skins,
+            meshes,
+            skinning,
+            tracks,
+            order,
+        })
     }
 
     /// The name used in errors (the file).
@@ -385,7 +439,18 @@ impl GlbScene {
 
     /// The world matrix of every node at `time`.
     pub fn world_matrices(&self, time: f32) -> Vec<Mat4> {
-        let local = self.local_transforms(time);
+        self.world_of(&self.local_transforms(time))
+    }
+
+    /// The world matrix of every node in the rest pose (the nodes' own transforms, no
+    /// animation).
+    pub fn rest_world_matrices(&self) -> Vec<Mat4> {
+        let local: Vec<(Vec3, Quat, Vec3)> = self.nodes.iter().map(|n| n.rest).collect();
+        self.world_of(&local)
+    }
+
+    /// World matrices from local transforms.
+    fn world_of(&self, local: &[(Vec3, Quat, Vec3)]) -> Vec<Mat4> {
         let mut world = vec![Mat4::IDENTITY; self.nodes.len()];
         // Parents come first in `order`: each parent's matrix is ready for its children.
         for &node in &self.order {
@@ -402,6 +467,11 @@ impl GlbScene {
     /// The vertices and triangles of mesh `mesh` (all its primitives).
     pub fn mesh(&self, mesh: usize) -> &(Vec<Vec3>, Vec<[u32; 3]>) {
         &self.meshes[mesh]
+    }
+
+    /// The skin joints and weights of mesh `mesh`'s vertices, when all its primitives have them.
+    pub fn skinning(&self, mesh: usize) -> Option<&Skinning> {
+        self.skinning[mesh].as_ref()
     }
 }
 

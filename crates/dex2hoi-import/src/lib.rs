@@ -8,6 +8,7 @@
 //! `dex2hoi_data::dataset::Dataset`, reporting every sequence it skipped and why.
 
 pub mod array;
+pub mod character;
 pub mod error;
 pub mod glb;
 pub mod grab;

@@ -5,13 +5,14 @@
 //! skipped or failed, and why.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use rayon::prelude::*;
 
 use dex2hoi_data::catalogue::{BPS_RADIUS, BPS_SEED};
-use dex2hoi_data::dataset::{BpsSettings, Dataset, Split};
+use dex2hoi_data::dataset::{BpsSettings, DataLicence, Dataset, Split};
 use dex2hoi_data::features::{ObjectAsset, ProcessedSequence, TargetConfig, process_sequence};
 use dex2hoi_data::window::resample;
 use dex2hoi_data::{Sequence, SequenceObject};
@@ -44,6 +45,8 @@ pub struct PrepareReport {
     pub warnings: Vec<Skipped>,
     /// Distinct objects in the dataset.
     pub objects: usize,
+    /// The licence file kept in the dataset.
+    pub licence: Option<PathBuf>,
 }
 
 impl PrepareReport {
@@ -75,6 +78,18 @@ impl PrepareReport {
         }
         for s in &self.warnings {
             lines.push(format!("warning {}: {}", s.id, s.reason));
+        }
+        match &self.licence {
+            Some(path) => lines.push(format!(
+                "licence {}: kept in the dataset, in every run trained on it and every model \
+                 packed from one (`dex2hoi model licence`)",
+                path.display()
+            )),
+            None => lines.push(
+                "licence: none found beside the data (give it with --licence FILE, so that it \
+                 travels with the dataset and the models trained on it)"
+                    .to_string(),
+            ),
         }
         lines.join("\n")
     }
@@ -318,7 +333,7 @@ pub fn prepare(
     report.objects = assets.len();
     let bps = BpsSettings { points: DEFAULT_BPS_POINTS, radius, seed: BPS_SEED };
     let skeleton = Skeleton::builtin(context.options.format.skeleton_kind());
-    let dataset = Dataset::assemble(
+    let mut dataset = Dataset::assemble(
         context.options.format.name(),
         &skeleton,
         context.options.fps,
@@ -328,6 +343,8 @@ pub fn prepare(
         None,
     )?
     .with_typical_start_pose()?;
+    report.licence = context.options.licence_file();
+    dataset.manifest.licence = report.licence.as_deref().map(DataLicence::read).transpose()?;
     Ok(Prepared { dataset: Some(dataset), report })
 }
 

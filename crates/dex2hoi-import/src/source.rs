@@ -139,6 +139,9 @@ pub struct PrepareOptions {
     pub up_axis: Option<UpAxis>,
     /// The rig of HUMOTO pickles.
     pub pickle_rig: PickleRig,
+    /// The data's licence file, kept in the dataset (default: the one found by
+    /// [`PrepareOptions::licence_file`]).
+    pub licence: Option<PathBuf>,
 }
 
 impl PrepareOptions {
@@ -159,7 +162,32 @@ impl PrepareOptions {
             seed: 0,
             up_axis: None,
             pickle_rig: PickleRig::default(),
+            licence: None,
         }
+    }
+
+    /// The licence file to keep with the dataset: the one given, else the first file (by name)
+    /// in the root, then in its parent, whose name says licence or license (HUMOTO's
+    /// `Adobe Research License v1.1.pdf`, a `LICENSE.md`).
+    pub fn licence_file(&self) -> Option<PathBuf> {
+        if let Some(path) = &self.licence {
+            return Some(path.clone());
+        }
+        let says_licence = |path: &Path| {
+            path.file_name().is_some_and(|n| {
+                let name = n.to_string_lossy().to_lowercase();
+                name.contains("license") || name.contains("licence")
+            })
+        };
+        [Some(self.root.as_path()), self.root.parent()].into_iter().flatten().find_map(|dir| {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+                .ok()?
+                .filter_map(|entry| Some(entry.ok()?.path()))
+                .filter(|path| path.is_file() && says_licence(path))
+                .collect();
+            files.sort();
+            files.into_iter().next()
+        })
     }
 
     /// The up axis in effect.
