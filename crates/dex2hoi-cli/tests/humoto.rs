@@ -1,7 +1,9 @@
 //! Real motion capture end to end: HUMOTO's public subset (from `../shared/realdata`; skipped
 //! when absent, failing under `CI=1`) prepared with its licence and its character's start pose,
 //! a tiny Mixamo-65 model trained on it, sampled from a test sequence's scene and with an
-//! object of the data's catalogue, evaluated, and packed with the licence.
+//! object of the data's catalogue, evaluated, and packed with the licence; and motions put on
+//! the Mixamo character inside a HUMOTO GLB (`--character`), imported into Blender (skipped
+//! without Blender's `bpy`, failing under `CI=1`) to 1 mm.
 
 use std::path::{Path, PathBuf};
 
@@ -141,6 +143,16 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
         &own,
     ]);
     assert_eq!(npz_array(&Path::new(&own).join("motion.npz"), "joints").1, [8, 65, 3]);
+    // On the character inside a HUMOTO GLB: its skinned mesh in motion.glb.
+    let character = glb.join("examining_cutting_board-141/examining_cutting_board-141.glb");
+    let dressed = path("dressed");
+    succeed(&[
+        "sample", "--run", &run, "--data", &data, "--object", object, "--text", "The subject lifts \
+         the object.", "--frames", "8", "--ddim-steps", "2", "--character",
+        character.to_str().unwrap(), "--out", &dressed,
+    ]);
+    let json = common::glb_json(&Path::new(&dressed).join("motion.glb"));
+    assert_eq!(json["scenes"][0]["extras"]["body"], "character");
     // Without --data the data's objects are unknown, and the error lists the catalogue.
     let stderr = fail(&["sample", "--run", &run, "--object", object, "--text", "x", "--out", &own]);
     assert!(stderr.contains(object) && stderr.contains("mug"), "{stderr}");
@@ -177,3 +189,82 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
     assert_eq!(std::fs::read(&written).unwrap(), published);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The HUMOTO character's GLB that the character tests dress motions in.
+fn humoto_character() -> Option<PathBuf> {
+    let glb = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/realdata/humoto/glb/examining_cutting_board-141");
+    let file = glb.join("examining_cutting_board-141.glb");
+    if !file.is_file() {
+        assert!(!common::in_ci(), "CI needs {}", file.display());
+        eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
+        return None;
+    }
+    Some(file)
+}
+
+#[test]
+fn a_sequence_put_on_the_humoto_character_plays_in_blender_as_the_npz_says() {
+    let Some(character) = humoto_character() else { return };
+    let character_arg = character.to_str().unwrap();
+    let glb = character.parent().unwrap().parent().unwrap();
+    let dir = temp_dir("character");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let (data, out) = (path("data"), path("out"));
+    succeed(&["data", "prepare", "--format", "humoto", "--root", glb.to_str().unwrap(), "--out", &data]);
+    succeed(&[
+        "data", "show", &data, "--sequence", "examining_cutting_board-141", "--character",
+        character_arg, "--out", &out,
+    ]);
+    let npz = Path::new(&out).join("motion.npz");
+    assert_eq!(npz_array(&npz, "joints").1, [157, 65, 3]);
+    // The file drops onto the character's rig: its bone names, and at the first frame each
+    // bone's rotation relative to its parent is the published animation's.
+    let glb_file = Path::new(&out).join("motion.glb");
+    let worst = common::worst_bone_rotation_gap(&character, &glb_file);
+    assert!(worst < 1e-3, "a bone's rotation is {worst} rad from the published file's");
+    // Blender plays the bones where the npz has the joints, and skins the character as a
+    // linear blend skinning of the character file (read by Blender) by the npz's pose does.
+    if let Some(python) = common::blender_python() {
+        let script =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../dex2hoi-export/tools/blender_check.py");
+        let output = std::process::Command::new(python)
+            .arg(script)
+            .arg(&out)
+            .args(["--character", character_arg, "--frames", "0,60,150"])
+            .output()
+            .expect("Blender's python runs");
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(output.status.success(), "{stdout}{}", String::from_utf8_lossy(&output.stderr));
+        let line = stdout.lines().rev().find(|l| l.starts_with('{')).expect("a JSON report");
+        let report: serde_json::Value = serde_json::from_str(line).unwrap();
+        println!("{report}");
+        let number = |file: &str, key: &str| report[file][key].as_f64().unwrap();
+        assert!(number("glb", "mesh_vertices") > 10_000.0, "{report}");
+        for (file, key, bound) in [
+            ("glb", "joint_error", 1e-3),
+            ("glb", "rest_mesh_error", 1e-4),
+            ("glb", "mesh_error", 1e-3),
+            ("bvh", "joint_error", 1e-3),
+        ] {
+            assert!(number(file, key) < bound, "{file} {key}: {report}");
+        }
+    }
+    // An SMPL-X motion cannot wear a Mixamo character, nor can anything wear a file that is
+    // not one.
+    let stderr = fail(&[
+        "sample", "--text", "The person picks up the mug.", "--object", "mug", "--frames", "4",
+        "--character", character_arg, "--out", &path("smplx"),
+    ]);
+    assert!(stderr.contains("mixamo65") && stderr.contains("smplx52"), "{stderr}");
+    let licence = glb.parent().unwrap().join("Adobe Research License v1.1.pdf");
+    let stderr = fail(&[
+        "data", "show", &data, "--sequence", "examining_cutting_board-141", "--character",
+        licence.to_str().unwrap(), "--out", &path("not-a-character"),
+    ]);
+    assert!(stderr.contains("--character") && stderr.contains("glTF"), "{stderr}");
+    assert!(!Path::new(&path("not-a-character")).exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+

@@ -97,40 +97,6 @@ fn a_procedural_sequence_is_shown_by_index_and_by_id() {
     }
 }
 
-/// The largest angle (radians) between the two files' parent-relative rotations of the same
-/// `mixamorig:` bone at time 0 (scale divided out; the root is left out, prepare turns it).
-fn worst_bone_rotation_gap(published: &Path, ours: &Path) -> f32 {
-    use dex2hoi_import::glb::GlbScene;
-    let relative = |path: &Path| {
-        let scene = GlbScene::read(path).unwrap();
-        let world = scene.world_matrices(0.0);
-        let rotation = |node: usize| {
-            let m = glam::Mat3::from_mat4(world[node]);
-            glam::Mat3::from_cols(m.x_axis.normalize(), m.y_axis.normalize(), m.z_axis.normalize())
-        };
-        let skin = &scene.skins[0];
-        skin.joints
-            .iter()
-            .filter_map(|&node| {
-                let parent = scene.nodes[node].parent.filter(|p| skin.joints.contains(p))?;
-                let name = scene.nodes[node].name.clone();
-                Some((name, rotation(parent).transpose() * rotation(node)))
-            })
-            .collect::<std::collections::HashMap<_, _>>()
-    };
-    let (published, ours) = (relative(published), relative(ours));
-    assert_eq!(published.len(), 64, "every bone but the hips");
-    published
-        .iter()
-        .map(|(name, rotation)| {
-            let theirs = ours.get(name).unwrap_or_else(|| panic!("no bone {name} in ours"));
-            let q = glam::Quat::from_mat3(&(rotation.transpose() * *theirs));
-            // atan2 keeps small angles that acos(w) would round to zero in f32.
-            2.0 * q.xyz().length().atan2(q.w.abs())
-        })
-        .fold(0.0, f32::max)
-}
-
 #[test]
 fn the_real_humoto_release_is_prepared_and_shown() {
     let glb = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/humoto/glb");
@@ -181,7 +147,7 @@ fn the_real_humoto_release_is_prepared_and_shown() {
     // The shown GLB drops onto the HUMOTO character by bone name: in Mixamo's bone frames, each
     // bone's rotation relative to its parent at the first frame is the published file's.
     let published = glb.join("examining_cutting_board-141/examining_cutting_board-141.glb");
-    let worst = worst_bone_rotation_gap(&published, &out.join("motion.glb"));
+    let worst = common::worst_bone_rotation_gap(&published, &out.join("motion.glb"));
     println!("parent-relative bone rotations, shown vs published GLB, frame 0: worst {worst} rad");
     assert!(worst < 1e-3, "a bone's rotation is {worst} rad from the published file's");
     for dir in [data, out] {
@@ -189,12 +155,6 @@ fn the_real_humoto_release_is_prepared_and_shown() {
     }
 }
 
-/// The glTF JSON chunk of a GLB.
-fn glb_json(path: &Path) -> serde_json::Value {
-    let bytes = std::fs::read(path).unwrap();
-    let length = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
-    serde_json::from_slice(&bytes[20..20 + length]).unwrap()
-}
 
 #[test]
 fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
@@ -214,7 +174,7 @@ fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
     let out = temp_dir("smplx-out");
     let run = show(&out, &["--smplx-model", models.to_str().unwrap(), "--betas", "0.5,-0.3"]);
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    let json = glb_json(&out.join("motion.glb"));
+    let json = common::glb_json(&out.join("motion.glb"));
     assert_eq!(json["meshes"][0]["name"], "smplx");
     assert_eq!(json["skins"][0]["joints"].as_array().unwrap().len(), 55);
     let extras_betas: Vec<f64> = json["scenes"][0]["extras"]["betas"]
@@ -234,7 +194,7 @@ fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
     // Without a model the GLB keeps the capsule body.
     let plain = temp_dir("smplx-plain");
     assert!(show(&plain, &[]).status.success());
-    assert_eq!(glb_json(&plain.join("motion.glb"))["meshes"][0]["name"], "body");
+    assert_eq!(common::glb_json(&plain.join("motion.glb"))["meshes"][0]["name"], "body");
     // A missing model and --betas alone are clear errors that write nothing.
     let nowhere = temp_dir("smplx-nowhere");
     let missing = models.join("nothing-here.npz");

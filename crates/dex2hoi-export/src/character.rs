@@ -15,7 +15,7 @@ use std::path::PathBuf;
 
 use glam::{Mat3, Mat4, Quat, Vec3};
 
-use dex2hoi_repr::Skeleton;
+use dex2hoi_repr::{Skeleton, SkeletonKind};
 use dex2hoi_repr::skeleton::MIXAMO_PREFIX;
 
 use crate::error::{ExportError, Result};
@@ -100,6 +100,13 @@ impl CharacterMesh {
         weights: &[[f32; 4]],
     ) -> Result<Self> {
         let context = || format!("character {}", path.display());
+        if motion.kind() != SkeletonKind::Mixamo65 {
+            return Err(ExportError::invalid(
+                context(),
+                "a motion on the mixamo65 skeleton (a model trained on Mixamo data, such as HUMOTO)",
+                format!("a {} motion", motion.kind().name()),
+            ));
+        }
         let bare = |name: &str| name.strip_prefix(MIXAMO_PREFIX).unwrap_or(name).to_string();
         let names: Vec<String> = bones.iter().map(|b| bare(&b.name)).collect();
         let count = motion.joint_count();

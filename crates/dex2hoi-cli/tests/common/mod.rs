@@ -37,3 +37,68 @@ pub fn write_smplx_model(path: &std::path::Path) {
     };
     write_smplx_model(path, &skeleton.rest_positions(), skeleton.parents(), bound, Spoil::None);
 }
+
+/// The largest angle (radians) between the two files' parent-relative rotations of the same
+/// `mixamorig:` bone at time 0 (scale divided out; the root is left out, prepare turns it).
+#[allow(dead_code)] // the tests that look at HUMOTO's GLBs use it
+pub fn worst_bone_rotation_gap(published: &std::path::Path, ours: &std::path::Path) -> f32 {
+    use dex2hoi_import::glb::GlbScene;
+    let relative = |path: &std::path::Path| {
+        let scene = GlbScene::read(path).unwrap();
+        let world = scene.world_matrices(0.0);
+        let rotation = |node: usize| {
+            let m = glam::Mat3::from_mat4(world[node]);
+            glam::Mat3::from_cols(m.x_axis.normalize(), m.y_axis.normalize(), m.z_axis.normalize())
+        };
+        let skin = &scene.skins[0];
+        skin.joints
+            .iter()
+            .filter_map(|&node| {
+                let parent = scene.nodes[node].parent.filter(|p| skin.joints.contains(p))?;
+                let name = scene.nodes[node].name.clone();
+                Some((name, rotation(parent).transpose() * rotation(node)))
+            })
+            .collect::<std::collections::HashMap<_, _>>()
+    };
+    let (published, ours) = (relative(published), relative(ours));
+    assert_eq!(published.len(), 64, "every bone but the hips");
+    published
+        .iter()
+        .map(|(name, rotation)| {
+            let theirs = ours.get(name).unwrap_or_else(|| panic!("no bone {name} in ours"));
+            let q = glam::Quat::from_mat3(&(rotation.transpose() * *theirs));
+            // atan2 keeps small angles that acos(w) would round to zero in f32.
+            2.0 * q.xyz().length().atan2(q.w.abs())
+        })
+        .fold(0.0, f32::max)
+}
+
+/// Whether the tests run under CI (`CI` set to anything but empty, `0` or `false`).
+#[allow(dead_code)] // only the tests that need outside tools use it
+pub fn in_ci() -> bool {
+    std::env::var_os("CI").is_some_and(|v| !v.is_empty() && v != "0" && v != "false")
+}
+
+/// The Python with Blender's `bpy`: `DEX2HOI_BLENDER_PYTHON`, or the virtual environment of
+/// `scripts/setup.sh`; `None` (skipped) without it, a failure under CI.
+#[allow(dead_code)] // only the tests that import into Blender use it
+pub fn blender_python() -> Option<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let python = std::env::var_os("DEX2HOI_BLENDER_PYTHON")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| root.join("target/blender-venv/bin/python"));
+    if python.is_file() {
+        return Some(python);
+    }
+    assert!(!in_ci(), "CI needs Blender's bpy at {} (scripts/setup.sh)", python.display());
+    println!("skipped: no Blender (bpy) at {} (scripts/setup.sh installs it)", python.display());
+    None
+}
+
+/// The glTF JSON chunk of a GLB.
+#[allow(dead_code)] // the tests that read motion.glb use it
+pub fn glb_json(path: &std::path::Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap();
+    let length = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    serde_json::from_slice(&bytes[20..20 + length]).unwrap()
+}
