@@ -147,9 +147,24 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
     let character = glb.join("examining_cutting_board-141/examining_cutting_board-141.glb");
     let dressed = path("dressed");
     succeed(&[
-        "sample", "--run", &run, "--data", &data, "--object", object, "--text", "The subject lifts \
-         the object.", "--frames", "8", "--ddim-steps", "2", "--character",
-        character.to_str().unwrap(), "--out", &dressed,
+        "sample",
+        "--run",
+        &run,
+        "--data",
+        &data,
+        "--object",
+        object,
+        "--text",
+        "The subject lifts \
+         the object.",
+        "--frames",
+        "8",
+        "--ddim-steps",
+        "2",
+        "--character",
+        character.to_str().unwrap(),
+        "--out",
+        &dressed,
     ]);
     let json = common::glb_json(&Path::new(&dressed).join("motion.glb"));
     assert_eq!(json["scenes"][0]["extras"]["body"], "character");
@@ -212,10 +227,26 @@ fn a_sequence_put_on_the_humoto_character_plays_in_blender_as_the_npz_says() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
     let (data, out) = (path("data"), path("out"));
-    succeed(&["data", "prepare", "--format", "humoto", "--root", glb.to_str().unwrap(), "--out", &data]);
     succeed(&[
-        "data", "show", &data, "--sequence", "examining_cutting_board-141", "--character",
-        character_arg, "--out", &out,
+        "data",
+        "prepare",
+        "--format",
+        "humoto",
+        "--root",
+        glb.to_str().unwrap(),
+        "--out",
+        &data,
+    ]);
+    succeed(&[
+        "data",
+        "show",
+        &data,
+        "--sequence",
+        "examining_cutting_board-141",
+        "--character",
+        character_arg,
+        "--out",
+        &out,
     ]);
     let npz = Path::new(&out).join("motion.npz");
     assert_eq!(npz_array(&npz, "joints").1, [157, 65, 3]);
@@ -254,17 +285,32 @@ fn a_sequence_put_on_the_humoto_character_plays_in_blender_as_the_npz_says() {
     // An SMPL-X motion cannot wear a Mixamo character, nor can anything wear a file that is
     // not one.
     let stderr = fail(&[
-        "sample", "--text", "The person picks up the mug.", "--object", "mug", "--frames", "4",
-        "--character", character_arg, "--out", &path("smplx"),
+        "sample",
+        "--text",
+        "The person picks up the mug.",
+        "--object",
+        "mug",
+        "--frames",
+        "4",
+        "--character",
+        character_arg,
+        "--out",
+        &path("smplx"),
     ]);
     assert!(stderr.contains("mixamo65") && stderr.contains("smplx52"), "{stderr}");
     let licence = glb.parent().unwrap().join("Adobe Research License v1.1.pdf");
     let stderr = fail(&[
-        "data", "show", &data, "--sequence", "examining_cutting_board-141", "--character",
-        licence.to_str().unwrap(), "--out", &path("not-a-character"),
+        "data",
+        "show",
+        &data,
+        "--sequence",
+        "examining_cutting_board-141",
+        "--character",
+        licence.to_str().unwrap(),
+        "--out",
+        &path("not-a-character"),
     ]);
     assert!(stderr.contains("--character") && stderr.contains("glTF"), "{stderr}");
     assert!(!Path::new(&path("not-a-character")).exists());
     std::fs::remove_dir_all(&dir).ok();
 }
-

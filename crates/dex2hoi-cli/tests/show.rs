@@ -155,7 +155,6 @@ fn the_real_humoto_release_is_prepared_and_shown() {
     }
 }
 
-
 #[test]
 fn an_smplx_model_gives_the_glb_its_body_and_every_file_its_skeleton() {
     let data = temp_dir("smplx-data");

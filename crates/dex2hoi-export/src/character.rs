@@ -15,8 +15,8 @@ use std::path::PathBuf;
 
 use glam::{Mat3, Mat4, Quat, Vec3};
 
-use dex2hoi_repr::{Skeleton, SkeletonKind};
 use dex2hoi_repr::skeleton::MIXAMO_PREFIX;
+use dex2hoi_repr::{Skeleton, SkeletonKind};
 
 use crate::error::{ExportError, Result};
 

@@ -3,10 +3,13 @@
 //!
 //! The scene is the capsule body of [`mod@crate::body_mesh`], the object meshes, an optional table
 //! and a checkered floor at `y = 0`, under one directional light with Lambert shading (flat per
-//! triangle, lit from whichever side faces the camera). Each frame shows two fixed views side by
+//! triangle, lit from whichever side faces the camera). Each frame shows two views side by
 //! side, both framing the bounding box of every joint and object over all frames: a
 //! three-quarter view from the character's front left (35 degrees round from +Z towards +X, 20
 //! degrees above the horizon) and a side view from its right (10 degrees above the horizon).
+//! A motion that travels farther than [`FOLLOW_BEYOND_M`] (walking while carrying) would be
+//! drawn small that way: there the views follow the person, framing a box of one size (the
+//! largest of any frame's) about each frame's centre averaged over [`FOLLOW_SMOOTHING_S`].
 //! Above them a caption band writes the prompt in force on the frame with the project's bitmap
 //! font ([`dex2hoi_plot::font`]). Hand bones are coloured by contact: yellow when one of their joints
 //! is within [`CONTACT_RADIUS_M`] of an object's surface, red when one is deeper than
@@ -61,6 +64,11 @@ const NEAR: f32 = 0.05;
 const LIGHT: Vec3 = Vec3::new(0.4, 1.0, 0.6);
 /// Light that reaches surfaces facing away from the light.
 const AMBIENT: f32 = 0.35;
+/// How far (metres, across the floor) a motion's joints and objects may spread before the views
+/// follow the person rather than frame everything at once.
+pub const FOLLOW_BEYOND_M: f32 = 2.5;
+/// Seconds over which a following view's centre is averaged, so that the camera glides.
+pub const FOLLOW_SMOOTHING_S: f32 = 1.0;
 /// Floor tiles (metres) and how far the floor reaches from the framed centre.
 const FLOOR_TILE: f32 = 0.5;
 const FLOOR_REACH: f32 = 4.0;
@@ -305,8 +313,11 @@ pub struct Preview {
     pub frames: Vec<Vec<u8>>,
     /// Per frame, its delay in centiseconds.
     pub delays: Vec<u16>,
-    /// The two views: the three-quarter view (left), the side view (right).
+    /// The two views of the first frame: the three-quarter view (left), the side view (right).
     pub views: [Camera; 2],
+    /// The views of every frame: the same on every frame, unless they follow a motion that
+    /// travels far.
+    pub frame_views: Vec<[Camera; 2]>,
     /// Height of the caption band above the views (0 without a caption).
     pub caption_height: u32,
 }
@@ -365,9 +376,9 @@ fn moved_mesh(mesh: &Mesh, rotation: Mat3, translation: Vec3) -> Vec<Vec3> {
 }
 
 /// The floor tiles and the table, which do not move.
-fn static_triangles(centre: Vec3, table: Option<&TableBox>) -> Vec<Triangle> {
+fn static_triangles(centre: Vec3, spread: f32, table: Option<&TableBox>) -> Vec<Triangle> {
     let mut out = Vec::new();
-    let tiles = (FLOOR_REACH / FLOOR_TILE).ceil() as i32;
+    let tiles = ((FLOOR_REACH + spread) / FLOOR_TILE).ceil() as i32;
     let (first_x, first_z) = (
         (centre.x / FLOOR_TILE).floor() as i32 - tiles,
         (centre.z / FLOOR_TILE).floor() as i32 - tiles,
@@ -523,34 +534,38 @@ pub fn render_preview(motion: &ExportMotion<'_>, options: &PreviewOptions) -> Re
 }
 
 fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Preview> {
-    let (mut min, mut max) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-    for &p in &motion.fk.positions {
-        (min, max) = (min.min(p), max.max(p));
-    }
-    for object in &motion.objects {
-        let (low, high) = object.mesh.bounding_box();
-        let reach = low.abs().max(high.abs()).length();
-        for &p in object.positions {
-            (min, max) = (min.min(p - Vec3::splat(reach)), max.max(p + Vec3::splat(reach)));
-        }
-    }
+    let boxes = frame_boxes(motion);
+    let (min, max) =
+        boxes.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), &(a, b)| {
+            (lo.min(a), hi.max(b))
+        });
     let caption_height = if options.caption { caption_band_height() } else { 0 };
     let size = (options.width, options.height);
-    let views = [
-        Camera::framing(
-            (min, max),
-            size,
-            (CAMERA_AZIMUTH, CAMERA_ELEVATION),
-            Vec2::new(0.0, caption_height as f32),
-        ),
-        Camera::framing(
-            (min, max),
-            size,
-            (SIDE_AZIMUTH, SIDE_ELEVATION),
-            Vec2::new(options.width as f32, caption_height as f32),
-        ),
-    ];
-    let scenery = static_triangles((min + max) * 0.5, options.table.as_ref());
+    let views_of = |framed: (Vec3, Vec3)| {
+        [
+            Camera::framing(
+                framed,
+                size,
+                (CAMERA_AZIMUTH, CAMERA_ELEVATION),
+                Vec2::new(0.0, caption_height as f32),
+            ),
+            Camera::framing(
+                framed,
+                size,
+                (SIDE_AZIMUTH, SIDE_ELEVATION),
+                Vec2::new(options.width as f32, caption_height as f32),
+            ),
+        ]
+    };
+    let following = following_boxes(&boxes, (min, max), motion.fps);
+    // Following views look along the whole path: the floor reaches past all of it.
+    let spread = if following.is_some() { ((max - min) * 0.5).max_element() } else { 0.0 };
+    let frame_views: Vec<[Camera; 2]> = match following {
+        Some(following) => following.into_iter().map(views_of).collect(),
+        None => vec![views_of((min, max)); motion.frames],
+    };
+    let views = frame_views[0];
+    let scenery = static_triangles((min + max) * 0.5, spread, options.table.as_ref());
     let body = body_mesh(motion.skeleton);
     let rest = motion.skeleton.rest_positions();
     let joints = motion.skeleton.joint_count();
@@ -591,7 +606,7 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Prev
                 mesh_triangles(&vertices, &object.mesh.faces, object_slot(k), &mut moving);
             }
             let mut image = vec![colour(BACKGROUND, 1.0); (image_width * image_height) as usize];
-            for camera in &views {
+            for camera in &frame_views[t] {
                 let mut raster = Raster::new(camera);
                 for triangle in scenery.iter().chain(&moving) {
                     raster.draw(triangle);
@@ -612,8 +627,62 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Prev
         frames,
         delays: frame_delays(motion.frames, motion.fps),
         views,
+        frame_views,
         caption_height,
     })
+}
+
+/// Per frame, the box of its joints and of its objects (each as far as its mesh reaches).
+fn frame_boxes(motion: &Checked<'_>) -> Vec<(Vec3, Vec3)> {
+    let joints = motion.skeleton.joint_count();
+    let reaches: Vec<f32> = motion
+        .objects
+        .iter()
+        .map(|o| {
+            let (low, high) = o.mesh.bounding_box();
+            low.abs().max(high.abs()).length()
+        })
+        .collect();
+    (0..motion.frames)
+        .map(|t| {
+            let mut bounds = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+            for &p in &motion.fk.positions[t * joints..(t + 1) * joints] {
+                bounds = (bounds.0.min(p), bounds.1.max(p));
+            }
+            for (object, reach) in motion.objects.iter().zip(&reaches) {
+                let p = object.positions[t];
+                bounds =
+                    (bounds.0.min(p - Vec3::splat(*reach)), bounds.1.max(p + Vec3::splat(*reach)));
+            }
+            bounds
+        })
+        .collect()
+}
+
+/// The boxes following views frame, one per frame, when the motion spreads farther than
+/// [`FOLLOW_BEYOND_M`] across the floor: the largest frame's box size about each frame's
+/// centre averaged over [`FOLLOW_SMOOTHING_S`]. `None` when one view holds it all.
+fn following_boxes(
+    boxes: &[(Vec3, Vec3)],
+    (min, max): (Vec3, Vec3),
+    fps: f32,
+) -> Option<Vec<(Vec3, Vec3)>> {
+    let across = Vec2::new(max.x - min.x, max.z - min.z).length();
+    if across <= FOLLOW_BEYOND_M {
+        return None;
+    }
+    let half = boxes.iter().fold(Vec3::ZERO, |h, (a, b)| h.max((*b - *a) * 0.5));
+    let centres: Vec<Vec3> = boxes.iter().map(|(a, b)| (*a + *b) * 0.5).collect();
+    let reach = ((FOLLOW_SMOOTHING_S * fps * 0.5).round() as usize).max(1);
+    Some(
+        (0..boxes.len())
+            .map(|t| {
+                let span = t.saturating_sub(reach)..(t + reach + 1).min(boxes.len());
+                let centre = centres[span.clone()].iter().sum::<Vec3>() / span.len() as f32;
+                (centre - half, centre + half)
+            })
+            .collect(),
+    )
 }
 
 /// Height of the caption band: [`CAPTION_LINES`] lines of the font with margins.

@@ -263,3 +263,46 @@ fn the_sheet_has_five_panels_of_the_first_view() {
         .unwrap();
     }
 }
+
+#[test]
+fn the_views_follow_a_person_who_walks_far_and_stay_put_otherwise() {
+    let skeleton = Skeleton::mixamo();
+    let joints = skeleton.joint_count();
+    // Walking 6 m ahead (5 cm a frame) without an object.
+    let frames = 120;
+    let local_rotations = vec![Mat3::IDENTITY; frames * joints];
+    let root_positions: Vec<Vec3> = (0..frames)
+        .map(|t| skeleton.rest_offsets()[0] + Vec3::new(0.0, 0.0, 0.05 * t as f32))
+        .collect();
+    let fk = forward_kinematics(&skeleton, &local_rotations, &root_positions).expect("FK");
+    let walk = DecodedMotion { local_rotations, root_positions, joints: fk, objects: [None, None] };
+    let export = ExportMotion {
+        skeleton: &skeleton,
+        fps: 20.0,
+        prompts: vec![(0, "walking".into())],
+        motion: &walk,
+        objects: Vec::new(),
+        body: None,
+    };
+    let preview = render_preview(&export, &PreviewOptions::default()).expect("rendered");
+    assert_eq!(preview.frame_views.len(), frames);
+    assert_eq!(preview.views, preview.frame_views[0]);
+    assert_ne!(preview.frame_views[0], preview.frame_views[frames - 1], "the views move along");
+    for t in [0, frames / 2, frames - 1] {
+        for (k, view) in preview.frame_views[t].iter().enumerate() {
+            let pelvis = view.project(walk.root_positions[t]).expect("in front");
+            let from_centre = pelvis - view.origin - Vec2::new(160.0, 160.0);
+            // Near the middle of the view (which frames about two metres), drawn large.
+            assert!(from_centre.length() < 80.0, "frame {t}, view {k}: pelvis at {pelvis}");
+            let surface = preview.surface_at(t, pelvis.x as u32, pelvis.y as u32);
+            assert_eq!(surface, Some(Surface::Body), "frame {t}, view {k}");
+            let head = view.project(walk.joints.position(t, 5)).unwrap();
+            assert!((head - pelvis).length() > 40.0, "frame {t}, view {k}: the body is small");
+        }
+    }
+    // Standing still, every frame has the same views.
+    let still = still_scene(&skeleton, 3);
+    let export = ExportMotion { motion: &still, ..export };
+    let preview = render_preview(&export, &PreviewOptions::default()).expect("rendered");
+    assert!(preview.frame_views.iter().all(|v| *v == preview.views));
+}
