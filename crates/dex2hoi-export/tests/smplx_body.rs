@@ -168,7 +168,7 @@ fn a_broken_model_file_is_a_clear_error_and_writes_nothing() {
     };
     let out = dir.join("out");
     let error = export_all(&out, &export, &ExportOptions::default()).expect_err("wrong skeleton");
-    assert!(error.to_string().contains("the model's own skeleton"), "{error}");
+    assert!(error.to_string().contains("the body's own skeleton"), "{error}");
     assert!(!out.exists(), "nothing written");
     let _ = std::fs::remove_dir_all(&dir);
 }
