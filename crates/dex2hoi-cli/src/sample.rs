@@ -28,6 +28,10 @@ use long_generation::{
     AvailableMemory, FrameCost, GenerationShape, GenerationWatch, check_length, install_ctrl_c,
 };
 
+/// How far (metres) a placed object's lowest point may be from the table top for the preview
+/// to draw the table it stands on.
+const ON_TABLE_TOLERANCE_M: f32 = 0.03;
+
 /// Frames `sample` generates unless told.
 const DEFAULT_FRAMES: NonZeroUsize = NonZeroUsize::new(120).expect("120 is not zero");
 
@@ -230,10 +234,23 @@ pub fn run(args: SampleArgs) -> Result<()> {
         body: body.as_ref().map(LoadedBody::as_body),
     };
     let half_depth = 0.3;
+    let on_table = scene.is_none()
+        && sampled.objects.iter().any(|(_, o)| {
+            o.placed.is_none_or(|pose| {
+                let lowest = o
+                    .mesh
+                    .vertices
+                    .iter()
+                    .map(|v| (pose.rotation * *v + pose.position).y)
+                    .fold(f32::INFINITY, f32::min);
+                (lowest - args.table_height).abs() < ON_TABLE_TOLERANCE_M
+            })
+        });
     let options = ExportOptions {
         preview: PreviewOptions {
-            // A sequence's furniture is not in the data (only the objects that move are).
-            table: scene.is_none().then_some(TableBox {
+            // The table, when an object stands on it: a sequence's furniture is not in the data
+            // (only the objects that move are), and a placed object may stand on the floor.
+            table: on_table.then_some(TableBox {
                 height: args.table_height,
                 centre: Vec2::new(0.0, DEFAULT_TABLE_NEAR_EDGE + half_depth),
                 half_extents: Vec2::new(0.55, half_depth),
