@@ -196,6 +196,66 @@ mod tests {
         assert!((0.0..0.12).contains(&lowest), "lowest joint at {lowest} m");
     }
 
+    /// A one-frame sequence on `skeleton` with its root at `root` and some joints turned.
+    fn first_frame(
+        skeleton: &Skeleton,
+        id: &str,
+        root: Vec3,
+        turns: &[(&str, f32)],
+    ) -> ProcessedSequence {
+        let mut local = vec![glam::Mat3::IDENTITY; skeleton.joint_count()];
+        for (name, angle) in turns {
+            local[skeleton.joint_index(name).unwrap()] = glam::Mat3::from_rotation_x(*angle);
+        }
+        let sequence = crate::Sequence {
+            skeleton: skeleton.clone(),
+            fps: 20.0,
+            local_rotations: local,
+            root_positions: vec![root],
+            objects: Vec::new(),
+            texts: vec!["standing".into()],
+            action: None,
+            source_id: id.into(),
+        };
+        crate::features::process_sequence(&sequence, &[], &Default::default()).unwrap()
+    }
+
+    #[test]
+    fn the_typical_first_frame_is_a_medoid_put_on_the_floor_of_the_skeleton() {
+        let skeleton = Skeleton::mixamo();
+        let hips = skeleton.rest_offsets()[0];
+        let sequences = [
+            first_frame(&skeleton, "a", hips, &[("LeftArm", 0.1)]),
+            first_frame(&skeleton, "b", hips, &[("LeftArm", 0.2)]),
+            first_frame(&skeleton, "c", hips, &[("LeftArm", 0.3)]),
+            // Crouching: far from the others.
+            first_frame(
+                &skeleton,
+                "crouch",
+                hips * 0.7,
+                &[("LeftUpLeg", -1.2), ("RightUpLeg", -1.2)],
+            ),
+        ];
+        let start = StartPose::typical_first_frame(&sequences, &skeleton).unwrap();
+        assert_eq!(start.source, "b", "the pose nearest the others");
+        let chosen = &sequences[1];
+        assert_eq!(start.rotations, chosen.body[..6 * skeleton.joint_count()]);
+        let lowest = |points: &[Vec3]| points.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
+        let data: Vec<Vec3> =
+            chosen.joint_positions.chunks_exact(3).map(Vec3::from_slice).collect();
+        // On the data's own skeleton the pose stands as it stood.
+        let ours = start.forward_kinematics(&skeleton).unwrap();
+        assert!((lowest(&ours) - lowest(&data)).abs() < 1e-5);
+        // On a shorter skeleton the root comes down until the feet are where they were.
+        let short: Vec<Vec3> = skeleton.rest_offsets().iter().map(|o| *o * 0.9).collect();
+        let short = skeleton.with_rest_offsets(short).unwrap();
+        let on_short = StartPose::typical_first_frame(&sequences, &short).unwrap();
+        assert!(on_short.root_height < start.root_height - 0.05);
+        let ours = on_short.forward_kinematics(&short).unwrap();
+        assert!((lowest(&ours) - lowest(&data)).abs() < 1e-5);
+        assert!(StartPose::typical_first_frame(&[], &skeleton).is_err());
+    }
+
     #[test]
     fn a_pose_for_another_skeleton_is_refused() {
         let start = StartPose::smplx_standing();
