@@ -10,22 +10,10 @@ use std::path::{Path, PathBuf};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod common;
-use common::dex2hoi;
+use common::{dex2hoi, fail, succeed};
 
 fn temp_dir(name: &str) -> PathBuf {
     common::temp_dir("humoto", name)
-}
-
-fn succeed(args: &[&str]) -> String {
-    let run = dex2hoi(args);
-    assert!(run.status.success(), "{args:?}:\n{}", String::from_utf8_lossy(&run.stderr));
-    String::from_utf8_lossy(&run.stdout).into_owned()
-}
-
-fn fail(args: &[&str]) -> String {
-    let run = dex2hoi(args);
-    assert!(!run.status.success(), "{args:?} should fail");
-    String::from_utf8_lossy(&run.stderr).into_owned()
 }
 
 /// A motion.npz array's numbers and shape.
@@ -37,13 +25,8 @@ fn npz_array(path: &Path, name: &str) -> (Vec<f64>, Vec<usize>) {
 
 #[test]
 fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence() {
-    let realdata = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/humoto");
-    let glb = realdata.join("glb");
-    if !glb.is_dir() {
-        assert!(std::env::var("CI").as_deref() != Ok("1"), "CI needs {}", glb.display());
-        eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
-        return;
-    }
+    let Some(glb) = common::humoto_glb() else { return };
+    let realdata = glb.parent().unwrap();
     let dir = temp_dir("all");
     std::fs::create_dir_all(&dir).unwrap();
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
@@ -51,16 +34,7 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
 
     // Prepared: the licence beside the release is found and kept; the start pose is one of the
     // training sequences' first frames, standing on the floor.
-    let stdout = succeed(&[
-        "data",
-        "prepare",
-        "--format",
-        "humoto",
-        "--root",
-        glb.to_str().unwrap(),
-        "--out",
-        &data,
-    ]);
+    let stdout = common::prepare_humoto(&glb, &data);
     assert!(stdout.contains("Adobe Research License v1.1.pdf"), "{stdout}");
     let dataset = Dataset::load(Path::new(&data)).unwrap();
     let manifest = &dataset.manifest;
@@ -122,50 +96,22 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
     assert_eq!(npz_array(&npz, "joints").1, [12, 65, 3]);
     let objects = test.object_names.iter().flatten().count();
     assert_eq!(npz_array(&npz, "object_translations").1, [objects, 12, 3]);
-    // With a prompt of one's own and an object of the data's catalogue, on the default table.
+    // With a prompt of one's own and an object of the data's catalogue, on the default table;
+    // then on the character inside a HUMOTO GLB, whose skinned mesh motion.glb carries.
     let object = manifest.objects[0].as_str();
+    let sample_own = |out: &str, more: &[&str]| {
+        let mut args = vec!["sample", "--run", &run, "--data", &data, "--object", object];
+        args.extend(["--text", "The subject lifts the object.", "--frames", "8"]);
+        args.extend(["--ddim-steps", "2", "--out", out]);
+        args.extend(more);
+        succeed(&args);
+        assert_eq!(npz_array(&Path::new(out).join("motion.npz"), "joints").1, [8, 65, 3]);
+    };
     let own = path("own");
-    succeed(&[
-        "sample",
-        "--run",
-        &run,
-        "--data",
-        &data,
-        "--object",
-        object,
-        "--text",
-        "The subject lifts the object.",
-        "--frames",
-        "8",
-        "--ddim-steps",
-        "2",
-        "--out",
-        &own,
-    ]);
-    assert_eq!(npz_array(&Path::new(&own).join("motion.npz"), "joints").1, [8, 65, 3]);
-    // On the character inside a HUMOTO GLB: its skinned mesh in motion.glb.
+    sample_own(&own, &[]);
     let character = glb.join("examining_cutting_board-141/examining_cutting_board-141.glb");
     let dressed = path("dressed");
-    succeed(&[
-        "sample",
-        "--run",
-        &run,
-        "--data",
-        &data,
-        "--object",
-        object,
-        "--text",
-        "The subject lifts \
-         the object.",
-        "--frames",
-        "8",
-        "--ddim-steps",
-        "2",
-        "--character",
-        character.to_str().unwrap(),
-        "--out",
-        &dressed,
-    ]);
+    sample_own(&dressed, &["--character", character.to_str().unwrap()]);
     let json = common::glb_json(&Path::new(&dressed).join("motion.glb"));
     assert_eq!(json["scenes"][0]["extras"]["body"], "character");
     // Without --data the data's objects are unknown, and the error lists the catalogue.
@@ -207,15 +153,8 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
 
 /// The HUMOTO character's GLB that the character tests dress motions in.
 fn humoto_character() -> Option<PathBuf> {
-    let glb = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/realdata/humoto/glb/examining_cutting_board-141");
-    let file = glb.join("examining_cutting_board-141.glb");
-    if !file.is_file() {
-        assert!(!common::in_ci(), "CI needs {}", file.display());
-        eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
-        return None;
-    }
-    Some(file)
+    let glb = common::humoto_glb()?;
+    Some(glb.join("examining_cutting_board-141/examining_cutting_board-141.glb"))
 }
 
 #[test]
@@ -227,27 +166,23 @@ fn a_sequence_put_on_the_humoto_character_plays_in_blender_as_the_npz_says() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
     let (data, out) = (path("data"), path("out"));
-    succeed(&[
-        "data",
-        "prepare",
-        "--format",
-        "humoto",
-        "--root",
-        glb.to_str().unwrap(),
-        "--out",
-        &data,
-    ]);
-    succeed(&[
-        "data",
-        "show",
-        &data,
-        "--sequence",
-        "examining_cutting_board-141",
-        "--character",
-        character_arg,
-        "--out",
-        &out,
-    ]);
+    common::prepare_humoto(glb, &data);
+    // `data show` of the cutting-board sequence on a character file, into `out`.
+    let show_on = |character: &str, out: &str| {
+        let sequence = "examining_cutting_board-141";
+        dex2hoi(&[
+            "data",
+            "show",
+            &data,
+            "--sequence",
+            sequence,
+            "--character",
+            character,
+            "--out",
+            out,
+        ])
+    };
+    assert!(show_on(character_arg, &out).status.success());
     let npz = Path::new(&out).join("motion.npz");
     assert_eq!(npz_array(&npz, "joints").1, [157, 65, 3]);
     // The file drops onto the character's rig: its bone names, and at the first frame each
@@ -299,17 +234,9 @@ fn a_sequence_put_on_the_humoto_character_plays_in_blender_as_the_npz_says() {
     ]);
     assert!(stderr.contains("mixamo65") && stderr.contains("smplx52"), "{stderr}");
     let licence = glb.parent().unwrap().join("Adobe Research License v1.1.pdf");
-    let stderr = fail(&[
-        "data",
-        "show",
-        &data,
-        "--sequence",
-        "examining_cutting_board-141",
-        "--character",
-        licence.to_str().unwrap(),
-        "--out",
-        &path("not-a-character"),
-    ]);
+    let refused = show_on(licence.to_str().unwrap(), &path("not-a-character"));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
     assert!(stderr.contains("--character") && stderr.contains("glTF"), "{stderr}");
     assert!(!Path::new(&path("not-a-character")).exists());
     std::fs::remove_dir_all(&dir).ok();

@@ -9,7 +9,7 @@ use std::sync::OnceLock;
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod common;
-use common::dex2hoi;
+use common::{dex2hoi, succeed};
 
 fn temp_dir(name: &str) -> PathBuf {
     common::temp_dir("prepare", name)
@@ -39,12 +39,6 @@ fn path(p: &Path) -> &str {
 /// A fixture path as a string.
 fn fixture(relative: &str) -> String {
     path(&fixtures().join(relative)).to_string()
-}
-
-fn succeed(args: &[&str]) -> String {
-    let run = dex2hoi(args);
-    assert!(run.status.success(), "{args:?}:\n{}", String::from_utf8_lossy(&run.stderr));
-    String::from_utf8_lossy(&run.stdout).into_owned()
 }
 
 #[test]

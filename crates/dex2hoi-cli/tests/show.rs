@@ -8,16 +8,10 @@ use std::path::{Path, PathBuf};
 use dex2hoi_data::dataset::Dataset;
 
 mod common;
-use common::dex2hoi;
+use common::{dex2hoi, succeed};
 
 fn temp_dir(name: &str) -> PathBuf {
     common::temp_dir("show", name)
-}
-
-fn succeed(args: &[&str]) -> String {
-    let run = dex2hoi(args);
-    assert!(run.status.success(), "{args:?}:\n{}", String::from_utf8_lossy(&run.stderr));
-    String::from_utf8_lossy(&run.stdout).into_owned()
 }
 
 /// The four files, each non-trivial, and the npz's frame count.
@@ -99,23 +93,9 @@ fn a_procedural_sequence_is_shown_by_index_and_by_id() {
 
 #[test]
 fn the_real_humoto_release_is_prepared_and_shown() {
-    let glb = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/humoto/glb");
-    if !glb.is_dir() {
-        assert!(std::env::var("CI").as_deref() != Ok("1"), "CI needs {}", glb.display());
-        eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
-        return;
-    }
+    let Some(glb) = common::humoto_glb() else { return };
     let data = temp_dir("humoto");
-    let stdout = succeed(&[
-        "data",
-        "prepare",
-        "--format",
-        "humoto",
-        "--root",
-        glb.to_str().unwrap(),
-        "--out",
-        data.to_str().unwrap(),
-    ]);
+    let stdout = common::prepare_humoto(&glb, data.to_str().unwrap());
     // Every sequence of the folder is read or skipped for a stated reason, none fails.
     assert!(stdout.contains("failed 0, warnings 0") && !stdout.contains("read 0 "), "{stdout}");
     let out = temp_dir("humoto-out");

@@ -312,14 +312,8 @@ impl CharacterMesh {
     /// Checks that a motion's skeleton can be shown on this character (a Mixamo-65 motion);
     /// pose it on [`CharacterMesh::skeleton`] for the export.
     pub fn fits(&self, skeleton: &Skeleton) -> Result<()> {
-        if skeleton.kind() != self.skeleton.kind() {
-            return Err(ExportError::invalid(
-                format!("the character {}", self.path.display()),
-                format!("a motion on the {} skeleton", self.skeleton.kind().name()),
-                format!("a {} motion", skeleton.kind().name()),
-            ));
-        }
-        Ok(())
+        let body = format!("the character {}", self.path.display());
+        crate::check_skeleton_kind(body, &self.skeleton, skeleton)
     }
 }
 

@@ -337,6 +337,18 @@ impl<'a> ExportMotion<'a> {
     }
 }
 
+/// Refuses a motion on another kind of skeleton than a body's (`body` names the body).
+pub(crate) fn check_skeleton_kind(body: String, own: &Skeleton, motion: &Skeleton) -> Result<()> {
+    if motion.kind() != own.kind() {
+        return Err(ExportError::invalid(
+            body,
+            format!("a motion on the {} skeleton", own.kind().name()),
+            format!("a {} motion", motion.kind().name()),
+        ));
+    }
+    Ok(())
+}
+
 /// How far (metres) a motion's rest offsets may be from a body mesh's skeleton's.
 const BODY_SKELETON_TOLERANCE: f32 = 1e-6;
 

@@ -115,14 +115,8 @@ impl SmplxMesh {
     /// Checks that a motion's skeleton can be shown with this body (an SMPL-X motion); pose it
     /// on [`SmplxMesh::skeleton`] for the export.
     pub fn fits(&self, skeleton: &Skeleton) -> Result<()> {
-        if skeleton.kind() != self.skeleton.kind() {
-            return Err(ExportError::invalid(
-                format!("the SMPL-X body of {}", self.path.display()),
-                format!("a motion on the {} skeleton", self.skeleton.kind().name()),
-                format!("a {} motion", skeleton.kind().name()),
-            ));
-        }
-        Ok(())
+        let body = format!("the SMPL-X body of {}", self.path.display());
+        crate::check_skeleton_kind(body, &self.skeleton, skeleton)
     }
 }
 

@@ -67,6 +67,14 @@ def bone_heads(arm, names):
     return np.array(out)
 
 
+def posed_vertices(mesh_object):
+    """The skinned mesh's vertices (ours) as Blender deforms them on the current frame."""
+    evaluated = mesh_object.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    posed = np.array([to_ours(evaluated.matrix_world @ v.co) for v in evaluated.to_mesh().vertices])
+    evaluated.to_mesh_clear()
+    return posed
+
+
 def check_glb(path, d, frames, model, character):
     names = [str(n) for n in d["joint_names"]]
     if str(d["skeleton"]) == "mixamo65":
@@ -125,22 +133,10 @@ def check_glb(path, d, frames, model, character):
                              relative[1, 0] - relative[0, 1]])
             angle = np.arctan2(np.linalg.norm(skew), np.trace(relative) - 1)
             result["object_rotation_error"] = max(result["object_rotation_error"], float(angle))
-        if model:
-            depsgraph = bpy.context.evaluated_depsgraph_get()
-            evaluated = mesh_object.evaluated_get(depsgraph)
-            posed = np.array([to_ours(evaluated.matrix_world @ v.co)
-                              for v in evaluated.to_mesh().vertices])
-            evaluated.to_mesh_clear()
+        if model or character:
+            expected = reference[t][order] if model else character_posed[t]
             result["mesh_error"] = max(result["mesh_error"],
-                                       float(np.abs(posed - reference[t][order]).max()))
-        if character:
-            depsgraph = bpy.context.evaluated_depsgraph_get()
-            evaluated = mesh_object.evaluated_get(depsgraph)
-            posed = np.array([to_ours(evaluated.matrix_world @ v.co)
-                              for v in evaluated.to_mesh().vertices])
-            evaluated.to_mesh_clear()
-            result["mesh_error"] = max(result["mesh_error"],
-                                       float(np.abs(posed - character_posed[t]).max()))
+                                       float(np.abs(posed_vertices(mesh_object) - expected).max()))
     return result
 
 

@@ -145,14 +145,7 @@ impl Character {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::glb::glb_bytes;
-
-    /// The fuzz corpus's seed: a triangle skinned to two bones under a scaled `Armature`.
-    fn seed() -> GlbScene {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../fuzz/corpus/glb/skinned_animated.glb");
-        GlbScene::read(&path).unwrap()
-    }
+    use crate::glb::{glb_bytes, seed_scene as seed};
 
     #[test]
     fn the_skin_is_read_at_rest_with_its_bones() {

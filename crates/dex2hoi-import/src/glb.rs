@@ -621,6 +621,16 @@ impl Track {
     }
 }
 
+/// The fuzz corpus's seed GLB (`fuzz/make_seeds.py`), for tests: a triangle skinned to two
+/// joints under a scaled `Armature`, a LINEAR translation and a STEP rotation, an animated
+/// object.
+#[cfg(test)]
+pub(crate) fn seed_scene() -> GlbScene {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/corpus/glb/skinned_animated.glb");
+    GlbScene::read(&path).unwrap()
+}
+
 /// A GLB of a JSON document and a binary chunk, for tests that make hostile files.
 #[cfg(test)]
 pub(crate) fn glb_bytes(json: &str, bin: &[u8]) -> Vec<u8> {
@@ -647,13 +657,7 @@ pub(crate) fn glb_bytes(json: &str, bin: &[u8]) -> Vec<u8> {
 mod tests {
     use super::*;
 
-    /// The fuzz corpus's seed GLB (`fuzz/make_seeds.py`): a skinned two-joint scene under a
-    /// scaled `Armature`, a LINEAR translation and a STEP rotation, an animated object.
-    fn seed() -> GlbScene {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../fuzz/corpus/glb/skinned_animated.glb");
-        GlbScene::read(&path).unwrap()
-    }
+    use super::seed_scene as seed;
 
     #[test]
     fn a_skinned_animated_scene_is_read_and_sampled() {

@@ -11,6 +11,22 @@ pub fn dex2hoi(args: &[&str]) -> Output {
         .expect("the binary runs")
 }
 
+/// Runs the binary, asserts that it succeeds and returns its standard output.
+#[allow(dead_code)] // not every test binary runs commands this way
+pub fn succeed(args: &[&str]) -> String {
+    let run = dex2hoi(args);
+    assert!(run.status.success(), "{args:?}:\n{}", String::from_utf8_lossy(&run.stderr));
+    String::from_utf8_lossy(&run.stdout).into_owned()
+}
+
+/// Runs the binary, asserts that it fails and returns its standard error.
+#[allow(dead_code)] // not every test binary runs commands this way
+pub fn fail(args: &[&str]) -> String {
+    let run = dex2hoi(args);
+    assert!(!run.status.success(), "{args:?} should fail");
+    String::from_utf8_lossy(&run.stderr).into_owned()
+}
+
 /// An empty scratch directory path for one test, `dex2hoi-cli-{file}-{name}-{pid}` under the
 /// system's temporary folder (removed if an earlier run left it; not created).
 #[allow(dead_code)] // not every test binary needs scratch space
@@ -101,4 +117,33 @@ pub fn glb_json(path: &std::path::Path) -> serde_json::Value {
     let bytes = std::fs::read(path).unwrap();
     let length = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
     serde_json::from_slice(&bytes[20..20 + length]).unwrap()
+}
+
+/// The public HUMOTO sequences in `../shared/realdata` beside the checkout (their folder of
+/// sequence folders); `None` (skipped) without them, a failure under CI.
+#[allow(dead_code)] // only the tests on real HUMOTO files use it
+pub fn humoto_glb() -> Option<std::path::PathBuf> {
+    let glb = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/realdata/humoto/glb");
+    if glb.is_dir() {
+        return Some(glb);
+    }
+    assert!(!in_ci(), "CI needs {}", glb.display());
+    eprintln!("skipped: no real HUMOTO samples at {}", glb.display());
+    None
+}
+
+/// `dex2hoi data prepare --format humoto` of `glb` into `out`; its standard output.
+#[allow(dead_code)] // only the tests on real HUMOTO files use it
+pub fn prepare_humoto(glb: &std::path::Path, out: &str) -> String {
+    succeed(&[
+        "data",
+        "prepare",
+        "--format",
+        "humoto",
+        "--root",
+        glb.to_str().unwrap(),
+        "--out",
+        out,
+    ])
 }
