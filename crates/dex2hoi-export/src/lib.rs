@@ -123,6 +123,38 @@ impl<'a> Body<'a> {
             Self::Character(_) => None,
         }
     }
+    /// The rest mesh with its skin as joints of [`Body::skeleton`]: vertices, faces, and per
+    /// vertex four joints and weights, a skin joint the skeleton lacks (SMPL-X's jaw and eyes,
+    /// a character's other bones, all at rest under their parents) taken as its nearest
+    /// ancestor among the skeleton's joints, which moves it the same way.
+    pub(crate) fn skin(self) -> (&'a [Vec3], &'a [[u32; 3]], Vec<[u16; 4]>, Vec<[f32; 4]>) {
+        match self {
+            Self::Smplx(mesh) => {
+                let head = mesh.skeleton.joint_index("head").unwrap_or(0) as u16;
+                let joints = mesh.skeleton.joint_count() as u16;
+                let mapped = mesh
+                    .joints
+                    .iter()
+                    .map(|row| row.map(|j| if u16::from(j) < joints { u16::from(j) } else { head }))
+                    .collect();
+                (&mesh.vertices, &mesh.faces, mapped, mesh.weights.clone())
+            }
+            Self::Character(character) => {
+                let joints = character.skeleton.joint_count();
+                let mut ancestor: Vec<u16> = (0..joints as u16).collect();
+                // Extra joints come after their parents.
+                for extra in &character.extra_joints {
+                    ancestor.push(ancestor[extra.parent]);
+                }
+                let mapped = character
+                    .joints
+                    .iter()
+                    .map(|row| row.map(|j| ancestor[usize::from(j)]))
+                    .collect();
+                (&character.vertices, &character.faces, mapped, character.weights.clone())
+            }
+        }
+    }
 }
 
 /// One object of an [`ExportMotion`].

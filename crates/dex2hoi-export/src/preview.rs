@@ -1,7 +1,9 @@
 //! `preview.gif` and `preview.png`: the motion drawn by a small z-buffered software rasteriser,
 //! so that a person can look at a result without any other tool.
 //!
-//! The scene is the capsule body of [`mod@crate::body_mesh`], the object meshes, an optional table
+//! The scene is the body (the export's skinned mesh, an SMPL-X model's or a character's, posed
+//! by linear blend skinning; else the capsule body of [`mod@crate::body_mesh`]), the object
+//! meshes, an optional table
 //! and a checkered floor at `y = 0`, under one directional light with Lambert shading (flat per
 //! triangle, lit from whichever side faces the camera). Each frame shows two views side by
 //! side, both framing the bounding box of every joint and object over all frames: a
@@ -566,23 +568,10 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Prev
     };
     let views = frame_views[0];
     let scenery = static_triangles((min + max) * 0.5, spread, options.table.as_ref());
-    let body = body_mesh(motion.skeleton);
+    let body = DrawnBody::of(motion);
     let rest = motion.skeleton.rest_positions();
     let joints = motion.skeleton.joint_count();
     let states = hand_states(motion)?;
-    let groups = motion.skeleton.groups();
-    let in_hand = |j: u16| {
-        groups.left_hand.contains(&(j as usize)) || groups.right_hand.contains(&(j as usize))
-    };
-    // The hand bones (both ends hand joints) and their two joints, per body face.
-    let face_bones: Vec<Option<(usize, usize)>> = body
-        .faces
-        .iter()
-        .map(|f| {
-            let (bound, end) = (body.joints[f[0] as usize], body.bone_ends[f[0] as usize]);
-            (in_hand(bound) && in_hand(end)).then_some((bound as usize, end as usize))
-        })
-        .collect();
     let (image_width, image_height) = (2 * options.width, caption_height + options.height);
     let frames = (0..motion.frames)
         .into_par_iter()
@@ -594,7 +583,7 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Prev
             let mut moving: Vec<Triangle> = body
                 .faces
                 .iter()
-                .zip(&face_bones)
+                .zip(&body.face_bones)
                 .map(|(f, bone)| {
                     let slot =
                         bone.map_or(BODY, |(a, b)| frame_states[a].max(frame_states[b]).slot());
@@ -630,6 +619,93 @@ fn render_checked(motion: &Checked<'_>, options: &PreviewOptions) -> Result<Prev
         frame_views,
         caption_height,
     })
+}
+
+/// The body a preview draws, each vertex following up to four joints.
+struct DrawnBody<'a> {
+    vertices: Cow<'a, [Vec3]>,
+    faces: Cow<'a, [[u32; 3]]>,
+    /// Per vertex, four joints of the motion's skeleton and their weights.
+    joints: Vec<[u16; 4]>,
+    weights: Vec<[f32; 4]>,
+    /// Per face, the two hand joints whose contact colours it (`None` off the hands).
+    face_bones: Vec<Option<(usize, usize)>>,
+}
+
+impl<'a> DrawnBody<'a> {
+    /// The export's skinned body, or the skeleton's capsules: a capsule face belongs to its
+    /// bone, a skinned face to the joint that weighs most on its first corner.
+    fn of(motion: &Checked<'a>) -> Self {
+        let groups = motion.skeleton.groups();
+        let in_hand = |j: usize| groups.left_hand.contains(&j) || groups.right_hand.contains(&j);
+        match motion.body {
+            Some(body) => {
+                let (vertices, faces, joints, weights) = body.skin();
+                let face_bones = faces
+                    .iter()
+                    .map(|f| {
+                        let corner = f[0] as usize;
+                        let strongest = (0..4)
+                            .max_by(|&a, &b| weights[corner][a].total_cmp(&weights[corner][b]))
+                            .expect("four influences");
+                        let joint = usize::from(joints[corner][strongest]);
+                        in_hand(joint).then_some((joint, joint))
+                    })
+                    .collect();
+                Self {
+                    vertices: Cow::Borrowed(vertices),
+                    faces: Cow::Borrowed(faces),
+                    joints,
+                    weights,
+                    face_bones,
+                }
+            }
+            None => {
+                let capsules = body_mesh(motion.skeleton);
+                let face_bones = capsules
+                    .faces
+                    .iter()
+                    .map(|f| {
+                        let (bound, end) = (
+                            usize::from(capsules.joints[f[0] as usize]),
+                            usize::from(capsules.bone_ends[f[0] as usize]),
+                        );
+                        (in_hand(bound) && in_hand(end)).then_some((bound, end))
+                    })
+                    .collect();
+                Self {
+                    joints: capsules.joints.iter().map(|&j| [j, 0, 0, 0]).collect(),
+                    weights: vec![[1.0, 0.0, 0.0, 0.0]; capsules.vertices.len()],
+                    vertices: Cow::Owned(capsules.vertices),
+                    faces: Cow::Owned(capsules.faces),
+                    face_bones,
+                }
+            }
+        }
+    }
+
+    /// Vertex positions by linear blend skinning: `v' = sum_k w_k (G_j (v - rest_j) + p_j)`
+    /// over each vertex's joints `j`, from their world rotations and positions.
+    ///
+    /// # Shapes
+    /// - `rest_positions`, `rotations`, `positions`: `[joints]`
+    fn posed(&self, rest_positions: &[Vec3], rotations: &[Mat3], positions: &[Vec3]) -> Vec<Vec3> {
+        self.vertices
+            .iter()
+            .zip(self.joints.iter().zip(&self.weights))
+            .map(|(&v, (joints, weights))| {
+                joints
+                    .iter()
+                    .zip(weights)
+                    .filter(|(_, w)| **w != 0.0)
+                    .map(|(&j, &w)| {
+                        let j = usize::from(j);
+                        (rotations[j] * (v - rest_positions[j]) + positions[j]) * w
+                    })
+                    .sum()
+            })
+            .collect()
+    }
 }
 
 /// Per frame, the box of its joints and of its objects (each as far as its mesh reaches).

@@ -9,7 +9,10 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use dex2hoi_export::{Body, ExportMotion, ExportOptions, SmplxMesh, export_all};
+use dex2hoi_export::{
+    Body, ExportMotion, ExportOptions, PreviewOptions, SmplxMesh, Surface, export_all,
+    render_preview,
+};
 use dex2hoi_repr::Skeleton;
 
 use common::gltf::{node_worlds, parse_glb, skinned_vertices};
@@ -92,6 +95,17 @@ fn the_skinned_smplx_mesh_of_the_glb_equals_numpy_lbs_and_the_npz_joints_its_kin
     let worlds = node_worlds(&json, &bin, frames);
     let glb_vertices = skinned_vertices(&json, &bin, body_node, &worlds);
     assert_eq!(glb_vertices[0].len(), mesh.vertices.len());
+    // The preview draws the model's own mesh where the GLB's skin puts it.
+    let preview = render_preview(&export, &PreviewOptions::default()).expect("rendered");
+    let capsules = ExportMotion { body: None, ..export.clone() };
+    let capsules = render_preview(&capsules, &PreviewOptions::default()).expect("rendered");
+    assert_ne!(preview.frames, capsules.frames, "the mesh, not the capsules");
+    for (t, vertices) in glb_vertices.iter().enumerate() {
+        let centre = vertices.iter().copied().sum::<glam::Vec3>() / vertices.len() as f32;
+        let pixel = preview.frame_views[t][0].project(centre).expect("in front");
+        let surface = preview.surface_at(t, pixel.x as u32, pixel.y as u32);
+        assert_eq!(surface, Some(Surface::Body), "frame {t}: the mesh's centre");
+    }
 
     if !numpy_lbs(&model, &files.npz, &dir) {
         return;
