@@ -257,7 +257,8 @@ impl CharacterMesh {
         let mut vertex_weights = Vec::with_capacity(vertices.len());
         for (vertex, (row, w)) in joints.iter().zip(weights).enumerate() {
             let total: f32 = w.iter().filter(|x| x.is_finite() && **x > 0.0).sum();
-            if !(total > 0.0) {
+            // Finite non-negative terms: the sum is one too.
+            if total <= 0.0 {
                 return Err(ExportError::invalid(
                     format!("{}, skin weights of vertex {vertex}", context()),
                     "at least one positive weight",

@@ -82,6 +82,16 @@ pub struct ExportMotion<'a> {
     pub body: Option<Body<'a>>,
 }
 
+/// A body's rest mesh skinned to the joints of its skeleton ([`Body::skin`]).
+pub(crate) struct BodySkin<'a> {
+    pub vertices: &'a [Vec3],
+    pub faces: &'a [[u32; 3]],
+    /// Four skeleton joints per vertex.
+    pub joints: Vec<[u16; 4]>,
+    /// Their weights.
+    pub weights: Vec<[f32; 4]>,
+}
+
 /// A body mesh skinned to the motion's skeleton.
 #[derive(Debug, Clone, Copy)]
 pub enum Body<'a> {
@@ -127,7 +137,7 @@ impl<'a> Body<'a> {
     /// vertex four joints and weights, a skin joint the skeleton lacks (SMPL-X's jaw and eyes,
     /// a character's other bones, all at rest under their parents) taken as its nearest
     /// ancestor among the skeleton's joints, which moves it the same way.
-    pub(crate) fn skin(self) -> (&'a [Vec3], &'a [[u32; 3]], Vec<[u16; 4]>, Vec<[f32; 4]>) {
+    pub(crate) fn skin(self) -> BodySkin<'a> {
         match self {
             Self::Smplx(mesh) => {
                 let head = mesh.skeleton.joint_index("head").unwrap_or(0) as u16;
@@ -137,7 +147,12 @@ impl<'a> Body<'a> {
                     .iter()
                     .map(|row| row.map(|j| if u16::from(j) < joints { u16::from(j) } else { head }))
                     .collect();
-                (&mesh.vertices, &mesh.faces, mapped, mesh.weights.clone())
+                BodySkin {
+                    vertices: &mesh.vertices,
+                    faces: &mesh.faces,
+                    joints: mapped,
+                    weights: mesh.weights.clone(),
+                }
             }
             Self::Character(character) => {
                 let joints = character.skeleton.joint_count();
@@ -151,7 +166,12 @@ impl<'a> Body<'a> {
                     .iter()
                     .map(|row| row.map(|j| ancestor[usize::from(j)]))
                     .collect();
-                (&character.vertices, &character.faces, mapped, character.weights.clone())
+                BodySkin {
+                    vertices: &character.vertices,
+                    faces: &character.faces,
+                    joints: mapped,
+                    weights: character.weights.clone(),
+                }
             }
         }
     }

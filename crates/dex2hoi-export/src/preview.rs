@@ -640,7 +640,7 @@ impl<'a> DrawnBody<'a> {
         let in_hand = |j: usize| groups.left_hand.contains(&j) || groups.right_hand.contains(&j);
         match motion.body {
             Some(body) => {
-                let (vertices, faces, joints, weights) = body.skin();
+                let crate::BodySkin { vertices, faces, joints, weights } = body.skin();
                 let face_bones = faces
                     .iter()
                     .map(|f| {

@@ -7,7 +7,6 @@
 use std::time::{Duration, Instant};
 
 use candle_core::{DType, Device, Tensor};
-use glam::Vec3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
