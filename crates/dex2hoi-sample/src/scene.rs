@@ -52,6 +52,10 @@ pub struct SceneObject {
     pub mesh: Mesh,
     /// The object frame's pose at the start; `None` puts it upright on the table.
     pub placed: Option<ObjectPose>,
+    /// Its rotation standing upright: the identity for the built-in catalogue and files; for a
+    /// dataset's object, as the data stand it (real data keep each object's mesh in its own
+    /// axes; see `data_upright`).
+    pub upright: Mat3,
 }
 
 impl SceneObject {
@@ -79,12 +83,23 @@ impl SceneObject {
             None => (spec, None),
         };
         let what = what.trim();
-        let placed = position.map(|position| ObjectPose { rotation: Mat3::IDENTITY, position });
-        if let Some(asset) = dataset.and_then(|d| d.objects.iter().find(|o| o.name == what)) {
-            return Ok(Self { name: asset.name.clone(), mesh: asset.mesh.clone(), placed });
+        let place =
+            |upright: Mat3| position.map(|position| ObjectPose { rotation: upright, position });
+        if let Some((dataset, asset)) =
+            dataset.and_then(|d| Some((d, d.objects.iter().find(|o| o.name == what)?)))
+        {
+            let upright = data_upright(dataset, what, &asset.mesh);
+            return Ok(Self {
+                name: asset.name.clone(),
+                mesh: asset.mesh.clone(),
+                placed: place(upright),
+                upright,
+            });
         }
+        let upright = Mat3::IDENTITY;
         if let Some(object) = catalogue_object(what) {
-            return Ok(Self { name: object.name.to_string(), mesh: object.mesh(), placed });
+            let (name, mesh) = (object.name.to_string(), object.mesh());
+            return Ok(Self { name, mesh, placed: place(upright), upright });
         }
         let path = Path::new(what);
         let is_mesh = path
@@ -106,18 +121,43 @@ impl SceneObject {
         let mut mesh = Mesh::load(path)?;
         mesh.recenter();
         let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object").to_string();
-        Ok(Self { name, mesh, placed })
+        Ok(Self { name, mesh, placed: place(upright), upright })
     }
 
     /// The starting pose: the given one, or upright on the table at `default_place`.
     pub fn start_pose(&self, default_place: (f32, f32), table_height: f32) -> ObjectPose {
         self.placed.unwrap_or_else(|| {
-            let (low, high) = self.mesh.bounding_box();
-            let position =
-                Vec3::new(default_place.0, table_height + (high.y - low.y) / 2.0, default_place.1);
-            ObjectPose { rotation: Mat3::IDENTITY, position }
+            // Resting on the table: its lowest point at the table's height.
+            let heights = self.mesh.vertices.iter().map(|v| (self.upright * *v).y);
+            let (low, high) = heights
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), y| (lo.min(y), hi.max(y)));
+            let above = (high - low) / 2.0 - (high + low) / 2.0;
+            let position = Vec3::new(default_place.0, table_height + above, default_place.1);
+            ObjectPose { rotation: self.upright, position }
         })
     }
+}
+
+/// How a dataset's object stands when nothing says otherwise: of the rotations it has on the
+/// first frames of the sequences that have it, the one that keeps it lowest (a board lies flat,
+/// a chair stands on its legs); the identity when no sequence has it.
+fn data_upright(dataset: &Dataset, name: &str, mesh: &Mesh) -> Mat3 {
+    let height = |rotation: &Mat3| {
+        let heights = mesh.vertices.iter().map(|v| (*rotation * *v).y);
+        let (low, high) =
+            heights.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), y| (lo.min(y), hi.max(y)));
+        high - low
+    };
+    dataset
+        .splits
+        .values()
+        .flatten()
+        .filter_map(|s| {
+            let slot = s.object_names.iter().position(|n| n.as_deref() == Some(name))?;
+            Some(s.object_poses_at(0)[slot]?.rotation)
+        })
+        .min_by(|a, b| height(a).total_cmp(&height(b)))
+        .unwrap_or(Mat3::IDENTITY)
 }
 
 /// The scene a sequence of a dataset starts in: its objects where they are on its first frame,
@@ -165,7 +205,12 @@ impl SequenceScene {
                 let asset = dataset.objects.iter().find(|o| &o.name == name).ok_or_else(|| {
                     SampleError::invalid("sequence", id, "objects of the dataset's catalogue", name)
                 })?;
-                Ok(SceneObject { name: name.clone(), mesh: asset.mesh.clone(), placed: Some(pose) })
+                Ok(SceneObject {
+                    name: name.clone(),
+                    mesh: asset.mesh.clone(),
+                    placed: Some(pose),
+                    upright: pose.rotation,
+                })
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Self {
