@@ -9,8 +9,8 @@
 #
 # HUMOTO_GLB_DIR holds the sequence folders (`<seq>/<seq>.glb`) and animations.json, as
 # published; OUT_DIR receives everything (keep it out of the repository: HUMOTO is under the
-# Adobe Research License, and so is what is made from it). STEPS overrides the preset's 12000
-# (about 50 minutes of a 2-core CPU). DEX2HOI (default target/release/dex2hoi) is the binary.
+# Adobe Research License, and so is what is made from it). STEPS overrides the preset's 24000
+# (about 1.5 hours of a 2-core CPU). DEX2HOI (default target/release/dex2hoi) is the binary.
 # Steps already done (a checkpoint at STEPS, an evaluator, a report, a sample) are kept.
 set -euo pipefail
 if (($# < 2 || $# > 3)); then
