@@ -1,4 +1,5 @@
-//! Binary glTF scenes: parsing, sampling every keyframe, reading every mesh.
+//! Binary glTF scenes: parsing, sampling every keyframe, reading every mesh and its skin
+//! weights, and the character of a skinned scene (`--character`).
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -11,6 +12,8 @@ fuzz_target!(|data: &[u8]| {
     for node in &scene.nodes {
         if let Some(mesh) = node.mesh {
             let _ = scene.mesh(mesh);
+            let _ = scene.skinning(mesh);
         }
     }
+    let _ = dex2hoi_import::character::Character::from_scene(&scene);
 });
