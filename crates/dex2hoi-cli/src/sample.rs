@@ -63,7 +63,7 @@ pub struct SampleArgs {
     #[arg(long)]
     data: Option<PathBuf>,
     /// Start from the scene of this sequence of --data (its source id, or the part after the
-    /// last `/`): its objects where they are on its first frame, no table; its first
+    /// source's prefix, as `data show` takes it): its objects where they are on its first frame, no table; its first
     /// description unless --text or --timeline is given; its length unless --frames is.
     #[arg(long, requires = "data")]
     sequence: Option<String>,
@@ -237,12 +237,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
     let on_table = scene.is_none()
         && sampled.objects.iter().any(|(_, o)| {
             o.placed.is_none_or(|pose| {
-                let lowest = o
-                    .mesh
-                    .vertices
-                    .iter()
-                    .map(|v| (pose.rotation * *v + pose.position).y)
-                    .fold(f32::INFINITY, f32::min);
+                let lowest = o.mesh.height_range(pose.rotation).0 + pose.position.y;
                 (lowest - args.table_height).abs() < ON_TABLE_TOLERANCE_M
             })
         });

@@ -64,9 +64,7 @@ pub fn run(args: ShowArgs) -> Result<()> {
         .with_context(|| format!("reading the dataset in {}", args.dir.display()))?;
     let sequences = candidates(&dataset, args.split);
     let wanted = args.sequence.as_str();
-    let found = sequences.iter().find(|(_, s)| {
-        s.source_id == wanted || s.source_id.split_once('/').is_some_and(|(_, id)| id == wanted)
-    });
+    let found = sequences.iter().find(|(_, s)| s.is_named(wanted));
     let (split, sequence) = match (found, wanted.parse::<usize>()) {
         (Some(found), _) => *found,
         (None, Ok(index)) if index < sequences.len() => sequences[index],

@@ -83,6 +83,13 @@ pub struct ProcessedSequence {
 }
 
 impl ProcessedSequence {
+    /// Whether a user's `id` names this sequence: its whole source id, or the part after the
+    /// source's prefix (`examining_cutting_board-141` for
+    /// `humoto/examining_cutting_board-141`).
+    pub fn is_named(&self, id: &str) -> bool {
+        self.source_id == id || self.source_id.split_once('/').is_some_and(|(_, own)| own == id)
+    }
+
     /// The object poses on frame `frame` (`None` for an empty slot), in the canonical frame.
     pub fn object_poses_at(&self, frame: usize) -> [Option<ObjectPose>; MAX_OBJECTS] {
         std::array::from_fn(|slot| {

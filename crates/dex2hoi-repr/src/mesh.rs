@@ -5,7 +5,7 @@
 use std::io::BufReader;
 use std::path::Path;
 
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -185,6 +185,15 @@ impl Mesh {
         self.vertices
             .iter()
             .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), v| (lo.min(*v), hi.max(*v)))
+    }
+
+    /// The lowest and highest height (Y) of the vertices turned by `rotation`: how the mesh
+    /// stands on a support in that orientation.
+    pub fn height_range(&self, rotation: Mat3) -> (f32, f32) {
+        self.vertices
+            .iter()
+            .map(|v| (rotation * *v).y)
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(low, high), y| (low.min(y), high.max(y)))
     }
 
     /// Moves the mesh so that its bounding-box centre is the origin (the object frame of

@@ -60,7 +60,7 @@ pub use generate::{
 };
 pub use model_file::{PackSummary, PackedPrecision, pack_run};
 pub use prefix::PrefixEncoding;
-pub use request::{SampleRequest, SampledMotion, sample};
+pub use request::{SampleRequest, SampledMotion, sample, standing_prefix};
 pub use run::{TrainedRun, Weights};
 pub use scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE,

@@ -7,9 +7,10 @@ use std::time::Instant;
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::features::DecodedMotion;
+use dex2hoi_data::start::StartPose;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_model::text::reject_empty;
-use dex2hoi_repr::{BpsBasis, MeshQuery};
+use dex2hoi_repr::{BpsBasis, MeshQuery, ObjectPose};
 
 use crate::error::{Result, SampleError};
 use crate::generate::{Conditioning, ProgressHook, generate_motion};
@@ -53,6 +54,23 @@ pub struct SampledMotion {
     pub frames: usize,
     /// Seconds the generation took (without loading).
     pub seconds: f64,
+}
+
+/// The prefix a generation from scratch starts from: `start` on the run's skeleton with the
+/// objects at `placed` and nobody holding them, held over the run's prefix frames, as
+/// unnormalised stream features `[2, T_p, D]` flattened; its root displacement is measured from
+/// [`StartPose::root`].
+pub fn standing_prefix(
+    run: &TrainedRun,
+    start: &StartPose,
+    placed: [Option<ObjectPose>; MAX_OBJECTS],
+) -> Result<Vec<f32>> {
+    let config = &run.config.model;
+    let (body_row, object_rows) = start.features(&run.skeleton, placed)?;
+    Ok(config.layout().frames_to_streams(
+        &body_row.repeat(config.prefix_frames),
+        &object_rows.repeat(config.prefix_frames),
+    )?)
 }
 
 /// Generates a motion with a trained run.
@@ -101,11 +119,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             .copy_from_slice(&features);
     }
     let start = run.manifest.start_pose()?;
-    let (body_row, object_rows) = start.features(&run.skeleton, poses)?;
-    let prefix = config.layout().frames_to_streams(
-        &body_row.repeat(config.prefix_frames),
-        &object_rows.repeat(config.prefix_frames),
-    )?;
+    let prefix = standing_prefix(run, &start, poses)?;
     let prompts: Vec<(usize, &str)> =
         request.prompts.iter().map(|p| (p.start_frame, p.text.as_str())).collect();
     let generated = generate_motion(

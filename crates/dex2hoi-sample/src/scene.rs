@@ -128,9 +128,7 @@ impl SceneObject {
     pub fn start_pose(&self, default_place: (f32, f32), table_height: f32) -> ObjectPose {
         self.placed.unwrap_or_else(|| {
             // Resting on the table: its lowest point at the table's height.
-            let heights = self.mesh.vertices.iter().map(|v| (self.upright * *v).y);
-            let (low, high) = heights
-                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), y| (lo.min(y), hi.max(y)));
+            let (low, high) = self.mesh.height_range(self.upright);
             let above = (high - low) / 2.0 - (high + low) / 2.0;
             let position = Vec3::new(default_place.0, table_height + above, default_place.1);
             ObjectPose { rotation: self.upright, position }
@@ -143,9 +141,7 @@ impl SceneObject {
 /// a chair stands on its legs); the identity when no sequence has it.
 fn data_upright(dataset: &Dataset, name: &str, mesh: &Mesh) -> Mat3 {
     let height = |rotation: &Mat3| {
-        let heights = mesh.vertices.iter().map(|v| (*rotation * *v).y);
-        let (low, high) =
-            heights.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), y| (lo.min(y), hi.max(y)));
+        let (low, high) = mesh.height_range(*rotation);
         high - low
     };
     dataset
@@ -175,26 +171,22 @@ pub struct SequenceScene {
 }
 
 impl SequenceScene {
-    /// The sequence of `dataset` (either split) whose source id is `id`, or ends in `/id`
-    /// (`examining_cutting_board-141` for `humoto/examining_cutting_board-141`).
+    /// The sequence of `dataset` (either split) that `id` names
+    /// ([`dex2hoi_data::processed::ProcessedSequence::is_named`]).
     pub fn of(dataset: &Dataset, id: &str) -> Result<Self> {
         let sequences = || dataset.splits.values().flatten();
-        let sequence = sequences()
-            .find(|s| {
-                s.source_id == id || s.source_id.rsplit_once('/').is_some_and(|(_, n)| n == id)
-            })
-            .ok_or_else(|| {
-                let some: Vec<&str> = sequences().take(3).map(|s| s.source_id.as_str()).collect();
-                SampleError::invalid(
-                    "sequence",
-                    id,
-                    format!(
-                        "the source id of one of the dataset's sequences ({}, ...)",
-                        some.join(", ")
-                    ),
-                    "none with that id",
-                )
-            })?;
+        let sequence = sequences().find(|s| s.is_named(id)).ok_or_else(|| {
+            let some: Vec<&str> = sequences().take(3).map(|s| s.source_id.as_str()).collect();
+            SampleError::invalid(
+                "sequence",
+                id,
+                format!(
+                    "the source id of one of the dataset's sequences ({}, ...)",
+                    some.join(", ")
+                ),
+                "none with that id",
+            )
+        })?;
         let poses = sequence.object_poses_at(0);
         let objects = sequence
             .object_names

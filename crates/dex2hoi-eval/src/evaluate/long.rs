@@ -21,7 +21,7 @@ use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::{MeshQuery, ObjectPose};
 use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
-use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion};
+use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion, standing_prefix};
 
 use crate::error::Result;
 use crate::evaluator::MotionClip;
@@ -257,11 +257,7 @@ pub(super) fn evaluate_long(
         for (k, case) in cases.iter().enumerate() {
             let sequence = case.sequence;
             let slots = meshes.of(sequence)?;
-            let (body_row, object_rows) = start.features(&run.skeleton, case.placed)?;
-            let prefix = config.layout().frames_to_streams(
-                &body_row.repeat(config.prefix_frames),
-                &object_rows.repeat(config.prefix_frames),
-            )?;
+            let prefix = standing_prefix(run, &start, case.placed)?;
             let conditioning = Conditioning {
                 prefix,
                 bps: slot_bps(&dataset.objects, dataset.slot_assets(sequence)?, config.bps_points)?,
