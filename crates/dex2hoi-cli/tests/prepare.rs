@@ -47,6 +47,9 @@ fn grab_is_prepared_and_bad_sequences_are_reported() {
     let models = &fixture("smplx");
     let model = &fixture("smplx/SMPLX_NEUTRAL.npz");
     let out = temp_dir("grab");
+    // A licence given by hand travels in the manifest, byte for byte.
+    let licence = temp_dir("grab-licence.txt");
+    std::fs::write(&licence, "GRAB licence: research use only.\n").unwrap();
     let args = [
         "data",
         "prepare",
@@ -62,6 +65,8 @@ fn grab_is_prepared_and_bad_sequences_are_reported() {
         "The person is {verb} the {object}.",
         "--text-template",
         "Someone does {intent} with a {object}.",
+        "--licence",
+        path(&licence),
     ];
     let stdout = succeed(&args);
     assert!(stdout.contains("read 3 (train 2 (20 frames), test 1 (10 frames))"), "{stdout}");
@@ -80,6 +85,9 @@ fn grab_is_prepared_and_bad_sequences_are_reported() {
     assert_eq!((m.source.as_str(), m.skeleton.as_str(), m.joints), ("grab", "smplx52", 52));
     assert_eq!((m.body_feature_size, m.stream_feature_size), (315, 333));
     assert_eq!(m.objects, vec!["mug"]);
+    let kept = m.licence.as_ref().expect("the licence is kept");
+    assert_eq!(kept.file_name, licence.file_name().unwrap().to_str().unwrap());
+    assert_eq!(kept.bytes().unwrap(), std::fs::read(&licence).unwrap());
     assert_eq!(dataset.stats.mean.len(), 333);
     let test = &dataset.splits[&Split::Test][0];
     assert_eq!(test.source_id, "grab/s10/mug_drink_1");
@@ -194,6 +202,13 @@ fn bad_invocations_give_clear_errors() {
     ]);
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/humoto"));
+    let args = ["data", "prepare", "--format", "grab", "--root", grab, "--out", path(&out)];
+    let no_licence = dex2hoi(
+        &[&args[..], &["--smplx-model", not_a_model, "--licence", "/nonexistent/LICENSE"]].concat(),
+    );
+    assert!(!no_licence.status.success());
+    assert!(String::from_utf8_lossy(&no_licence.stderr).contains("--licence /nonexistent/LICENSE"));
+    assert!(!out.exists(), "nothing written");
     // A model that is not an SMPL-X model: every sequence fails, each reported, nothing written.
     let args = [
         "data",
