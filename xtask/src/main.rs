@@ -1,7 +1,8 @@
 //! Project automation, run as `cargo xtask <command>` (a cargo alias in `.cargo/config.toml`).
 //!
 //! - `ci`: the checks CI runs: `scripts/setup.sh` (what the tests need), then cheapest first:
-//!   format, clippy (warnings denied), tests, fuzz check.
+//!   format, clippy (warnings denied), the web site (which the browser test drives), tests,
+//!   fuzz check.
 //! - `bench [repr|sample|train]`: the benchmarks, built in the release profile; they print
 //!   medians. `bench compare`: dex2hoi against the PyTorch reference (see [`compare`]).
 //! - `demo`: the main job: two prompts sampled with the shipped model, exported and rendered,
@@ -13,6 +14,8 @@
 //! - `build-cuda`: the `cuda` build of `dex2hoi` and its CUDA tests, packed for a GPU machine
 //!   (see [`cuda`]).
 //! - `fuzz NAME|all [SECONDS]`, `fuzz check`: the fuzz targets of the file readers (see [`fuzz`]).
+//! - `web [--serve [PORT]]`: the static web page that runs the shipped model in the browser, in
+//!   `target/web/` (see [`web`]).
 //! - `train|sample|evaluate ARGS...`: the release `dex2hoi` binary's subcommands, passed
 //!   through, so that a checkout drives everything through xtask.
 
@@ -20,6 +23,7 @@ mod ablate;
 mod compare;
 mod cuda;
 mod fuzz;
+mod web;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -39,6 +43,9 @@ commands:
   fuzz NAME|all [SECONDS]
                 fuzz a file reader (pickle, npy, glb, mesh) with libFuzzer for SECONDS (600) each
   fuzz check    build the fuzz targets without sanitizers and run each over its seed corpus
+  web [--serve [PORT]]
+                build the web page (the shipped model as WebAssembly) into target/web; --serve
+                serves it on http://127.0.0.1:PORT/ (8000)
   train|sample|evaluate ARGS...
                 run `dex2hoi <command> ARGS...` from a release build (see `dex2hoi --help`)";
 
@@ -59,6 +66,7 @@ fn main() -> Result<()> {
         Some("build-cuda") => cuda::build_cuda(&root),
         Some("ablate") => ablate::ablate(&root, &args[1..]),
         Some("fuzz") => fuzz::fuzz(&root, &args[1..]),
+        Some("web") => web::web(&root, &args[1..]),
         Some(command @ ("train" | "sample" | "evaluate")) => {
             let mut forwarded =
                 vec!["run", "--release", "--quiet", "--locked", "-p", "dex2hoi-cli", "--"];
@@ -107,10 +115,23 @@ fn cargo(root: &Path, args: &[&str]) -> Result<()> {
     Ok(())
 }
 
+/// Whether this runs under CI (`CI` set, and not to `0` or `false`), as `scripts/setup.sh`
+/// decides it.
+fn in_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "0" && v != "false")
+}
+
 fn ci(root: &Path) -> Result<()> {
     setup(root)?;
     cargo(root, &["fmt", "--all", "--", "--check"])?;
     cargo(root, &["clippy", "--workspace", "--all-targets", "--locked", "--", "-D", "warnings"])?;
+    // The site the browser test drives; outside CI a machine without the web toolchain skips
+    // it (and the browser test says so).
+    match web::build_site(root) {
+        Ok(_) => {}
+        Err(error) if !in_ci() => eprintln!("\nci: the web site is not built: {error:#}"),
+        Err(error) => return Err(error),
+    }
     cargo(root, &["test", "--workspace", "--locked"])?;
     fuzz::check(root)?;
     eprintln!("\nci: all checks passed");

@@ -9,7 +9,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use glam::Vec2;
 
 use crate::body::{BodyArgs, LoadedBody};
 use crate::device::DeviceArgs;
@@ -20,17 +19,13 @@ use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
 use dex2hoi_sample::{
-    DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE, Prompt, SampleError, SampleRequest, SceneObject,
-    SequenceScene, parse_timeline, sample,
+    DEFAULT_TABLE_HEIGHT, Prompt, SampleError, SampleRequest, SceneObject, SceneTable,
+    SequenceScene, parse_timeline, sample, unknown_words_warning,
 };
 
 use long_generation::{
     AvailableMemory, FrameCost, GenerationShape, GenerationWatch, check_length, install_ctrl_c,
 };
-
-/// How far (metres) a placed object's lowest point may be from the table top for the preview
-/// to draw the table it stands on.
-const ON_TABLE_TOLERANCE_M: f32 = 0.03;
 
 /// Frames `sample` generates unless told.
 const DEFAULT_FRAMES: NonZeroUsize = NonZeroUsize::new(120).expect("120 is not zero");
@@ -170,12 +165,8 @@ pub fn run(args: SampleArgs) -> Result<()> {
     if let Some(vocabulary) = run.text.vocabulary() {
         let all_prompts: Vec<&str> = prompts.iter().map(|p| p.text.as_str()).collect();
         let unknown = vocabulary.unknown_words(&all_prompts.join("\n"));
-        if !unknown.is_empty() {
-            eprintln!(
-                "warning: the model's text encoder never saw {}: each reads as the unknown-word \
-                 token (`dex2hoi model info` lists the words it knows)",
-                unknown.iter().map(|w| format!("`{w}`")).collect::<Vec<_>>().join(", ")
-            );
+        if let Some(warning) = unknown_words_warning(&unknown) {
+            eprintln!("warning: {warning} (`dex2hoi model info` lists the words it knows)");
         }
     }
     let shape = GenerationShape {
@@ -233,22 +224,18 @@ pub fn run(args: SampleArgs) -> Result<()> {
             .collect(),
         body: body.as_ref().map(LoadedBody::as_body),
     };
-    let half_depth = 0.3;
-    let on_table = scene.is_none()
-        && sampled.objects.iter().any(|(_, o)| {
-            o.placed.is_none_or(|pose| {
-                let lowest = o.mesh.height_range(pose.rotation).0 + pose.position.y;
-                (lowest - args.table_height).abs() < ON_TABLE_TOLERANCE_M
-            })
-        });
+    // The table, when an object stands on it: a sequence's furniture is not in the data (only
+    // the objects that move are), and a placed object may stand on the floor.
+    let table = match scene {
+        Some(_) => None,
+        None => SceneTable::under(&sampled.objects, args.table_height),
+    };
     let options = ExportOptions {
         preview: PreviewOptions {
-            // The table, when an object stands on it: a sequence's furniture is not in the data
-            // (only the objects that move are), and a placed object may stand on the floor.
-            table: on_table.then_some(TableBox {
-                height: args.table_height,
-                centre: Vec2::new(0.0, DEFAULT_TABLE_NEAR_EDGE + half_depth),
-                half_extents: Vec2::new(0.55, half_depth),
+            table: table.map(|t| TableBox {
+                height: t.height,
+                centre: t.centre,
+                half_extents: t.half_extents,
             }),
             caption: !args.no_caption,
             ..preview

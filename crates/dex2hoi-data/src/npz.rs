@@ -5,8 +5,8 @@
 
 use std::io::{Cursor, Write};
 
-use npyz::zip::write::FileOptions;
-use npyz::zip::{CompressionMethod, DateTime, ZipWriter};
+use zip::write::FileOptions;
+use zip::{CompressionMethod, DateTime, ZipWriter};
 
 use crate::error::{DataError, Result};
 
@@ -94,7 +94,7 @@ impl NpyArray {
 /// The bytes of an `.npz` archive of the arrays, refusing an array whose values do not fill
 /// its shape.
 pub fn encode_npz(arrays: &[NpyArray]) -> Result<Vec<u8>> {
-    let zip_error = |e: npyz::zip::result::ZipError| {
+    let zip_error = |e: zip::result::ZipError| {
         DataError::invalid("npz archive", "an archive written in memory", e)
     };
     let io_error =

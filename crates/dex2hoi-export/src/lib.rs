@@ -40,8 +40,8 @@ pub use error::{ExportError, Result};
 pub use glb::{encode_glb, write_glb};
 pub use npz::{encode_npz, write_npz};
 pub use preview::{
-    Camera, Preview, PreviewOptions, Surface, TableBox, encode_preview_gif, render_preview,
-    write_preview_gif,
+    Camera, JointState, Preview, PreviewOptions, Surface, TableBox, encode_preview_gif,
+    render_preview, write_preview_gif,
 };
 pub use smplx_body::{SmplxMesh, resolve_model_path};
 
@@ -304,6 +304,24 @@ impl<'a> ExportMotion<'a> {
     ///   each exported object's slot: `[frames]` rotations and positions
     pub fn validate(&self) -> Result<()> {
         self.check().map(|_| ())
+    }
+
+    /// The world position of every joint on every frame (forward kinematics of the validated
+    /// motion), as `motion.npz` holds them in `joints`.
+    ///
+    /// # Shapes
+    /// - returns `[frames * joints]`
+    pub fn joint_positions(&self) -> Result<Vec<Vec3>> {
+        Ok(self.check()?.fk.positions)
+    }
+
+    /// How each hand joint meets the objects on each frame, as the preview colours the hands
+    /// ([`JointState`]; every other joint is free).
+    ///
+    /// # Shapes
+    /// - returns `[frames * joints]`
+    pub fn hand_contacts(&self) -> Result<Vec<JointState>> {
+        preview::hand_states(&self.check()?)
     }
 
     /// [`ExportMotion::validate`], returning the motion with its forward kinematics.

@@ -794,11 +794,15 @@ fn draw_label(image: &mut [u8], width: u32, (x, y): (usize, usize), text: &str) 
     });
 }
 
-/// How a hand joint meets the objects on a frame, worst last.
+/// How a hand joint meets the objects on a frame, worst last (what colours the hands of the
+/// preview, and of the web page's view).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-enum JointState {
+pub enum JointState {
+    /// Farther than [`CONTACT_RADIUS_M`] from every object, or not a hand joint.
     Free,
+    /// Within [`CONTACT_RADIUS_M`] of an object's surface.
     Contact,
+    /// Deeper than [`PENETRATION_TOLERANCE_M`] inside an object.
     Inside,
 }
 
@@ -816,7 +820,7 @@ impl JointState {
 /// Per frame and joint (`[frames * joints]`), how each hand joint meets the nearest object:
 /// inside deeper than [`PENETRATION_TOLERANCE_M`], else within [`CONTACT_RADIUS_M`] of the
 /// surface, else free (every other joint is free).
-fn hand_states(motion: &Checked<'_>) -> Result<Vec<JointState>> {
+pub(crate) fn hand_states(motion: &Checked<'_>) -> Result<Vec<JointState>> {
     let joints = motion.skeleton.joint_count();
     let groups = motion.skeleton.groups();
     let hands: Vec<usize> = groups.left_hand.iter().chain(&groups.right_hand).copied().collect();

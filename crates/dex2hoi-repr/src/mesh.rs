@@ -61,16 +61,21 @@ impl Mesh {
 
     /// Loads an `.obj` or `.ply` file by its extension.
     pub fn load(path: &Path) -> Result<Self> {
-        let extension = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-        match extension.as_deref() {
-            Some("obj") => Self::load_obj(path),
-            Some("ply") => Self::load_ply(path),
-            _ => Err(ReprError::format(
-                path.display(),
-                "file extension",
-                "`.obj` or `.ply`",
-                format!("{:?}", path.extension().unwrap_or_default()),
-            )),
+        match MeshFormat::of(path) {
+            Some(MeshFormat::Obj) => Self::load_obj(path),
+            Some(MeshFormat::Ply) => Self::load_ply(path),
+            None => Err(MeshFormat::refusal(path)),
+        }
+    }
+
+    /// An `.obj` or `.ply` file's bytes, read by the extension of `file_name` (which names
+    /// the source in errors): a mesh that comes from somewhere other than the file system.
+    pub fn parse(bytes: &[u8], file_name: &str) -> Result<Self> {
+        let name = Path::new(file_name);
+        match MeshFormat::of(name) {
+            Some(MeshFormat::Obj) => Self::parse_obj(bytes, file_name),
+            Some(MeshFormat::Ply) => Self::parse_ply(bytes, file_name),
+            None => Err(MeshFormat::refusal(name)),
         }
     }
 
@@ -541,5 +546,34 @@ mod tests {
         assert!(centre.abs_diff_eq(Vec3::new(1.0, 2.0, 3.0), 1e-6));
         let (lo, hi) = mesh.bounding_box();
         assert!((lo + hi).abs_diff_eq(Vec3::ZERO, 1e-6));
+    }
+}
+
+/// The mesh file formats read, by file extension.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MeshFormat {
+    Obj,
+    Ply,
+}
+
+impl MeshFormat {
+    /// The format of a file by its extension (any case).
+    fn of(path: &Path) -> Option<Self> {
+        let extension = path.extension()?.to_str()?.to_ascii_lowercase();
+        match extension.as_str() {
+            "obj" => Some(Self::Obj),
+            "ply" => Some(Self::Ply),
+            _ => None,
+        }
+    }
+
+    /// The error for a file of neither format.
+    fn refusal(path: &Path) -> ReprError {
+        ReprError::format(
+            path.display(),
+            "file extension",
+            "`.obj` or `.ply`",
+            format!("{:?}", path.extension().unwrap_or_default()),
+        )
     }
 }

@@ -8,6 +8,9 @@ use glam::Vec3;
 use crate::error::{ReprError, Result};
 use crate::skeleton::{SMPLX55_PARENTS, Skeleton};
 
+/// An open `.npz` file: a zip archive whose entries are `.npy` files named `KEY.npy`.
+pub type NpzArchive = zip::ZipArchive<std::io::BufReader<std::fs::File>>;
+
 /// A numeric array read from an `.npz` entry, in C order, converted to `f64`.
 #[derive(Debug, Clone)]
 pub struct NpzArray {
@@ -27,14 +30,15 @@ pub const MAX_HEADER_BYTES: usize = 1 << 20;
 /// header's length and the shape's size are checked against the entry's size before anything
 /// is allocated for them.
 pub fn read_npz_array(
-    archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+    archive: &mut NpzArchive,
     path: &Path,
     key: &str,
     expected: &str,
 ) -> Result<NpzArray> {
     use std::io::Read;
     let io_error = |source| ReprError::Io { path: path.to_path_buf(), source };
-    if !archive.array_names().any(|name| name == key) {
+    let entry_name = format!("{key}.npy");
+    if !archive.file_names().any(|name| name == entry_name) {
         return Err(ReprError::MissingKey {
             path: path.to_path_buf(),
             key: key.into(),
@@ -42,11 +46,7 @@ pub fn read_npz_array(
         });
     }
     let source_name = format!("{}[{key}]", path.display());
-    let entry_name = npyz::npz::file_name_from_array_name(key);
-    let mut entry = archive
-        .zip_archive()
-        .by_name(&entry_name)
-        .map_err(|e| io_error(std::io::Error::other(e)))?;
+    let mut entry = archive.by_name(&entry_name).map_err(|e| io_error(std::io::Error::other(e)))?;
     let entry_bytes = entry.size();
     // The preamble (magic, version, header length) is read here to bound the header before
     // npyz allocates it, then handed back to npyz in front of the rest of the entry.
@@ -162,7 +162,7 @@ fn header_shape(header: &[u8]) -> Option<Vec<u64>> {
 
 /// [`read_npz_array`] for an entry the file may lack (`None` then).
 fn read_optional(
-    archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+    archive: &mut NpzArchive,
     path: &Path,
     key: &str,
     expected: &str,
@@ -233,8 +233,10 @@ impl SmplxModel {
     /// Opens the file and checks the keys and shapes of `v_template`, `shapedirs`,
     /// `J_regressor` and `kintree_table` (whose parent row must be the SMPL-X tree).
     pub fn load(path: &Path) -> Result<Self> {
-        let mut archive = npyz::npz::NpzArchive::open(path)
-            .map_err(|source| ReprError::Io { path: path.to_path_buf(), source })?;
+        let io_error = |source| ReprError::Io { path: path.to_path_buf(), source };
+        let file = std::fs::File::open(path).map_err(io_error)?;
+        let mut archive = NpzArchive::new(std::io::BufReader::new(file))
+            .map_err(|e| io_error(std::io::Error::other(e)))?;
         let name = path.display().to_string();
         let shape_error = |key: &str, expected: String, got: &[usize]| ReprError::Shape {
             source_name: name.clone(),

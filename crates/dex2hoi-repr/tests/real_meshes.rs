@@ -195,3 +195,19 @@ fn broken_files_give_errors_that_name_them() {
     assert!(error.to_string().contains("mesh.stl"), "{error}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn meshes_read_from_memory_equal_the_files_and_name_them() {
+    let mug = asset(pybullet_data().join("objects/mug.obj"));
+    let cube = asset(assimp_models().join("PLY/cube_binary.ply"));
+    for (path, file_name) in [(&mug, "Mug.OBJ"), (&cube, "cube.ply")] {
+        let from_file = Mesh::load(path).unwrap();
+        let from_bytes = Mesh::parse(&std::fs::read(path).unwrap(), file_name).unwrap();
+        assert_eq!(from_bytes.vertices, from_file.vertices, "{file_name}");
+        assert_eq!(from_bytes.faces, from_file.faces, "{file_name}");
+    }
+    let refused = Mesh::parse(b"v 0 0 0\n", "mesh.stl").unwrap_err().to_string();
+    assert!(refused.contains("mesh.stl") && refused.contains("`.obj` or `.ply`"), "{refused}");
+    let broken = Mesh::parse(b"v 0 0 0\nf 1 2 3\n", "broken.obj").unwrap_err().to_string();
+    assert!(broken.contains("broken.obj") && broken.contains("line 2"), "{broken}");
+}

@@ -10,7 +10,7 @@
 use std::num::NonZeroUsize;
 use std::ops::ControlFlow;
 use std::sync::Arc;
-use std::time::Instant;
+use web_time::Instant;
 
 use candle_core::{DType, Tensor};
 use glam::Vec3;

@@ -63,8 +63,9 @@ pub use prefix::PrefixEncoding;
 pub use request::{SampleRequest, SampledMotion, sample, standing_prefix};
 pub use run::{TrainedRun, Weights};
 pub use scene::{
-    DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HEIGHT, DEFAULT_TABLE_NEAR_EDGE,
-    SceneObject, SequenceScene, default_lone_object_side,
+    DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HALF_EXTENTS, DEFAULT_TABLE_HEIGHT,
+    DEFAULT_TABLE_NEAR_EDGE, ON_TABLE_TOLERANCE_M, SceneObject, SceneTable, SequenceScene,
+    default_lone_object_side,
 };
-pub use text::TextModule;
+pub use text::{TextModule, unknown_words_warning};
 pub use timeline::{Prompt, parse_timeline};

@@ -3,7 +3,7 @@
 //! timeline, autoregressive generation and decoding to joint rotations, FK and object poses.
 
 use std::num::NonZeroUsize;
-use std::time::Instant;
+use web_time::Instant;
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::features::DecodedMotion;

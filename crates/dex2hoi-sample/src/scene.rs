@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use glam::{Mat3, Vec3};
+use glam::{Mat3, Vec2, Vec3};
 
 use dex2hoi_data::catalogue::{CATALOGUE, catalogue_object};
 use dex2hoi_data::character::Hand;
@@ -23,6 +23,42 @@ pub const DEFAULT_OBJECT_DEPTH: f32 = 0.39;
 pub const DEFAULT_OBJECT_SIDE: f32 = 0.16;
 /// The default table's near edge (metres along +Z), for previews.
 pub const DEFAULT_TABLE_NEAR_EDGE: f32 = 0.25;
+/// The default table top's half extents (metres along X and Z), for previews.
+pub const DEFAULT_TABLE_HALF_EXTENTS: Vec2 = Vec2::new(0.55, 0.30);
+/// How far (metres) an object's lowest point may be from the table top for it to stand on the
+/// table.
+pub const ON_TABLE_TOLERANCE_M: f32 = 0.03;
+
+/// The default table top, where previews and views draw it: only under objects that stand on
+/// it, since a sequence's or a placed object's support may be something else.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneTable {
+    /// Height of the top (metres).
+    pub height: f32,
+    /// Centre of the top, `(x, z)`.
+    pub centre: Vec2,
+    /// Half extents of the top, `(x, z)`.
+    pub half_extents: Vec2,
+}
+
+impl SceneTable {
+    /// The table of top `height` when one of the generated `objects` starts on it: unplaced
+    /// (put on the table), or placed with its lowest point within [`ON_TABLE_TOLERANCE_M`] of
+    /// the top.
+    pub fn under(objects: &[(usize, SceneObject)], height: f32) -> Option<Self> {
+        let on_table = objects.iter().any(|(_, o)| {
+            o.placed.is_none_or(|pose| {
+                let lowest = o.mesh.height_range(pose.rotation).0 + pose.position.y;
+                (lowest - height).abs() < ON_TABLE_TOLERANCE_M
+            })
+        });
+        on_table.then_some(Self {
+            height,
+            centre: Vec2::new(0.0, DEFAULT_TABLE_NEAR_EDGE + DEFAULT_TABLE_HALF_EXTENTS.y),
+            half_extents: DEFAULT_TABLE_HALF_EXTENTS,
+        })
+    }
+}
 
 /// Where a lone object stands by default, sideways (metres along X): on the side of the hand
 /// the prompt names first ("... with the right hand ..."), where the procedural dataset puts
@@ -118,10 +154,24 @@ impl SceneObject {
                 "neither",
             ));
         }
-        let mut mesh = Mesh::load(path)?;
+        Ok(Self::from_mesh(Mesh::load(path)?, path, position))
+    }
+
+    /// An object from a mesh file's bytes (`.obj` or `.ply`, by the extension of `file_name`,
+    /// which names it), upright as the file has it, at `position` if given: a mesh that comes
+    /// from somewhere other than the file system, as a web page's file picker gives it.
+    pub fn from_mesh_bytes(bytes: &[u8], file_name: &str, position: Option<Vec3>) -> Result<Self> {
+        Ok(Self::from_mesh(Mesh::parse(bytes, file_name)?, Path::new(file_name), position))
+    }
+
+    /// A mesh read from the file that `path` names, named by the file's stem and recentred
+    /// on its bounding box (docs/CONVENTIONS.md, "Object frame").
+    fn from_mesh(mut mesh: Mesh, path: &Path, position: Option<Vec3>) -> Self {
         mesh.recenter();
         let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object").to_string();
-        Ok(Self { name, mesh, placed: place(upright), upright })
+        let upright = Mat3::IDENTITY;
+        let placed = position.map(|position| ObjectPose { rotation: upright, position });
+        Self { name, mesh, placed, upright }
     }
 
     /// The starting pose: the given one, or upright on the table at `default_place`.

@@ -87,3 +87,15 @@ impl TextModule {
         }
     }
 }
+
+/// The warning for the words of a prompt that the model's text encoder never saw (each reads
+/// as the unknown-word token), naming them; `None` when there are none.
+pub fn unknown_words_warning(unknown: &[String]) -> Option<String> {
+    (!unknown.is_empty()).then(|| {
+        let named: Vec<String> = unknown.iter().map(|w| format!("`{w}`")).collect();
+        format!(
+            "the model's text encoder never saw {}: each reads as the unknown-word token",
+            named.join(", ")
+        )
+    })
+}
