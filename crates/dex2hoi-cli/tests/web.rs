@@ -1,8 +1,8 @@
 //! The web page (`cargo xtask web`, which `cargo xtask ci` runs before the tests) driven in
 //! headless Chromium by `crates/dex2hoi-web/page/tests/drive.mjs`: it loads, generates with a
 //! fixed prompt, object and seed the joints that this binary's `sample` writes (to 1e-4 m),
-//! draws the figure in its 3D view, and answers an empty prompt and a broken mesh with an
-//! error and no motion. Skipped without the built site, Node.js, Chromium or the page's npm
+//! draws the figure in its 3D view, answers an empty prompt and a broken mesh with an error
+//! and no motion, and warns of words the model never saw. Skipped without the built site, Node.js, Chromium or the page's npm
 //! packages; failing under `CI=1`. The screenshots stay in `target/web-test/` to be looked at.
 
 use std::path::{Path, PathBuf};
@@ -68,6 +68,7 @@ fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     std::fs::remove_dir_all(&out).ok();
     let request = serde_json::json!({
         "prompt": PROMPT, "object": "mug", "seed": SEED, "seconds": SECONDS,
+        "unknownWordsPrompt": "Grab the mug with the right hand.",
     });
     let run = Command::new("node")
         .arg(&driver)
@@ -119,6 +120,12 @@ fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     let broken = &report["badMesh"];
     assert_eq!(broken["state"], "error", "{broken}");
     assert!(broken["message"].as_str().unwrap().contains("broken.obj"), "{broken}");
+    // Words the model never saw: a motion, with the warning `sample` prints.
+    let unknown = &report["unknownWords"];
+    assert_eq!(unknown["state"], "done", "{unknown}");
+    assert_eq!(unknown["frames"], 20, "{unknown}");
+    let message = unknown["message"].as_str().unwrap();
+    assert!(message.contains("never saw `grab`"), "{message}");
     for case in [empty, broken] {
         assert_eq!(case["playerShown"], false, "{case}");
         assert_eq!(case["downloadsShown"], false, "{case}");

@@ -1,11 +1,13 @@
 // Drives the web page in headless Chromium for the browser test
 // (crates/dex2hoi-cli/tests/web.rs) and prints what it saw as JSON.
 //
-//   node drive.mjs SITE_DIR OUT_DIR '{"prompt": ..., "object": ..., "seed": ..., "seconds": ...}'
+//   node drive.mjs SITE_DIR OUT_DIR '{"prompt": ..., "object": ..., "seed": ..., "seconds": ...,
+//     "unknownWordsPrompt": ...}'
 //
 // It serves SITE_DIR on a free localhost port, loads the page, generates the request, keeps
 // screenshots in OUT_DIR (the view before and after, the whole page), then submits an empty
-// prompt and a broken mesh and reports the page's messages.
+// prompt, a broken mesh and a prompt with words the model never saw (one second of motion),
+// and reports the page's messages.
 import fs from 'node:fs';
 import http from 'node:http';
 import path from 'node:path';
@@ -140,6 +142,18 @@ try {
     result: await page.evaluate(() => window.dex2hoiResult),
   };
   await page.screenshot({ path: path.join(out, 'page-error.png') });
+
+  // Words the model never saw: generated, with the warning.
+  await page.setInputFiles('#mesh', []);
+  await page.fill('#prompt', request.unknownWordsPrompt);
+  await page.fill('#seconds', '1');
+  await page.click('#generate');
+  await settle(['done', 'error'], 120000);
+  report.unknownWords = {
+    state: await state(),
+    message: await page.textContent('#message'),
+    frames: await page.evaluate(() => window.dex2hoiResult?.frames),
+  };
 } finally {
   await browser.close();
   server.close();
