@@ -269,6 +269,43 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_table_is_drawn_under_objects_that_stand_on_it() {
+        let mug = SceneObject::parse("mug", None).unwrap();
+        let height = DEFAULT_TABLE_HEIGHT;
+        // Unplaced: put on the table.
+        let table = SceneTable::under(&[(0, mug.clone())], height).unwrap();
+        assert_eq!(table.height, height);
+        assert_eq!(table.half_extents, DEFAULT_TABLE_HALF_EXTENTS);
+        assert_eq!(table.centre.y - table.half_extents.y, DEFAULT_TABLE_NEAR_EDGE);
+        // Placed with its bottom on the top (within the tolerance), or on the floor.
+        let half_height = {
+            let (low, high) = mug.mesh.height_range(Mat3::IDENTITY);
+            (high - low) / 2.0
+        };
+        let at = |y: f32| {
+            let spec = format!("mug@0.1,{y},0.4");
+            vec![(0, SceneObject::parse(&spec, None).unwrap())]
+        };
+        let gap = ON_TABLE_TOLERANCE_M / 2.0;
+        assert!(SceneTable::under(&at(height + half_height + gap), height).is_some());
+        assert!(SceneTable::under(&at(half_height), height).is_none());
+        assert!(SceneTable::under(&at(height + half_height + 0.2), height).is_none());
+    }
+
+    #[test]
+    fn a_mesh_from_memory_is_named_by_its_file_and_recentred() {
+        let obj = "v 1 1 1\nv 2 1 1\nv 1 2 1\nv 1 1 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+        let placed = Some(Vec3::new(0.0, 1.0, 0.4));
+        let object = SceneObject::from_mesh_bytes(obj.as_bytes(), "Wedge.obj", placed).unwrap();
+        assert_eq!(object.name, "Wedge");
+        let (low, high) = object.mesh.bounding_box();
+        assert!((low + high).abs().max_element() < 1e-6, "{low} {high}");
+        assert_eq!(object.placed.unwrap().position, placed.unwrap());
+        let error = SceneObject::from_mesh_bytes(obj.as_bytes(), "wedge.stl", None).unwrap_err();
+        assert!(error.to_string().contains("wedge.stl"), "{error}");
+    }
+
+    #[test]
     fn a_lone_object_stands_on_the_side_of_the_hand_the_prompt_names_first() {
         let right = -DEFAULT_OBJECT_SIDE;
         let left = DEFAULT_OBJECT_SIDE;
