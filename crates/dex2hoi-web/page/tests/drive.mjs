@@ -59,6 +59,14 @@ try {
   const settle = (states, timeout) => page.waitForFunction(
     (wanted) => wanted.includes(document.body.dataset.state), states, { timeout },
   );
+  // What the page shows after a request that should fail.
+  const outcome = async () => ({
+    state: await state(),
+    message: await page.textContent('#message'),
+    playerShown: await page.isVisible('#player'),
+    downloadsShown: await page.isVisible('#downloads'),
+    result: await page.evaluate(() => window.dex2hoiResult),
+  });
   // The canvas's pixels (RGBA), read through a 2D canvas.
   const pixels = () => page.evaluate(() => {
     const canvas = document.getElementById('canvas');
@@ -118,13 +126,7 @@ try {
   await page.fill('#prompt', '   ');
   await page.click('#generate');
   await settle(['done', 'error'], 120000);
-  report.emptyPrompt = {
-    state: await state(),
-    message: await page.textContent('#message'),
-    playerShown: await page.isVisible('#player'),
-    downloadsShown: await page.isVisible('#downloads'),
-    result: await page.evaluate(() => window.dex2hoiResult),
-  };
+  report.emptyPrompt = await outcome();
 
   await page.fill('#prompt', request.prompt);
   await page.setInputFiles('#mesh', {
@@ -134,13 +136,7 @@ try {
   });
   await page.click('#generate');
   await settle(['done', 'error'], 120000);
-  report.badMesh = {
-    state: await state(),
-    message: await page.textContent('#message'),
-    playerShown: await page.isVisible('#player'),
-    downloadsShown: await page.isVisible('#downloads'),
-    result: await page.evaluate(() => window.dex2hoiResult),
-  };
+  report.badMesh = await outcome();
   await page.screenshot({ path: path.join(out, 'page-error.png') });
 
   // Words the model never saw: generated, with the warning.
