@@ -97,6 +97,10 @@ enum DataCommand {
         /// Frames per second.
         #[arg(long, default_value_t = 20.0)]
         fps: f32,
+        /// The sentences that describe the sequences: three from the grammar's phrasings, or
+        /// the task's three fixed template sentences (80 words in all; the same motions).
+        #[arg(long, value_enum, default_value_t = SynthTexts::Grammar)]
+        texts: SynthTexts,
     },
     /// Print a summary of a dataset directory: counts per split, task and object, frames, texts.
     Info {
@@ -127,8 +131,8 @@ fn main() -> std::process::ExitCode {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        Command::Data { command: DataCommand::Synth { out, sequences, seed, fps } } => {
-            synth(&out, sequences, seed, fps)
+        Command::Data { command: DataCommand::Synth { out, sequences, seed, fps, texts } } => {
+            synth(&out, sequences, seed, fps, texts.into())
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
         Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
@@ -142,7 +146,31 @@ fn run(command: Command) -> Result<()> {
     }
 }
 
-fn synth(out: &Path, sequences: usize, seed: u64, fps: f32) -> Result<()> {
+/// `data synth --texts`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum SynthTexts {
+    /// Three of the grammar's phrasings per sequence.
+    Grammar,
+    /// The task's three fixed sentences.
+    Templates,
+}
+
+impl From<SynthTexts> for dex2hoi_synth::TrainingTexts {
+    fn from(texts: SynthTexts) -> Self {
+        match texts {
+            SynthTexts::Grammar => Self::Grammar,
+            SynthTexts::Templates => Self::Templates,
+        }
+    }
+}
+
+fn synth(
+    out: &Path,
+    sequences: usize,
+    seed: u64,
+    fps: f32,
+    texts: dex2hoi_synth::TrainingTexts,
+) -> Result<()> {
     if sequences == 0 {
         bail!("--sequences must be at least 1");
     }
@@ -158,9 +186,10 @@ fn synth(out: &Path, sequences: usize, seed: u64, fps: f32) -> Result<()> {
         .context("progress bar template")?
         .progress_chars("=> "),
     );
-    let dataset =
-        dex2hoi_synth::build_dataset(sequences, seed, fps, &|done| bar.set_position(done as u64))
-            .context("generating the procedural dataset")?;
+    let dataset = dex2hoi_synth::build_dataset_with(sequences, seed, fps, texts, &|done| {
+        bar.set_position(done as u64)
+    })
+    .context("generating the procedural dataset")?;
     bar.finish_and_clear();
     let generated = start.elapsed();
     dataset.save(out).with_context(|| format!("writing the dataset to {}", out.display()))?;

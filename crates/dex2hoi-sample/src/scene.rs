@@ -295,12 +295,12 @@ mod tests {
     #[test]
     fn a_mesh_from_memory_is_named_by_its_file_and_recentred() {
         let obj = "v 1 1 1\nv 2 1 1\nv 1 2 1\nv 1 1 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
-        let placed = Some(Vec3::new(0.0, 1.0, 0.4));
-        let object = SceneObject::from_mesh_bytes(obj.as_bytes(), "Wedge.obj", placed).unwrap();
+        let at = Vec3::new(0.0, 1.0, 0.4);
+        let object = SceneObject::from_mesh_bytes(obj.as_bytes(), "Wedge.obj", Some(at)).unwrap();
         assert_eq!(object.name, "Wedge");
         let (low, high) = object.mesh.bounding_box();
         assert!((low + high).abs().max_element() < 1e-6, "{low} {high}");
-        assert_eq!(object.placed.unwrap().position, placed.unwrap());
+        assert_eq!(object.placed.unwrap().position, at);
         let error = SceneObject::from_mesh_bytes(obj.as_bytes(), "wedge.stl", None).unwrap_err();
         assert!(error.to_string().contains("wedge.stl"), "{error}");
     }

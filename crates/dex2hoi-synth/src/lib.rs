@@ -50,6 +50,20 @@ pub struct SynthSequence {
     pub attachments: Vec<Attachment>,
     /// Descriptions in the phrasings held out of training.
     pub held_out_texts: Vec<String>,
+    /// What the descriptions say: the task, its objects, hands and directions.
+    pub description: text::Description<'static>,
+}
+
+/// Which sentences describe the training split's sequences (the held-out phrasings, and the
+/// motions, are the same either way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TrainingTexts {
+    /// Three drawn from the grammar (`text::describe`): synonyms and phrasings a person would
+    /// write.
+    #[default]
+    Grammar,
+    /// The task's three fixed sentences (`text::template_sentences`), 80 words in all.
+    Templates,
 }
 
 /// How a hand holds an object: the wrist in the object frame, the surface normal at the grasp
@@ -252,6 +266,7 @@ fn realise(plan: &Plan, fps: f32, rng: &mut ChaCha8Rng, index: usize) -> Result<
         table_height: plan.table_height,
         attachments: plan.attachments.clone(),
         held_out_texts: plan.held_out_texts.clone(),
+        description: plan.description,
     })
 }
 
@@ -394,6 +409,18 @@ pub fn build_dataset(
     fps: f32,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<dex2hoi_data::dataset::Dataset> {
+    build_dataset_with(count, seed, fps, TrainingTexts::Grammar, progress)
+}
+
+/// [`build_dataset`] with the sequences described by `texts`: the same motions, and the same
+/// held-out phrasings, for a seed whichever sentences describe them.
+pub fn build_dataset_with(
+    count: usize,
+    seed: u64,
+    fps: f32,
+    texts: TrainingTexts,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<dex2hoi_data::dataset::Dataset> {
     use dex2hoi_data::dataset::{BpsSettings, Dataset, Split};
     use dex2hoi_data::features::{TargetConfig, process_sequence};
     use rayon::prelude::*;
@@ -415,7 +442,10 @@ pub fn build_dataset(
     let processed: Vec<(usize, dex2hoi_data::features::ProcessedSequence)> = (0..count)
         .into_par_iter()
         .map(|index| {
-            let synth = generate(index, seed, fps)?;
+            let mut synth = generate(index, seed, fps)?;
+            if texts == TrainingTexts::Templates {
+                synth.sequence.texts = text::template_sentences(&synth.description);
+            }
             let object_queries: Vec<&MeshQuery> = synth
                 .sequence
                 .objects

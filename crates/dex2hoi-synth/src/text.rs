@@ -194,6 +194,105 @@ enum Mood {
     Command,
 }
 
+/// The three fixed sentences of a task that the generator wrote before its grammar (dataset
+/// format 2): 80 words in all, each task in the same three phrasings, the first naming every
+/// hand (and, for pick and place, the side). `data synth --texts templates` trains on these in
+/// place of the grammar's, so that a run can learn the tasks' words before their synonyms, or
+/// tell what the grammar does to training.
+pub fn template_sentences(description: &Description<'_>) -> Vec<String> {
+    match *description {
+        Description::PickPlace { object, hand, towards } => {
+            let (hand, towards) = (hand.word(), towards.word());
+            vec![
+                format!(
+                    "The person picks up the {object} with the {hand} hand and puts it down to the {towards}."
+                ),
+                format!(
+                    "Using the {hand} hand, someone lifts the {object} and sets it down a little to the {towards}."
+                ),
+                format!("A person moves the {object} to the {towards} with the {hand} hand."),
+            ]
+        }
+        Description::Inspect { object, hand } => {
+            let hand = hand.word();
+            vec![
+                format!(
+                    "The person picks up the {object} with the {hand} hand, turns it around to look at it and puts it back."
+                ),
+                format!(
+                    "Someone inspects the {object} held in the {hand} hand and then returns it to the table."
+                ),
+                format!(
+                    "A person lifts the {object} with the {hand} hand, examines it from several sides and sets it down."
+                ),
+            ]
+        }
+        Description::LiftBoth { object } => vec![
+            format!("The person lifts the {object} with both hands and puts it back down."),
+            format!(
+                "Someone raises the {object} using both hands, holds it for a moment and lowers it again."
+            ),
+            format!("A person picks up the {object} with two hands and sets it back on the table."),
+        ],
+        Description::Handover { object, from } => {
+            let (hand, other) = (from.word(), from.other().word());
+            vec![
+                format!(
+                    "The person picks up the {object} with the {hand} hand, passes it to the {other} hand and puts it down on the {other} side."
+                ),
+                format!(
+                    "Someone hands the {object} over from the {hand} hand to the {other} hand."
+                ),
+                format!(
+                    "A person lifts the {object} with the {hand} hand, gives it to the other hand and places it to the {other}."
+                ),
+            ]
+        }
+        Description::HoldTwo { left, right } => vec![
+            format!(
+                "The person picks up the {left} with the left hand and the {right} with the right hand, holds both and puts them back."
+            ),
+            format!(
+                "Someone lifts the {left} in the left hand and the {right} in the right hand at the same time and sets them down again."
+            ),
+            format!(
+                "A person holds the {left} and the {right}, one in each hand, then returns them to the table."
+            ),
+        ],
+        Description::Swap { left, right } => vec![
+            format!("The person swaps the places of the {left} and the {right}."),
+            format!(
+                "Someone exchanges the positions of the {left} on the left and the {right} on the right."
+            ),
+            format!(
+                "A person moves the {right} out of the way, puts the {left} in its place and the {right} where the {left} was."
+            ),
+        ],
+        Description::Pour { pourer, receiver, hand } => {
+            let (hand, other) = (hand.word(), hand.other().word());
+            vec![
+                format!(
+                    "The person holds the {receiver} with the {other} hand and pours from the {pourer} with the {hand} hand."
+                ),
+                format!(
+                    "Someone pours from the {pourer} into the {receiver}, steadying the {receiver} with the {other} hand."
+                ),
+                format!(
+                    "A person lifts the {pourer} with the {hand} hand, tips it over the {receiver} and puts it back."
+                ),
+            ]
+        }
+        Description::MoveNextTo { moved, anchor, hand } => {
+            let hand = hand.word();
+            vec![
+                format!("The person moves the {moved} next to the {anchor} with the {hand} hand."),
+                format!("Using the {hand} hand, someone places the {moved} beside the {anchor}."),
+                format!("A person picks up the {moved} and puts it down next to the {anchor}."),
+            ]
+        }
+    }
+}
+
 /// The moods a template can be written in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Moods {

@@ -319,3 +319,29 @@ fn the_layout_serves_sequences_assets_and_windows() {
     assert!(error.contains("feature sizes"), "{error}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+/// `TrainingTexts::Templates` describes the same motions with the task's three fixed
+/// sentences: only the training texts change.
+#[test]
+fn template_texts_describe_the_same_motions() {
+    use dex2hoi_synth::{TrainingTexts, build_dataset_with};
+    let grammar = build_dataset_with(16, 4, 20.0, TrainingTexts::Grammar, &|_| {}).unwrap();
+    let templates = build_dataset_with(16, 4, 20.0, TrainingTexts::Templates, &|_| {}).unwrap();
+    let mut words = std::collections::BTreeSet::new();
+    for (split, sequences) in &grammar.splits {
+        for (a, b) in sequences.iter().zip(&templates.splits[split]) {
+            assert_eq!(a.source_id, b.source_id);
+            assert_eq!(a.held_out_texts, b.held_out_texts);
+            assert_eq!(a.body, b.body, "{}", a.source_id);
+            assert_ne!(a.texts, b.texts, "{}", a.source_id);
+            assert_eq!(b.texts.len(), 3);
+            assert!(b.texts[0].starts_with("The person "), "{}", b.texts[0]);
+            for text in &b.texts {
+                let split = text.split(|c: char| !c.is_alphanumeric()).filter(|w| !w.is_empty());
+                words.extend(split.map(str::to_lowercase));
+            }
+        }
+    }
+    // The template sentences use 80 words (the grammar 341).
+    assert!(words.len() <= 80, "{} words", words.len());
+}
