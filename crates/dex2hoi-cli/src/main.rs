@@ -101,6 +101,11 @@ enum DataCommand {
         /// the task's three fixed template sentences (80 words in all; the same motions).
         #[arg(long, value_enum, default_value_t = SynthTexts::Grammar)]
         texts: SynthTexts,
+        /// How long the person stands still around the task: 0.4-2.5 s before and 0.5-4 s
+        /// after (drawn), or 0.4-0.9 s before and none after (short; otherwise the same
+        /// sequences).
+        #[arg(long, value_enum, default_value_t = SynthRest::Drawn)]
+        rest: SynthRest,
     },
     /// Print a summary of a dataset directory: counts per split, task and object, frames, texts.
     Info {
@@ -131,8 +136,9 @@ fn main() -> std::process::ExitCode {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        Command::Data { command: DataCommand::Synth { out, sequences, seed, fps, texts } } => {
-            synth(&out, sequences, seed, fps, texts.into())
+        Command::Data { command: DataCommand::Synth { out, sequences, seed, fps, texts, rest } } => {
+            let options = dex2hoi_synth::SynthOptions { texts: texts.into(), rest: rest.into() };
+            synth(&out, sequences, seed, fps, options)
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
         Command::Data { command: DataCommand::Prepare(args) } => prepare::run(args),
@@ -164,12 +170,30 @@ impl From<SynthTexts> for dex2hoi_synth::TrainingTexts {
     }
 }
 
+/// `data synth --rest`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum SynthRest {
+    /// Drawn rest before and after the task.
+    Drawn,
+    /// A short idle time before, none after.
+    Short,
+}
+
+impl From<SynthRest> for dex2hoi_synth::plan::RestAroundTask {
+    fn from(rest: SynthRest) -> Self {
+        match rest {
+            SynthRest::Drawn => Self::Drawn,
+            SynthRest::Short => Self::Short,
+        }
+    }
+}
+
 fn synth(
     out: &Path,
     sequences: usize,
     seed: u64,
     fps: f32,
-    texts: dex2hoi_synth::TrainingTexts,
+    options: dex2hoi_synth::SynthOptions,
 ) -> Result<()> {
     if sequences == 0 {
         bail!("--sequences must be at least 1");
@@ -186,7 +210,7 @@ fn synth(
         .context("progress bar template")?
         .progress_chars("=> "),
     );
-    let dataset = dex2hoi_synth::build_dataset_with(sequences, seed, fps, texts, &|done| {
+    let dataset = dex2hoi_synth::build_dataset_with(sequences, seed, fps, options, &|done| {
         bar.set_position(done as u64)
     })
     .context("generating the procedural dataset")?;

@@ -25,7 +25,10 @@ use dex2hoi_data::character::{Hand, HandPose, OPEN_CURL, PELVIS_HEIGHT, Poser, w
 use dex2hoi_data::{Sequence, SequenceObject};
 
 pub use error::{Result, SynthError};
-use plan::{Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, Task, minimum_jerk, plan_task};
+use plan::{
+    Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, RestAroundTask, Task, minimum_jerk,
+    plan_task_with,
+};
 
 /// Distance from the grasped surface to the wrist joint along the surface normal.
 const PALM_GAP: f32 = 0.025;
@@ -360,12 +363,22 @@ const MAX_DRAWS: usize = 100;
 /// Generates sequence `index` of the dataset with `seed` at `fps`: task family
 /// `index mod 8`, everything else drawn from a random stream of `(seed, index)`.
 pub fn generate(index: usize, seed: u64, fps: f32) -> Result<SynthSequence> {
+    generate_with(index, seed, fps, RestAroundTask::Drawn)
+}
+
+/// [`generate`] with the given rest around the task.
+pub fn generate_with(
+    index: usize,
+    seed: u64,
+    fps: f32,
+    rest: RestAroundTask,
+) -> Result<SynthSequence> {
     let mut rng =
         ChaCha8Rng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ index as u64);
     let task = Task::ALL[index % Task::ALL.len()];
     let mut last_problem = String::new();
     for _attempt in 0..MAX_DRAWS {
-        let plan = plan_task(task, &mut rng);
+        let plan = plan_task_with(task, rest, &mut rng);
         let synth = match realise(&plan, fps, &mut rng, index) {
             Ok(synth) => synth,
             Err(error) => {
@@ -409,16 +422,26 @@ pub fn build_dataset(
     fps: f32,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<dex2hoi_data::dataset::Dataset> {
-    build_dataset_with(count, seed, fps, TrainingTexts::Grammar, progress)
+    build_dataset_with(count, seed, fps, SynthOptions::default(), progress)
 }
 
-/// [`build_dataset`] with the sequences described by `texts`: the same motions, and the same
-/// held-out phrasings, for a seed whichever sentences describe them.
+/// What a procedural dataset may vary beyond its size, seed and frame rate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SynthOptions {
+    /// The sentences that describe the training split.
+    pub texts: TrainingTexts,
+    /// How long the person stands still around the task.
+    pub rest: RestAroundTask,
+}
+
+/// [`build_dataset`] with `options`. With other [`SynthOptions::texts`] the motions and the
+/// held-out phrasings are the same for a seed; with other [`SynthOptions::rest`] everything
+/// but the times the person stands still is.
 pub fn build_dataset_with(
     count: usize,
     seed: u64,
     fps: f32,
-    texts: TrainingTexts,
+    options: SynthOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<dex2hoi_data::dataset::Dataset> {
     use dex2hoi_data::dataset::{BpsSettings, Dataset, Split};
@@ -442,8 +465,8 @@ pub fn build_dataset_with(
     let processed: Vec<(usize, dex2hoi_data::features::ProcessedSequence)> = (0..count)
         .into_par_iter()
         .map(|index| {
-            let mut synth = generate(index, seed, fps)?;
-            if texts == TrainingTexts::Templates {
+            let mut synth = generate_with(index, seed, fps, options.rest)?;
+            if options.texts == TrainingTexts::Templates {
                 synth.sequence.texts = text::template_sentences(&synth.description);
             }
             let object_queries: Vec<&MeshQuery> = synth

@@ -180,6 +180,44 @@ pub const IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..2.5;
 /// Seconds the person stands at rest after the last hand is back, drawn per sequence.
 pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..4.0;
 
+/// Seconds of the short idle time ([`RestAroundTask::Short`]) before the first reach.
+pub const SHORT_IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..0.9;
+
+/// How long the person stands still around the task.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum RestAroundTask {
+    /// [`IDLE_BEFORE_TASK`] before the first reach and [`REST_AFTER_TASK`] after the last hand
+    /// is back: a generation longer than the task learns to do it once and rest.
+    #[default]
+    Drawn,
+    /// [`SHORT_IDLE_BEFORE_TASK`] before and none after, as the generator made sequences before
+    /// it had rest (dataset format 2). The same random draws as [`RestAroundTask::Drawn`],
+    /// mapped onto the shorter times, so that everything else about a sequence stays the same.
+    Short,
+}
+
+impl RestAroundTask {
+    /// The idle time before the first reach, from a draw in [`IDLE_BEFORE_TASK`].
+    fn idle_before(self, drawn: f32) -> f32 {
+        match self {
+            Self::Drawn => drawn,
+            Self::Short => {
+                let (from, to) = (IDLE_BEFORE_TASK, SHORT_IDLE_BEFORE_TASK);
+                let share = (drawn - from.start) / (from.end - from.start);
+                to.start + share * (to.end - to.start)
+            }
+        }
+    }
+
+    /// The rest after the task, from a draw in [`REST_AFTER_TASK`].
+    fn after(self, drawn: f32) -> f32 {
+        match self {
+            Self::Drawn => drawn,
+            Self::Short => 0.0,
+        }
+    }
+}
+
 /// Sideways places of the object of a one-handed task towards the hand's side (metres along X
 /// times `hand.side()`): from 22 cm across the body to 22 cm on the hand's own side, so that
 /// which hand takes an object follows from the words and not from the object's side. Across
@@ -279,14 +317,15 @@ struct Planner<'r> {
     t: f32,
     objects: Vec<(&'static CatalogueObject, Track)>,
     attachments: Vec<Attachment>,
+    rest: RestAroundTask,
 }
 
 impl<'r> Planner<'r> {
     /// Draws the scene: the table's height and near edge, the idle time, the main hand.
-    fn start(rng: &'r mut ChaCha8Rng) -> Self {
+    fn start(rng: &'r mut ChaCha8Rng, rest: RestAroundTask) -> Self {
         let height = rng.random_range(0.86..0.94);
         let near = rng.random_range(0.20..0.26);
-        let idle = rng.random_range(IDLE_BEFORE_TASK);
+        let idle = rest.idle_before(rng.random_range(IDLE_BEFORE_TASK));
         let hand = if rng.random_bool(0.5) { Hand::Left } else { Hand::Right };
         Self {
             rng,
@@ -296,6 +335,7 @@ impl<'r> Planner<'r> {
             t: idle,
             objects: Vec::new(),
             attachments: Vec::new(),
+            rest,
         }
     }
 
@@ -304,7 +344,7 @@ impl<'r> Planner<'r> {
     /// followed by rest, as a generation longer than the task should be.
     fn finish(self, task: Task, description: Description<'static>) -> Plan {
         let duration = self.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
-            + self.rng.random_range(REST_AFTER_TASK);
+            + self.rest.after(self.rng.random_range(REST_AFTER_TASK));
         let texts = describe(&description, Phrasing::Training, TRAINING_TEXTS, self.rng);
         let held_out_texts = describe(&description, Phrasing::HeldOut, HELD_OUT_TEXTS, self.rng);
         Plan {
@@ -698,7 +738,12 @@ impl<'r> Planner<'r> {
 /// Plans one sequence of a task: the scene, then the task family's object tracks and hand
 /// assignments (see [`Planner`] on why the order of the random draws must not change).
 pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
-    let mut planner = Planner::start(rng);
+    plan_task_with(task, RestAroundTask::Drawn, rng)
+}
+
+/// [`plan_task`] with the given rest around the task.
+pub fn plan_task_with(task: Task, rest: RestAroundTask, rng: &mut ChaCha8Rng) -> Plan {
+    let mut planner = Planner::start(rng, rest);
     let description = match task {
         Task::PickPlace => planner.pick_place(),
         Task::Inspect => planner.inspect(),

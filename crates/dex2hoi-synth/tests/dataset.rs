@@ -324,9 +324,11 @@ fn the_layout_serves_sequences_assets_and_windows() {
 /// sentences: only the training texts change.
 #[test]
 fn template_texts_describe_the_same_motions() {
-    use dex2hoi_synth::{TrainingTexts, build_dataset_with};
-    let grammar = build_dataset_with(16, 4, 20.0, TrainingTexts::Grammar, &|_| {}).unwrap();
-    let templates = build_dataset_with(16, 4, 20.0, TrainingTexts::Templates, &|_| {}).unwrap();
+    use dex2hoi_synth::{SynthOptions, TrainingTexts, build_dataset_with};
+    let with = |texts| SynthOptions { texts, ..SynthOptions::default() };
+    let grammar = build_dataset_with(16, 4, 20.0, with(TrainingTexts::Grammar), &|_| {}).unwrap();
+    let templates =
+        build_dataset_with(16, 4, 20.0, with(TrainingTexts::Templates), &|_| {}).unwrap();
     let mut words = std::collections::BTreeSet::new();
     for (split, sequences) in &grammar.splits {
         for (a, b) in sequences.iter().zip(&templates.splits[split]) {
@@ -344,4 +346,30 @@ fn template_texts_describe_the_same_motions() {
     }
     // The template sentences use 80 words (the grammar 341).
     assert!(words.len() <= 80, "{} words", words.len());
+}
+
+/// `RestAroundTask::Short`: the person starts within 0.9 s and the sequence ends when the last
+/// hand is back; the task itself is drawn as with the default rest.
+#[test]
+fn short_rest_ends_sequences_with_the_task() {
+    use dex2hoi_synth::plan::{REST_AFTER_TASK, RestAroundTask, SHORT_IDLE_BEFORE_TASK};
+    use dex2hoi_synth::{generate, generate_with};
+    for index in 0..16 {
+        let drawn = generate(index, 6, 20.0).unwrap();
+        let short = generate_with(index, 6, 20.0, RestAroundTask::Short).unwrap();
+        let last_retract = |s: &dex2hoi_synth::SynthSequence| {
+            s.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
+        };
+        let first_reach = |s: &dex2hoi_synth::SynthSequence| {
+            s.attachments.iter().map(|a| a.reach_start).fold(f32::INFINITY, f32::min)
+        };
+        let seconds = |s: &dex2hoi_synth::SynthSequence| s.sequence.frames() as f32 / 20.0;
+        // The task's own length is the same; only the rest around it changed.
+        let task = |s: &dex2hoi_synth::SynthSequence| last_retract(s) - first_reach(s);
+        assert!((task(&drawn) - task(&short)).abs() < 1e-4, "sequence {index}");
+        assert!(first_reach(&short) < SHORT_IDLE_BEFORE_TASK.end + 1e-4, "sequence {index}");
+        assert!(seconds(&short) - last_retract(&short) < 0.1, "sequence {index}");
+        assert!(seconds(&drawn) - last_retract(&drawn) >= REST_AFTER_TASK.start - 0.1);
+        assert_eq!(short.sequence.texts, drawn.sequence.texts);
+    }
 }
