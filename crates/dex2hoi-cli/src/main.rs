@@ -136,7 +136,9 @@ fn main() -> std::process::ExitCode {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        Command::Data { command: DataCommand::Synth { out, sequences, seed, fps, texts, rest } } => {
+        Command::Data {
+            command: DataCommand::Synth { out, sequences, seed, fps, texts, rest },
+        } => {
             let options = dex2hoi_synth::SynthOptions { texts: texts.into(), rest: rest.into() };
             synth(&out, sequences, seed, fps, options)
         }
