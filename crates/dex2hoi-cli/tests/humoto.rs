@@ -10,17 +10,10 @@ use std::path::{Path, PathBuf};
 use dex2hoi_data::dataset::{Dataset, Split};
 
 mod common;
-use common::{dex2hoi, fail, succeed};
+use common::{dex2hoi, fail, npz_array, succeed};
 
 fn temp_dir(name: &str) -> PathBuf {
     common::temp_dir("humoto", name)
-}
-
-/// A motion.npz array's numbers and shape.
-fn npz_array(path: &Path, name: &str) -> (Vec<f64>, Vec<usize>) {
-    let mut npz = dex2hoi_import::npy::Npz::open(path).unwrap();
-    let value = npz.read(name, name).unwrap();
-    dex2hoi_import::Field::root("motion.npz", name, &value).numbers_any_shape().unwrap()
 }
 
 #[test]

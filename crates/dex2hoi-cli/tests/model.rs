@@ -31,9 +31,7 @@ fn fails(output: &Output, needle: &str) {
 
 /// `joints` of a motion.npz, `[T, J, 3]` flattened.
 fn joints(dir: &Path) -> Vec<f32> {
-    let file = std::fs::File::open(dir.join("motion.npz")).unwrap();
-    let mut npz = npyz::npz::NpzArchive::new(std::io::BufReader::new(file)).unwrap();
-    npz.by_name("joints").unwrap().expect("joints").into_vec::<f32>().unwrap()
+    common::npz_array(&dir.join("motion.npz"), "joints").0
 }
 
 fn max_difference(a: &[f32], b: &[f32]) -> f32 {

@@ -11,7 +11,7 @@ use std::process::Command;
 use serde_json::Value;
 
 mod common;
-use common::succeed;
+use common::{npz_array, succeed};
 
 const PROMPT: &str =
     "The person picks up the mug with the right hand and puts it down to the left.";
@@ -52,15 +52,6 @@ fn prerequisites() -> Option<(PathBuf, PathBuf)> {
     None
 }
 
-/// The joints of a motion.npz, `[frames * joints * 3]`, and their shape.
-fn npz_joints(path: &Path) -> (Vec<f32>, Vec<u64>) {
-    let file = std::fs::File::open(path).unwrap();
-    let mut npz = npyz::npz::NpzArchive::new(std::io::BufReader::new(file)).unwrap();
-    let array = npz.by_name("joints").unwrap().unwrap();
-    let shape = array.shape().to_vec();
-    (array.into_vec::<f32>().unwrap(), shape)
-}
-
 #[test]
 fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     let Some((site, driver)) = prerequisites() else { return };
@@ -95,8 +86,8 @@ fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     let out_arg = native.to_str().unwrap();
     let args = ["sample", "--text", PROMPT, "--object", "mug", "--seed", &seed];
     succeed(&[&args[..], &["--frames", &frames, "--out", out_arg]].concat());
-    let (expected, shape) = npz_joints(&native.join("motion.npz"));
-    assert_eq!(shape, [FRAMES as u64, 52, 3]);
+    let (expected, shape) = npz_array(&native.join("motion.npz"), "joints");
+    assert_eq!(shape, [FRAMES, 52, 3]);
     let result = &report["result"];
     assert_eq!(result["frames"], FRAMES);
     assert_eq!(result["jointCount"], 52);

@@ -111,6 +111,17 @@ pub fn blender_python() -> Option<std::path::PathBuf> {
     None
 }
 
+/// An array of a `motion.npz` as `f32` (C order), and its shape.
+#[allow(dead_code)] // the tests that read motion.npz use it
+pub fn npz_array(path: &std::path::Path, name: &str) -> (Vec<f32>, Vec<usize>) {
+    let file = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut npz = npyz::npz::NpzArchive::new(std::io::BufReader::new(file)).unwrap();
+    let array =
+        npz.by_name(name).unwrap().unwrap_or_else(|| panic!("no {name} in {}", path.display()));
+    let shape = array.shape().iter().map(|&d| d as usize).collect();
+    (array.into_vec::<f32>().unwrap(), shape)
+}
+
 /// The glTF JSON chunk of a GLB.
 #[allow(dead_code)] // the tests that read motion.glb use it
 pub fn glb_json(path: &std::path::Path) -> serde_json::Value {
