@@ -33,6 +33,38 @@ fn synth_then_info() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `data synth --texts templates --rest short`: the same sequences, each task described by its
+/// fixed sentences, without the rest after the task; an unknown choice is refused.
+#[test]
+fn synth_takes_template_texts_and_short_rest() {
+    let dir = common::temp_dir("cli", "synth-options");
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let (drawn, short) = (path("drawn"), path("short"));
+    let args = ["data", "synth", "--sequences", "8", "--seed", "2"];
+    common::succeed(&[&args[..], &["--out", &drawn]].concat());
+    common::succeed(
+        &[&args[..], &["--out", &short, "--texts", "templates", "--rest", "short"]].concat(),
+    );
+    let read = |dir: &str, file: &str| -> serde_json::Value {
+        let bytes = std::fs::read(std::path::Path::new(dir).join(file)).unwrap();
+        serde_json::from_slice(&bytes).unwrap()
+    };
+    let (drawn_texts, short_texts) = (read(&drawn, "train.json"), read(&short, "train.json"));
+    let first = &short_texts[0]["texts"][0];
+    assert!(first.as_str().unwrap().starts_with("The person picks up the "), "{first}");
+    assert_ne!(drawn_texts[0]["texts"], short_texts[0]["texts"]);
+    assert_eq!(drawn_texts[0]["held_out_texts"], short_texts[0]["held_out_texts"]);
+    // No rest after the task: fewer frames.
+    let frames = |dir: &str| read(dir, "manifest.json")["splits"]["train"]["frames"].as_u64();
+    assert!(frames(&short).unwrap() < frames(&drawn).unwrap());
+    let wrong = common::fail(&[&args[..], &["--out", &path("x"), "--rest", "none"]].concat());
+    assert!(
+        wrong.contains("--rest") && wrong.contains("drawn") && wrong.contains("short"),
+        "{wrong}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn bad_input_gives_clear_errors() {
     let run = dex2hoi(&["data", "synth", "--out", "/tmp/never-written", "--sequences", "0"]);
