@@ -161,6 +161,8 @@ enum SynthTexts {
     Grammar,
     /// The task's three fixed sentences.
     Templates,
+    /// The grammar's three phrasings and the task's three fixed sentences.
+    Both,
 }
 
 impl From<SynthTexts> for dex2hoi_synth::TrainingTexts {
@@ -168,6 +170,7 @@ impl From<SynthTexts> for dex2hoi_synth::TrainingTexts {
         match texts {
             SynthTexts::Grammar => Self::Grammar,
             SynthTexts::Templates => Self::Templates,
+            SynthTexts::Both => Self::Both,
         }
     }
 }

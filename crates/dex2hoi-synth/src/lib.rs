@@ -67,6 +67,10 @@ pub enum TrainingTexts {
     Grammar,
     /// The task's three fixed sentences (`text::template_sentences`), 80 words in all.
     Templates,
+    /// Both: the grammar's three phrasings and the task's three fixed sentences. A model that
+    /// reads the fixed sentences goes on to learn the grammar's synonyms from the same
+    /// motions without losing them.
+    Both,
 }
 
 /// How a hand holds an object: the wrist in the object frame, the surface normal at the grasp
@@ -466,8 +470,14 @@ pub fn build_dataset_with(
         .into_par_iter()
         .map(|index| {
             let mut synth = generate_with(index, seed, fps, options.rest)?;
-            if options.texts == TrainingTexts::Templates {
-                synth.sequence.texts = text::template_sentences(&synth.description);
+            match options.texts {
+                TrainingTexts::Grammar => {}
+                TrainingTexts::Templates => {
+                    synth.sequence.texts = text::template_sentences(&synth.description);
+                }
+                TrainingTexts::Both => {
+                    synth.sequence.texts.extend(text::template_sentences(&synth.description));
+                }
             }
             let object_queries: Vec<&MeshQuery> = synth
                 .sequence

@@ -321,7 +321,7 @@ fn the_layout_serves_sequences_assets_and_windows() {
 }
 
 /// `TrainingTexts::Templates` describes the same motions with the task's three fixed
-/// sentences: only the training texts change.
+/// sentences, `TrainingTexts::Both` with both sets: only the training texts change.
 #[test]
 fn template_texts_describe_the_same_motions() {
     use dex2hoi_synth::{SynthOptions, TrainingTexts, build_dataset_with};
@@ -346,6 +346,17 @@ fn template_texts_describe_the_same_motions() {
     }
     // The template sentences use 80 words (the grammar 341).
     assert!(words.len() <= 80, "{} words", words.len());
+    // `Both`: the grammar's phrasings, then the fixed sentences, for the same motions.
+    let both = build_dataset_with(16, 4, 20.0, with(TrainingTexts::Both), &|_| {}).unwrap();
+    for (split, sequences) in &both.splits {
+        for ((a, b), c) in
+            sequences.iter().zip(&grammar.splits[split]).zip(&templates.splits[split])
+        {
+            assert_eq!(a.body, b.body, "{}", a.source_id);
+            assert_eq!(a.held_out_texts, b.held_out_texts);
+            assert_eq!(a.texts, [b.texts.as_slice(), c.texts.as_slice()].concat());
+        }
+    }
 }
 
 /// `RestAroundTask::Short`: the person starts within 0.9 s and the sequence ends when the last
