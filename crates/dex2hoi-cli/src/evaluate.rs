@@ -15,7 +15,8 @@ use dex2hoi_eval::metrics::MultimodalityProtocol;
 use dex2hoi_sample::{TrainedRun, Weights};
 
 use crate::device::DeviceArgs;
-use crate::sampling::SamplingArgs;
+use crate::sampling::{FreeObjectsArg, SamplingArgs};
+use dex2hoi_sample::rest::FreeObjects;
 
 /// Arguments of `dex2hoi evaluate`.
 #[derive(Debug, Args)]
@@ -53,6 +54,10 @@ pub struct EvaluateArgs {
     paper_multimodality: bool,
     #[command(flatten)]
     sampling: SamplingArgs,
+    /// The objects no hand holds (by the model's mixture): as the model generates them (the
+    /// paper's sampler), or at rest where they were put down, standing on their support.
+    #[arg(long, value_enum, default_value_t = FreeObjects::default().into())]
+    free_objects: FreeObjectsArg,
     /// Seed of the noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -109,7 +114,7 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
         seed: args.seed,
         multimodality,
         long: args.long.then_some(LongOptions { frames: args.long_frames }),
-        free_objects: args.sampling.free_objects(),
+        free_objects: args.free_objects.into(),
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(

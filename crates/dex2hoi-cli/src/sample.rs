@@ -13,11 +13,12 @@ use clap::Args;
 use crate::body::{BodyArgs, LoadedBody};
 use crate::device::DeviceArgs;
 use crate::model::ModelSource;
-use crate::sampling::SamplingArgs;
+use crate::sampling::{FreeObjectsArg, SamplingArgs};
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
+use dex2hoi_sample::rest::FreeObjects;
 use dex2hoi_sample::{
     DEFAULT_TABLE_HEIGHT, Prompt, SampleError, SampleRequest, SceneObject, SceneTable,
     SequenceScene, parse_timeline, sample, unknown_words_warning,
@@ -72,6 +73,12 @@ pub struct SampleArgs {
     seed: u64,
     #[command(flatten)]
     sampling: SamplingArgs,
+    /// The objects no hand holds (by the model's mixture): at rest where they were put down,
+    /// standing on their support, or as the model generates them (the paper's sampler).
+    /// Default: at rest with a model trained on the procedural data, where every object goes
+    /// back down on the surface it started on; as generated with one trained on captured data.
+    #[arg(long, value_enum)]
+    free_objects: Option<FreeObjectsArg>,
     /// Height of the table the objects stand on (metres).
     #[arg(long, default_value_t = DEFAULT_TABLE_HEIGHT)]
     table_height: f32,
@@ -182,7 +189,9 @@ pub fn run(args: SampleArgs) -> Result<()> {
         seed: args.seed,
         sampler,
         table_height: args.table_height,
-        free_objects: args.sampling.free_objects(),
+        free_objects: args
+            .free_objects
+            .map_or_else(|| FreeObjects::sample_default(&run.manifest.source), Into::into),
         progress: Some(watch.hook()),
     };
     if let Some(mesh) = &body {

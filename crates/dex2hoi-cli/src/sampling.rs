@@ -1,5 +1,6 @@
 //! The sampler options that `sample` and `evaluate` share; their defaults are
-//! `SamplerConfig::default()`'s.
+//! `SamplerConfig::default()`'s. What happens to the objects no hand holds is an option of each
+//! (`FreeObjectsArg`), with defaults of their own.
 
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
@@ -43,11 +44,20 @@ pub enum FreeObjectsArg {
     AtRest,
 }
 
-impl FreeObjectsArg {
-    fn default_choice() -> Self {
-        match FreeObjects::default() {
+impl From<FreeObjects> for FreeObjectsArg {
+    fn from(free: FreeObjects) -> Self {
+        match free {
             FreeObjects::AsGenerated => Self::AsGenerated,
             FreeObjects::AtRest => Self::AtRest,
+        }
+    }
+}
+
+impl From<FreeObjectsArg> for FreeObjects {
+    fn from(free: FreeObjectsArg) -> Self {
+        match free {
+            FreeObjectsArg::AsGenerated => Self::AsGenerated,
+            FreeObjectsArg::AtRest => Self::AtRest,
         }
     }
 }
@@ -68,10 +78,6 @@ pub struct SamplingArgs {
         default_value_t = SamplerConfig::default().guidance.unwrap_or(1.0)
     )]
     guidance: f64,
-    /// The objects no hand holds (by the model's mixture): as generated, or at rest where they
-    /// were put down, standing on their support.
-    #[arg(long, value_enum, default_value_t = FreeObjectsArg::default_choice())]
-    free_objects: FreeObjectsArg,
 }
 
 impl SamplingArgs {
@@ -85,13 +91,5 @@ impl SamplingArgs {
         }
         let guidance = (self.guidance != 0.0 && self.guidance != 1.0).then_some(self.guidance);
         Ok(SamplerConfig { kind: self.sampler.kind(), steps: self.denoising_steps, guidance })
-    }
-
-    /// What happens to the objects no hand holds.
-    pub fn free_objects(&self) -> FreeObjects {
-        match self.free_objects {
-            FreeObjectsArg::AsGenerated => FreeObjects::AsGenerated,
-            FreeObjectsArg::AtRest => FreeObjects::AtRest,
-        }
     }
 }

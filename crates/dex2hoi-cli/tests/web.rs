@@ -59,7 +59,7 @@ fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     std::fs::remove_dir_all(&out).ok();
     let request = serde_json::json!({
         "prompt": PROMPT, "object": "mug", "seed": SEED, "seconds": SECONDS,
-        "unknownWordsPrompt": "Grab the mug with the right hand.",
+        "unknownWordsPrompt": "Juggle the mug with the right hand.",
     });
     let run = Command::new("node")
         .arg(&driver)
@@ -116,7 +116,7 @@ fn the_page_generates_what_the_binary_generates_and_shows_errors() {
     assert_eq!(unknown["state"], "done", "{unknown}");
     assert_eq!(unknown["frames"], 20, "{unknown}");
     let message = unknown["message"].as_str().unwrap();
-    assert!(message.contains("never saw `grab`"), "{message}");
+    assert!(message.contains("never saw `juggle`"), "{message}");
     for case in [empty, broken] {
         assert_eq!(case["playerShown"], false, "{case}");
         assert_eq!(case["downloadsShown"], false, "{case}");

@@ -31,6 +31,9 @@ pub const OLDEST_READABLE_FORMAT: u32 = 2;
 /// change (the legs of a standing character) must not blow up.
 pub const STD_FLOOR: f32 = 0.01;
 
+/// `Manifest::source` of the procedural dataset (`dex2hoi-synth`).
+pub const PROCEDURAL_SOURCE: &str = "synth";
+
 /// A dataset split.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -83,7 +86,7 @@ pub struct BpsSettings {
 pub struct Manifest {
     /// [`FORMAT_VERSION`] of the writer.
     pub format_version: u32,
-    /// Where the data come from (`synth`, `grab`, ...).
+    /// Where the data come from ([`PROCEDURAL_SOURCE`], `grab`, ...).
     pub source: String,
     /// `smplx52` or `mixamo65`.
     pub skeleton: String,

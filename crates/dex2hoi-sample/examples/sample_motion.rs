@@ -35,7 +35,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         seed: 0,
         sampler: SamplerConfig::default(),
         table_height: DEFAULT_TABLE_HEIGHT,
-        free_objects: Default::default(),
+        // As `dex2hoi sample` does: released objects at rest for a model of the procedural data.
+        free_objects: dex2hoi_sample::rest::FreeObjects::sample_default(&run.manifest.source),
         progress: None,
     };
     let sampled = sample(&run, &request)?;

@@ -31,6 +31,23 @@ pub enum FreeObjects {
     AtRest,
 }
 
+impl FreeObjects {
+    /// What `dex2hoi sample` and the web page do, unless told otherwise, with a model trained
+    /// on data from `source` (`Manifest::source`). At rest for the procedural data, where every
+    /// object is put down on the surface it started on, as the rule assumes: over ten seconds
+    /// the model alone leaves released objects a median 2-4 cm into or above their support
+    /// (docs/results/long-generations.md). As generated for captured data, where objects go
+    /// to other surfaces (a shelf, the floor). `Default` is the paper's sampler, which
+    /// `evaluate` keeps, so that its figures are the model's own.
+    pub fn sample_default(source: &str) -> Self {
+        if source == dex2hoi_data::dataset::PROCEDURAL_SOURCE {
+            Self::AtRest
+        } else {
+            Self::AsGenerated
+        }
+    }
+}
+
 /// Index of the global branch in the mixture logits (left, right, global).
 const GLOBAL_BRANCH: usize = 2;
 

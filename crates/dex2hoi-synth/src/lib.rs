@@ -509,5 +509,13 @@ pub fn build_dataset_with(
         seed: BPS_SEED,
     };
     let skeleton = dex2hoi_repr::Skeleton::smplx();
-    Ok(Dataset::assemble("synth", &skeleton, fps, splits, assets, bps, Some(seed))?)
+    Ok(Dataset::assemble(
+        dex2hoi_data::dataset::PROCEDURAL_SOURCE,
+        &skeleton,
+        fps,
+        splits,
+        assets,
+        bps,
+        Some(seed),
+    )?)
 }

@@ -66,7 +66,7 @@ fn a_generation_is_the_sample_commands_with_its_exports_and_contacts() {
             seed: 5,
             sampler: SamplerConfig::default(),
             table_height: DEFAULT_TABLE_HEIGHT,
-            free_objects: Default::default(),
+            free_objects: dex2hoi_sample::rest::FreeObjects::AtRest,
             progress: None,
         },
     )
@@ -145,6 +145,6 @@ fn the_page_knows_the_catalogue_and_warns_of_unknown_words() {
     let generator = &generator();
     assert!(generator.words().iter().any(|w| w == "mug"));
     assert_eq!(generator.unknown_words_warning(PROMPT), None);
-    let warning = generator.unknown_words_warning("Grab the cup.").unwrap();
-    assert!(warning.contains("`grab`") && warning.contains("`cup`"), "{warning}");
+    let warning = generator.unknown_words_warning("Juggle the teacup.").unwrap();
+    assert!(warning.contains("`juggle`") && warning.contains("`teacup`"), "{warning}");
 }
