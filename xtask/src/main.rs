@@ -347,7 +347,7 @@ fn demo(root: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Samples the demo prompts (160 frames, seed 1) with a run, or the shipped model without one,
+/// Samples the demo prompts (200 frames: ten seconds; seed 1) with a run, or the shipped model without one,
 /// each into its folder under `folder`; returns each prompt with its folder.
 fn sample_demo_prompts(
     root: &Path,
@@ -364,7 +364,7 @@ fn sample_demo_prompts(
         if let Some(run) = run {
             args.extend(["--run", run]);
         }
-        args.extend(["--text", text, "--frames", "160", "--seed", "1", "--out", &out]);
+        args.extend(["--text", text, "--frames", "200", "--seed", "1", "--out", &out]);
         for object in objects {
             args.extend(["--object", object]);
         }
