@@ -347,8 +347,8 @@ fn demo(root: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Samples the demo prompts (200 frames: ten seconds; seed 1) with a run, or the shipped model without one,
-/// each into its folder under `folder`; returns each prompt with its folder.
+/// Samples the demo prompts (200 frames: ten seconds; seed 1) with a run, or the shipped model
+/// without one, each into its folder under `folder`; returns each prompt with its folder.
 fn sample_demo_prompts(
     root: &Path,
     run: Option<&str>,

@@ -12,11 +12,10 @@ use dex2hoi_data::files::write_atomically;
 use dex2hoi_eval::evaluate::{DEFAULT_LONG_FRAMES, EvaluateOptions, LongOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
-use dex2hoi_sample::{TrainedRun, Weights};
+use dex2hoi_sample::{TrainedRun, Weights, rest::FreeObjects};
 
 use crate::device::DeviceArgs;
 use crate::sampling::{FreeObjectsArg, SamplingArgs};
-use dex2hoi_sample::rest::FreeObjects;
 
 /// Arguments of `dex2hoi evaluate`.
 #[derive(Debug, Args)]

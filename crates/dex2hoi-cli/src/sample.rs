@@ -18,10 +18,9 @@ use dex2hoi_data::dataset::Dataset;
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
-use dex2hoi_sample::rest::FreeObjects;
 use dex2hoi_sample::{
     DEFAULT_TABLE_HEIGHT, Prompt, SampleError, SampleRequest, SceneObject, SceneTable,
-    SequenceScene, parse_timeline, sample, unknown_words_warning,
+    SequenceScene, parse_timeline, rest::FreeObjects, sample, unknown_words_warning,
 };
 
 use long_generation::{

@@ -57,6 +57,13 @@ fn synth_takes_template_texts_and_short_rest() {
     // No rest after the task: fewer frames.
     let frames = |dir: &str| read(dir, "manifest.json")["splits"]["train"]["frames"].as_u64();
     assert!(frames(&short).unwrap() < frames(&drawn).unwrap());
+    // --texts both: the grammar's phrasings, then the fixed sentences.
+    let both = path("both");
+    common::succeed(&[&args[..], &["--out", &both, "--texts", "both"]].concat());
+    let templates = path("templates");
+    common::succeed(&[&args[..], &["--out", &templates, "--texts", "templates"]].concat());
+    let texts = |dir: &str| read(dir, "train.json")[0]["texts"].as_array().unwrap().clone();
+    assert_eq!(texts(&both), [texts(&drawn), texts(&templates)].concat());
     let wrong = common::fail(&[&args[..], &["--out", &path("x"), "--rest", "none"]].concat());
     assert!(
         wrong.contains("--rest") && wrong.contains("drawn") && wrong.contains("short"),

@@ -161,9 +161,9 @@ fn packed_models_sample_like_their_runs_and_are_found_by_the_variable() {
 
 /// The shipped model's joints for `sample_args(None, "11", ..)` at a few (frame, joint) pairs,
 /// recorded with the shipped model, the default sampler (guidance 2.0, released objects at rest)
-/// and the default scene (a lone object on the side of the hand the prompt names). A change of the model, the sampler,
-/// the default scene or the decoding that moves them is a change of what every user gets by
-/// default: record them again and say so in `CHANGELOG.md`.
+/// and the default scene (a lone object on the side of the hand the prompt names). A change of
+/// the model, the sampler, the default scene or the decoding that moves them is a change of what
+/// every user gets by default: record them again and say so in `CHANGELOG.md`.
 const RECORDED: [(usize, usize, [f32; 3]); 4] = [
     (0, 0, [-0.0029534476, 0.9753072, -0.0007937355]),
     (8, 20, [0.23508495, 0.9640081, 0.020869948]),

@@ -145,3 +145,20 @@ impl ObjectsAtRest<'_> {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::FreeObjects;
+
+    /// The rule is `sample`'s default only where its assumption holds: the procedural data,
+    /// whose objects always go back down on the surface they started on.
+    #[test]
+    fn sample_default_follows_the_data_source() {
+        let procedural = dex2hoi_data::dataset::PROCEDURAL_SOURCE;
+        assert_eq!(FreeObjects::sample_default(procedural), FreeObjects::AtRest);
+        for captured in ["grab", "humoto", "himo"] {
+            assert_eq!(FreeObjects::sample_default(captured), FreeObjects::AsGenerated);
+        }
+        assert_eq!(FreeObjects::default(), FreeObjects::AsGenerated, "the paper's sampler");
+    }
+}
