@@ -35,6 +35,8 @@ pub struct TrainingSet {
     window: WindowConfig,
     /// Per sequence and slot, the index of the object asset.
     assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
+    /// Per sequence, whether each hand (left, right) holds an object ([`hands_holding`]).
+    hands_of: Vec<[bool; 2]>,
     bps: Vec<Vec<f32>>,
     clouds: Vec<SurfaceCloud>,
     bps_width: usize,
@@ -83,6 +85,27 @@ pub struct Batch {
     pub elapsed: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
+    /// Whether each hand holds an object at some time of the window's whole sequence
+    /// ([`hands_holding`]), left then right (mirrored with the window), 1 or 0, `[B, 2]`: what
+    /// the text of the window names, for the `text_hands` term.
+    pub hands: Tensor,
+}
+
+/// The frames a hand must touch an object for, in a sequence, to count as holding one: a
+/// quarter of a second at 20 fps, so that a brush in passing does not count.
+pub const HOLDING_FRAMES: usize = 5;
+
+/// Whether each hand (left, right) touches an object on at least [`HOLDING_FRAMES`] frames
+/// of a sequence.
+pub fn hands_holding(sequence: &ProcessedSequence) -> [bool; 2] {
+    let mut frames = [0usize; 2];
+    for frame in sequence.hand_contact.chunks_exact(MAX_OBJECTS * 2) {
+        for (hand, count) in frames.iter_mut().enumerate() {
+            let touching = (0..MAX_OBJECTS).any(|slot| frame[slot * 2 + hand] > 0.5);
+            *count += usize::from(touching);
+        }
+    }
+    frames.map(|count| count >= HOLDING_FRAMES)
 }
 
 /// How a batch is drawn.
@@ -119,6 +142,7 @@ impl TrainingSet {
             .iter()
             .map(|s| dataset.slot_assets(s))
             .collect::<std::result::Result<_, _>>()?;
+        let hands_of = sequences.iter().map(hands_holding).collect();
         let bps_width = dataset.manifest.bps.points * 3;
         let bps = dataset.objects.iter().map(ObjectAsset::bps_features).collect();
         let clouds = dataset
@@ -136,6 +160,7 @@ impl TrainingSet {
             first_windows,
             window,
             assets_of,
+            hands_of,
             bps,
             clouds,
             bps_width,
@@ -199,6 +224,7 @@ impl TrainingSet {
         let mut rest_offsets = Vec::with_capacity(b * joints * 3);
         let mut clouds = Vec::with_capacity(b);
         let mut elapsed = Vec::with_capacity(b);
+        let mut hands = Vec::with_capacity(b * 2);
         for i in 0..b {
             // No draw for the share when it is 0, so that such runs keep their random stream.
             let first = options.first_window_share > 0.0
@@ -224,6 +250,9 @@ impl TrainingSet {
             if mirrored {
                 w = mirror(&w, &self.skeleton);
             }
+            let [left, right] = self.hands_of[window.sequence];
+            let (left, right) = if mirrored { (right, left) } else { (left, right) };
+            hands.extend([f32::from(u8::from(left)), f32::from(u8::from(right))]);
             for k in 0..t_all {
                 frame_mask[i * t_all + k] = if k < window.valid_frames { 1.0 } else { 0.0 };
                 for s in 0..MAX_OBJECTS {
@@ -282,6 +311,7 @@ impl TrainingSet {
             elapsed: tensor(elapsed, &[b])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
+            hands: tensor(hands, &[b, 2])?,
         })
     }
 }

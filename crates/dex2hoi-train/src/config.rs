@@ -67,6 +67,17 @@ pub struct LossConfig {
     pub global: f64,
     /// `lambda_p` of `L_dist` (Eq. 11, default 1).
     pub distance: f64,
+    /// Beyond the paper, for the built-in text encoder only: the weight of a logistic loss
+    /// that reads the first two channels of each text's embedding as logits of "the left
+    /// hand holds an object in this sequence" and "the right hand does", against the data's
+    /// hand contacts ([`crate::batch::Batch::hands`]). Default 0, the paper's objective.
+    ///
+    /// Why: a denoiser that can guess the hand from where the object stands passes no
+    /// gradient to the words that name the hand, and an encoder that does not tell the hands
+    /// apart gives the denoiser nothing to read, so neither starts; this term makes the
+    /// encoder tell them apart (`docs/results/long-generations.md`, "The hand from the
+    /// words").
+    pub text_hands: f64,
     /// Huber threshold `delta` of `L_dist` in cm (default 1).
     pub huber_delta_cm: f64,
     /// Approach radius `d_min` of `L_dist` in metres (default 0.10, the paper's).
@@ -115,6 +126,7 @@ impl Default for LossConfig {
             offset: 0.01,
             global: 0.0,
             distance: 1.0,
+            text_hands: 0.0,
             huber_delta_cm: 1.0,
             approach_radius: 0.10,
             contact_turns_objects: true,
@@ -342,6 +354,7 @@ impl TrainConfig {
             ("loss.offset", l.offset),
             ("loss.global", l.global),
             ("loss.distance", l.distance),
+            ("loss.text_hands", l.text_hands),
         ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(field, "a non-negative weight", &w);
@@ -376,7 +389,15 @@ impl TrainConfig {
                     );
                 }
             }
-            TextConfig::Bert { .. } | TextConfig::Clip { .. } => {}
+            TextConfig::Bert { .. } | TextConfig::Clip { .. } => {
+                if l.text_hands > 0.0 {
+                    return bad(
+                        "loss.text_hands",
+                        "0 with a frozen text encoder (the term trains the built-in one)",
+                        &l.text_hands,
+                    );
+                }
+            }
         }
         Ok(())
     }

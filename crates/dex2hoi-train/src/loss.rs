@@ -4,7 +4,8 @@
 //! lambda_o L_off + lambda_p L_dist` (Eq. 12; the velocity, foot and penetration terms are the
 //! "geometry regularization losses" the paper takes from InterGen, CoDA and HOIDiNi), plus,
 //! beyond the paper and off by default, `lambda_g` times the global branch's error (the
-//! `global` term, [`LossConfig::global`]). Every term
+//! `global` term, [`LossConfig::global`]) and a logistic loss on the hands the text names,
+//! read from its embedding (the `text_hands` term, [`LossConfig::text_hands`]). Every term
 //! is a masked mean over what exists: predicted frames that are real (not padding, not the
 //! prefix), object slots that hold an object, and for the geometric terms, samples whose
 //! diffusion step is at most `geometric_max_timestep`. Lengths are in centimetres.
@@ -67,11 +68,14 @@ pub enum Term {
     Global,
     /// `L_dist` (Eq. 11).
     Distance,
+    /// The hands the text names, read from its embedding (beyond the paper, see
+    /// [`LossConfig::text_hands`]).
+    TextHands,
 }
 
 impl Term {
     /// Every term, in reporting order.
-    pub const ALL: [Term; 10] = [
+    pub const ALL: [Term; 11] = [
         Term::Diffusion,
         Term::FeatureVelocity,
         Term::JointVelocity,
@@ -82,6 +86,7 @@ impl Term {
         Term::Offset,
         Term::Global,
         Term::Distance,
+        Term::TextHands,
     ];
 
     /// The name in logs and `metrics.jsonl`.
@@ -97,13 +102,20 @@ impl Term {
             Term::Offset => "offset",
             Term::Global => "global",
             Term::Distance => "distance",
+            Term::TextHands => "text_hands",
         }
     }
 
     /// Whether the term decodes the prediction (FK, the object channels, signed distances)
     /// rather than comparing normalised features.
     pub fn decodes_prediction(self) -> bool {
-        !matches!(self, Term::Diffusion | Term::FeatureVelocity)
+        self.reads_prediction() && !matches!(self, Term::Diffusion | Term::FeatureVelocity)
+    }
+
+    /// Whether the term is a function of the model's prediction ([`LossContext::objective`]);
+    /// the text term is one of the text embedding ([`LossContext::text_hands`]).
+    pub fn reads_prediction(self) -> bool {
+        self != Term::TextHands
     }
 
     /// The weight of the term in a configuration.
@@ -119,6 +131,7 @@ impl Term {
             Term::Offset => config.offset,
             Term::Global => config.global,
             Term::Distance => config.distance,
+            Term::TextHands => config.text_hands,
         }
     }
 }
@@ -130,6 +143,29 @@ pub struct Objective {
     pub total: Tensor,
     /// Active terms with their unweighted values (scalars).
     pub terms: Vec<(Term, Tensor)>,
+}
+
+impl Objective {
+    /// Adds a term computed apart from [`LossContext::objective`] (the text term), weighted
+    /// as the configuration says.
+    pub fn add(&mut self, term: Term, value: Tensor, config: &LossConfig) -> Result<()> {
+        let weighted = value.affine(term.weight(config), 0.0)?;
+        self.total = (&self.total + weighted.to_dtype(self.total.dtype())?)?;
+        self.terms.push((term, value));
+        Ok(())
+    }
+}
+
+/// The mean binary cross-entropy of logits `x` against targets `y` in [0, 1],
+/// `max(x, 0) - x y + ln(1 + exp(-|x|))`: `-y ln s(x) - (1 - y) ln(1 - s(x))` for the sigmoid
+/// `s`, in a form that neither overflows nor loses precision for large `|x|`.
+///
+/// # Shapes
+/// - `logits`, `targets`: the same shape; returns a scalar
+pub fn logistic_loss(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
+    let softplus_of_minus_abs = (logits.abs()?.neg()?.exp()? + 1.0)?.log()?;
+    let loss = ((logits.relu()? - (logits * targets)?)? + softplus_of_minus_abs)?;
+    Ok(loss.mean_all()?)
 }
 
 /// What the objective needs besides the batch: configuration, skeleton, statistics, clouds.
@@ -209,6 +245,20 @@ impl LossContext {
             None => Tensor::zeros((), window.dtype, &window.device)?,
         };
         Ok(Objective { total, terms })
+    }
+
+    /// The `text_hands` term ([`LossConfig::text_hands`]), `None` when it is off: the first
+    /// two channels of each text's embedding as the logits of "the left hand holds an object"
+    /// and "the right hand does", the mean [`logistic_loss`] against [`Batch::hands`].
+    ///
+    /// # Shapes
+    /// - `embedding`: `[batch, E]`, `E >= 2`, the encoder's output before the text dropout
+    pub fn text_hands(&self, embedding: &Tensor, batch: &Batch) -> Result<Option<Tensor>> {
+        if !self.active(Term::TextHands) {
+            return Ok(None);
+        }
+        let logits = embedding.narrow(1, 0, 2)?;
+        Ok(Some(logistic_loss(&logits, &batch.hands.to_dtype(logits.dtype())?)?))
     }
 
     /// `L_diff` and the feature part of `L_vel` on normalised features: the body once (both

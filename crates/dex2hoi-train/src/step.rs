@@ -214,9 +214,9 @@ impl Trainer {
         &self.parameters
     }
 
-    /// Embeds the batch's texts with word dropout (built-in encoder) and text dropout (the
-    /// null condition, a zero row).
-    fn encode_text(&self, texts: &[String], rng: &mut ChaCha8Rng) -> Result<Tensor> {
+    /// Embeds the batch's texts with word dropout (built-in encoder): the embedding, and the
+    /// same with text dropout applied (the null condition, a zero row), which the model reads.
+    fn encode_text(&self, texts: &[String], rng: &mut ChaCha8Rng) -> Result<(Tensor, Tensor)> {
         let t = &self.config.training;
         let keep: Vec<f32> =
             texts.iter().map(|_| if rng.random_bool(t.text_dropout) { 0.0 } else { 1.0 }).collect();
@@ -240,9 +240,11 @@ impl Trainer {
                 let refs: Vec<&str> = texts.iter().map(String::as_str).collect();
                 encoder.encode(&refs)?.to_device(&self.device)?
             }
-        };
+        }
+        .to_dtype(DType::F32)?;
         let keep = Tensor::from_vec(keep, (texts.len(), 1), &self.device)?;
-        Ok(embedded.to_dtype(DType::F32)?.broadcast_mul(&keep)?)
+        let kept = embedded.broadcast_mul(&keep)?;
+        Ok((embedded, kept))
     }
 
     /// The objective of the batch of a step (no update): for tests and benchmarks. For a batch
@@ -267,7 +269,7 @@ impl Trainer {
             first_window_share: c.training.first_window_share,
         };
         let batch = self.data.batch(&options, rng, &self.device)?;
-        let text = self.encode_text(&batch.texts, rng)?;
+        let (embedding, text) = self.encode_text(&batch.texts, rng)?;
         let timesteps = sample_timesteps(&self.schedule, batch.size, rng);
         let (tp, tf) = (c.model.prefix_frames, c.model.predicted_frames);
         let x0 = batch.features.narrow(2, tp, tf)?;
@@ -290,7 +292,10 @@ impl Trainer {
         let prediction = self.predict(&input, batch.size, rng)?;
         timing.forward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let objective = self.loss.objective(prediction.tensor(), &batch, &timesteps)?;
+        let mut objective = self.loss.objective(prediction.tensor(), &batch, &timesteps)?;
+        if let Some(value) = self.loss.text_hands(&embedding, &batch)? {
+            objective.add(Term::TextHands, value, &c.loss)?;
+        }
         timing.objective = clock.elapsed().as_secs_f64();
         Ok((objective, prediction))
     }
@@ -356,17 +361,20 @@ impl Trainer {
     /// to the joined prediction first, then each group's backward pass from its rows of it
     /// (as many groups at a time as the pool has threads, so that only that many gradient
     /// stores are alive), the parameters' gradients summed in group order, and last the text
-    /// encoder's from the groups' summed gradient of the embedding.
+    /// encoder's from the groups' summed gradient of the embedding. The objective's own
+    /// gradients of the parameters (the text term's, which reads the embedding, not the
+    /// prediction) start the sum.
     fn gradients(&self, total: &Tensor, prediction: Prediction) -> Result<GradStore> {
         let (whole, groups, (text, text_leaf)) = match prediction {
             Prediction::Whole(_) => return Ok(total.backward()?),
             Prediction::Grouped { whole, groups, text } => (whole, groups, text),
         };
-        let upstream = match total.backward()?.get(whole.as_tensor()) {
+        let mut of_objective = total.backward()?;
+        let upstream = match of_objective.remove(whole.as_tensor()) {
             Some(gradient) => gradient.detach(),
             None => whole.as_tensor().zeros_like()?,
         };
-        let mut merged: Option<GradStore> = None;
+        let mut merged = Some(of_objective);
         let mut text_gradient: Option<Tensor> = None;
         for chunk in groups.chunks(rayon::current_num_threads().max(1)) {
             let stores = chunk
@@ -389,7 +397,7 @@ impl Trainer {
                 });
             }
         }
-        let mut merged = merged.expect("at least two groups");
+        let mut merged = merged.expect("the objective's gradients start the sum");
         if let Some(gradient) = text_gradient {
             let of_text = (text * gradient.detach())?.sum_all()?.backward()?;
             merged = self.add_gradients(merged, &of_text)?;

@@ -86,3 +86,55 @@ fn a_share_of_windows_comes_from_the_first_windows() {
     let toml = toml::to_string(&config).unwrap();
     assert!(!toml.contains("first_window_share"), "{toml}");
 }
+
+/// The text term's targets: in the procedural data, a one-handed task's text that names one
+/// hand names the hand that holds an object and no other (in a pour the other hand steadies
+/// the bowl, so both hold there); a mirrored window's targets are the other hands.
+#[test]
+fn the_hands_a_batch_holds_are_those_its_texts_name() {
+    let data = dex2hoi_synth::build_dataset(48, 5, 20.0, &|_| {}).unwrap();
+    let config = TrainConfig::preset("tiny").unwrap();
+    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    let names = |text: &str, hand: &str| {
+        let words: Vec<String> = dex2hoi_model::text::words(text);
+        words.windows(2).any(|w| w[0] == hand && (w[1] == "hand" || w[1] == "handed"))
+    };
+    let mut one_handed = 0;
+    for sequence in trainer.training_set().sequences() {
+        let [left, right] = dex2hoi_train::batch::hands_holding(sequence);
+        assert!(left || right, "{}: no hand holds anything", sequence.source_id);
+        let one_handed_task =
+            matches!(sequence.action.as_deref(), Some("pick_place" | "move_next_to" | "inspect"));
+        for text in sequence.texts.iter().filter(|_| one_handed_task) {
+            let (named_left, named_right) = (names(text, "left"), names(text, "right"));
+            if named_left != named_right {
+                one_handed += 1;
+                assert_eq!([left, right], [named_left, named_right], "{text}");
+            }
+        }
+    }
+    assert!(one_handed > 20, "{one_handed} texts name one hand");
+    // Every window mirrored or none: the hand a window's (mirrored) text names holds.
+    for mirror_probability in [0.0, 1.0] {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let options = BatchOptions {
+            size: 48,
+            swap_probability: 0.5,
+            mirror_probability,
+            first_window_share: 0.0,
+        };
+        let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
+        let hands = batch.hands.to_vec2::<f32>().unwrap();
+        let mut checked = 0;
+        for (text, held) in batch.texts.iter().zip(&hands) {
+            match (names(text, "left"), names(text, "right")) {
+                (true, false) => assert_eq!(held[0], 1.0, "{text}"),
+                (false, true) => assert_eq!(held[1], 1.0, "{text}"),
+                _ => continue,
+            }
+            checked += 1;
+        }
+        assert!(checked > 5, "{checked} windows name one hand");
+        assert!(hands.iter().any(|h| h[0] != h[1]), "some windows hold with one hand");
+    }
+}

@@ -39,7 +39,7 @@ fn evaluate(trainer: &Trainer) -> Vec<(Term, f64)> {
 /// velocity and foot terms the test compares the trained model with one trained the same way
 /// without those terms (weights 1e-9 keep them measured); the others must fall below 70% of
 /// their value at initialisation, the global branch's term (off by default) in a third run
-/// with it on.
+/// with it on. The text term (also off by default) is on in every run.
 ///
 /// The test trains the paper's absolute head. The prefix-residual heads start at a much better
 /// predictor, the last prefix frame copied forward: with `prefix_residual` (every channel) the
@@ -53,6 +53,7 @@ fn tiny_training_lowers_every_term() {
     let data = dataset(32);
     let mut config = TrainConfig::preset("tiny").unwrap();
     config.model.prediction = dex2hoi_model::Prediction::Absolute;
+    config.loss.text_hands = 1.0;
     let run = |config: &TrainConfig| {
         let mut trainer =
             Trainer::new(config.clone(), &data, Path::new("procedural"), &Device::Cpu).unwrap();
@@ -89,7 +90,14 @@ fn tiny_training_lowers_every_term() {
             value(&ablated, term)
         );
     }
-    for term in [Term::Diffusion, Term::Mixture, Term::Offset, Term::Translation, Term::Distance] {
+    for term in [
+        Term::Diffusion,
+        Term::Mixture,
+        Term::Offset,
+        Term::Translation,
+        Term::Distance,
+        Term::TextHands,
+    ] {
         let (start, end) = (value(&before, term), value(&after, term));
         assert!(end < 0.7 * start, "{} did not fall clearly: {start} -> {end}", term.name());
     }
@@ -284,6 +292,14 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
             .unwrap_err()
             .to_string();
     assert!(error.contains("training.batch_size"), "{error}");
+    // The text term trains the built-in encoder; a frozen one has nothing to learn from it.
+    let mut frozen = TrainConfig::preset("tiny").unwrap();
+    frozen.text = dex2hoi_sample::TextConfig::Clip { path: "clip".into() };
+    frozen.model.text_embedding = 512;
+    frozen.validate("frozen.toml").unwrap();
+    frozen.loss.text_hands = 0.1;
+    let error = frozen.validate("frozen.toml").unwrap_err().to_string();
+    assert!(error.contains("frozen.toml") && error.contains("loss.text_hands"), "{error}");
 
     let data = dataset(8);
     let mut config = TrainConfig::preset("tiny").unwrap();
@@ -582,7 +598,8 @@ fn train_steps(config: &TrainConfig, data: &Dataset, steps: usize) -> (Vec<(f64,
 /// On the CPU a batch trains as groups of `training.group_windows` windows, one forward and
 /// backward pass each (`Trainer::step`). Without dropout that is the same step as one pass over
 /// the whole batch, up to float rounding: the same losses, gradient norms and parameters after
-/// a few steps, with groups of uneven sizes (8 windows in groups of 2, 3, 3). And with dropout
+/// a few steps, with groups of uneven sizes (8 windows in groups of 2, 3, 3), the text term on
+/// (its gradient reaches the text encoder outside the groups' passes). And with dropout
 /// (each group's masks from its own seed) a grouped run gives the same bits on one thread as
 /// on two.
 #[test]
@@ -590,6 +607,7 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     let data = dataset(32);
     let mut config = TrainConfig::preset("tiny").unwrap();
     assert_eq!((config.model.dropout, config.training.batch_size), (0.0, 8));
+    config.loss.text_hands = 1.0;
     config.training.group_windows = None;
     let (whole, whole_parameters) = train_steps(&config, &data, 4);
     config.training.group_windows = Some(3);
