@@ -68,15 +68,16 @@ pub struct LossConfig {
     /// `lambda_p` of `L_dist` (Eq. 11, default 1).
     pub distance: f64,
     /// Beyond the paper, for the built-in text encoder only: the weight of a logistic loss
-    /// that reads the first two channels of each text's embedding as logits of "the left
-    /// hand holds an object in this sequence" and "the right hand does", against the data's
-    /// hand contacts ([`crate::batch::Batch::hands`]). Default 0, the paper's objective.
+    /// that reads the first two channels of each text's embedding (scaled) as logits of "the
+    /// left hand holds an object in this sequence" and "the right hand does", against the
+    /// data's hand contacts ([`crate::batch::Batch::hands`]; [`crate::LossContext::text_hands`]).
+    /// Default 0, the paper's objective.
     ///
     /// Why: a denoiser that can guess the hand from where the object stands passes no
     /// gradient to the words that name the hand, and an encoder that does not tell the hands
     /// apart gives the denoiser nothing to read, so neither starts; this term makes the
-    /// encoder tell them apart (`docs/results/long-generations.md`, "The hand from the
-    /// words").
+    /// encoder tell them apart (`docs/results/long-generations.md`, "The hand from the words:
+    /// a text term").
     pub text_hands: f64,
     /// Huber threshold `delta` of `L_dist` in cm (default 1).
     pub huber_delta_cm: f64,

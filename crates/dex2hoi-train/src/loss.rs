@@ -41,6 +41,17 @@ use crate::batch::{Batch, SurfaceCloud};
 use crate::config::LossConfig;
 use crate::error::Result;
 
+/// The text term's logits are its two channels times this, so that the channels stay near
+/// the size of the embedding's others (a few tenths) while the logits reach a few units.
+pub const HAND_LOGIT_SCALE: f64 = 4.0;
+
+/// The text term's targets are 0 and 1 moved this far in, so that its best logits are finite
+/// (`ln(0.98 / 0.02)`, about 3.9: channels of about 1 at [`HAND_LOGIT_SCALE`]) and the two
+/// channels stop growing once the hands are told apart; with targets of 0 and 1 they grow
+/// without end, and the rest of the embedding shrinks beside them
+/// (`docs/results/long-generations.md`, "The hand from the words: a text term").
+pub const HAND_TARGET_MARGIN: f64 = 0.02;
+
 /// Centimetres per metre: geometric terms are measured in centimetres.
 pub const CENTIMETRES: f64 = 100.0;
 
@@ -248,8 +259,9 @@ impl LossContext {
     }
 
     /// The `text_hands` term ([`LossConfig::text_hands`]), `None` when it is off: the first
-    /// two channels of each text's embedding as the logits of "the left hand holds an object"
-    /// and "the right hand does", the mean [`logistic_loss`] against [`Batch::hands`].
+    /// two channels of each text's embedding, times [`HAND_LOGIT_SCALE`], as the logits of
+    /// "the left hand holds an object" and "the right hand does", the mean [`logistic_loss`]
+    /// against [`Batch::hands`] moved [`HAND_TARGET_MARGIN`] in from 0 and 1.
     ///
     /// # Shapes
     /// - `embedding`: `[batch, E]`, `E >= 2`, the encoder's output before the text dropout
@@ -257,8 +269,10 @@ impl LossContext {
         if !self.active(Term::TextHands) {
             return Ok(None);
         }
-        let logits = embedding.narrow(1, 0, 2)?;
-        Ok(Some(logistic_loss(&logits, &batch.hands.to_dtype(logits.dtype())?)?))
+        let logits = embedding.narrow(1, 0, 2)?.affine(HAND_LOGIT_SCALE, 0.0)?;
+        let margin = HAND_TARGET_MARGIN;
+        let targets = batch.hands.to_dtype(logits.dtype())?.affine(1.0 - 2.0 * margin, margin)?;
+        Ok(Some(logistic_loss(&logits, &targets)?))
     }
 
     /// `L_diff` and the feature part of `L_vel` on normalised features: the body once (both

@@ -223,3 +223,31 @@ fn the_logistic_loss_is_the_cross_entropy_and_has_its_gradient() {
         );
     }
 }
+
+/// The text term's targets sit inside (0, 1), so its best channels are finite: channels of
+/// `±ln(0.98 / 0.02) / HAND_LOGIT_SCALE` (positive for a hand that holds) cost less than the
+/// same channels halved or doubled, and have no gradient there.
+#[test]
+fn the_text_term_is_least_at_finite_channels() {
+    use dex2hoi_train::loss::{HAND_LOGIT_SCALE, HAND_TARGET_MARGIN};
+    let Setup { trainer, batch, .. } = Setup::new(|config| config.loss.text_hands = 1.0);
+    let best = ((1.0 - HAND_TARGET_MARGIN) / HAND_TARGET_MARGIN).ln() / HAND_LOGIT_SCALE;
+    let hands = batch.hands.to_dtype(DType::F64).unwrap();
+    let channels = |size: f64| {
+        let signs = hands.affine(2.0, -1.0).unwrap();
+        let rest = Tensor::zeros((batch.size, 6), DType::F64, &Device::Cpu).unwrap();
+        Tensor::cat(&[&signs.affine(size, 0.0).unwrap(), &rest], 1).unwrap()
+    };
+    let term = |embedding: &Tensor| {
+        let value = trainer.loss_context().text_hands(embedding, &batch).unwrap().unwrap();
+        value.to_scalar::<f64>().unwrap()
+    };
+    let at_best = term(&channels(best));
+    assert!(at_best < term(&channels(0.5 * best)), "halved channels cost more");
+    assert!(at_best < term(&channels(2.0 * best)), "doubled channels cost more");
+    let embedding = Var::from_tensor(&channels(best)).unwrap();
+    let value = trainer.loss_context().text_hands(embedding.as_tensor(), &batch).unwrap().unwrap();
+    let gradient = value.backward().unwrap().get(embedding.as_tensor()).unwrap().clone();
+    let largest = gradient.abs().unwrap().max_all().unwrap().to_scalar::<f64>().unwrap();
+    assert!(largest < 1e-9, "gradient {largest} at the best channels");
+}
