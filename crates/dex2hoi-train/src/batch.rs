@@ -92,7 +92,8 @@ pub struct Batch {
 }
 
 /// The frames a hand must touch an object for, in a sequence, to count as holding one: a
-/// quarter of a second at 20 fps, so that a brush in passing does not count.
+/// quarter of a second at 20 fps, so that a brush in passing does not count
+/// (docs/CONVENTIONS.md, "Losses").
 pub const HOLDING_FRAMES: usize = 5;
 
 /// Whether each hand (left, right) touches an object on at least [`HOLDING_FRAMES`] frames
