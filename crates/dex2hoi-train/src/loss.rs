@@ -47,8 +47,8 @@ pub const HAND_LOGIT_SCALE: f64 = 4.0;
 
 /// The text term's targets are 0 and 1 moved this far in, so that its best logits are finite
 /// (`ln(0.98 / 0.02)`, about 3.9: channels of about 1 at [`HAND_LOGIT_SCALE`]) and the two
-/// channels stop growing once the hands are told apart; with targets of 0 and 1 they grow
-/// without end, and the rest of the embedding shrinks beside them
+/// channels stop growing once the hands are told apart; with targets of 0 and 1 they kept
+/// growing in training, and the sides came closer beside them
 /// (`docs/results/long-generations.md`, "The hand from the words: a text term").
 pub const HAND_TARGET_MARGIN: f64 = 0.02;
 

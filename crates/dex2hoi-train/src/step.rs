@@ -374,7 +374,7 @@ impl Trainer {
             Some(gradient) => gradient.detach(),
             None => whole.as_tensor().zeros_like()?,
         };
-        let mut merged = Some(of_objective);
+        let mut merged = of_objective;
         let mut text_gradient: Option<Tensor> = None;
         for chunk in groups.chunks(rayon::current_num_threads().max(1)) {
             let stores = chunk
@@ -391,13 +391,9 @@ impl Trainer {
                         None => gradient,
                     });
                 }
-                merged = Some(match merged {
-                    None => store,
-                    Some(merged) => self.add_gradients(merged, &store)?,
-                });
+                merged = self.add_gradients(merged, &store)?;
             }
         }
-        let mut merged = merged.expect("the objective's gradients start the sum");
         if let Some(gradient) = text_gradient {
             let of_text = (text * gradient.detach())?.sum_all()?.backward()?;
             merged = self.add_gradients(merged, &of_text)?;
