@@ -24,6 +24,11 @@ pub struct ObjectAsset {
 /// Number of surface samples stored per object.
 pub const SURFACE_SAMPLES: usize = 512;
 
+/// Half-width of the centre band when the side an object ends on is judged: an object ends
+/// to a side of where it stood when it ends more than this far to that side along the body's
+/// left axis (docs/CONVENTIONS.md, "The long-generation protocol").
+pub const SIDE_MARGIN_M: f32 = 0.05;
+
 impl ObjectAsset {
     /// BPS and surface samples of a mesh (the samples are seeded by `seed`).
     pub fn new(name: &str, mesh: Mesh, basis: &BpsBasis, seed: u64) -> Result<Self> {
@@ -110,5 +115,25 @@ impl ProcessedSequence {
     /// rest offsets.
     pub fn skeleton(&self, topology: &Skeleton) -> Result<Skeleton> {
         Ok(topology.with_rest_offsets(self.rest_offsets.clone())?)
+    }
+
+    /// Whether some object ends more than [`SIDE_MARGIN_M`] to the person's left of where it
+    /// stood at the first frame, and whether some object ends that far to the right: `[left,
+    /// right]`, along +X of the canonical frame, the first frame's left
+    /// (docs/CONVENTIONS.md, "Coordinate frames and units").
+    pub fn objects_travel(&self) -> [bool; 2] {
+        let mut sides = [false; 2];
+        if self.frames == 0 {
+            return sides;
+        }
+        let [first, last] = [self.object_poses_at(0), self.object_poses_at(self.frames - 1)];
+        for (start, end) in first.iter().zip(&last) {
+            if let (Some(start), Some(end)) = (start, end) {
+                let across = end.position.x - start.position.x;
+                sides[0] |= across > SIDE_MARGIN_M;
+                sides[1] |= across < -SIDE_MARGIN_M;
+            }
+        }
+        sides
     }
 }

@@ -37,6 +37,9 @@ pub struct TrainingSet {
     assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Per sequence, whether each hand (left, right) holds an object ([`hands_holding`]).
     hands_of: Vec<[bool; 2]>,
+    /// Per sequence, whether some object ends to the person's left, and to the right, of
+    /// where it stood ([`ProcessedSequence::objects_travel`]).
+    sides_of: Vec<[bool; 2]>,
     bps: Vec<Vec<f32>>,
     clouds: Vec<SurfaceCloud>,
     bps_width: usize,
@@ -89,6 +92,10 @@ pub struct Batch {
     /// ([`hands_holding`]), left then right (mirrored with the window), 1 or 0, `[B, 2]`: what
     /// the text of the window names, for the `text_hands` term.
     pub hands: Tensor,
+    /// Whether some object of the window's whole sequence ends to the person's left, and to
+    /// the right, of where it stood ([`ProcessedSequence::objects_travel`]; mirrored with the
+    /// window), 1 or 0, `[B, 2]`: the side the text names, for the `text_sides` term.
+    pub sides: Tensor,
 }
 
 /// The frames a hand must touch an object for, in a sequence, to count as holding one: a
@@ -144,6 +151,7 @@ impl TrainingSet {
             .map(|s| dataset.slot_assets(s))
             .collect::<std::result::Result<_, _>>()?;
         let hands_of = sequences.iter().map(hands_holding).collect();
+        let sides_of = sequences.iter().map(ProcessedSequence::objects_travel).collect();
         let bps_width = dataset.manifest.bps.points * 3;
         let bps = dataset.objects.iter().map(ObjectAsset::bps_features).collect();
         let clouds = dataset
@@ -162,6 +170,7 @@ impl TrainingSet {
             window,
             assets_of,
             hands_of,
+            sides_of,
             bps,
             clouds,
             bps_width,
@@ -226,6 +235,7 @@ impl TrainingSet {
         let mut clouds = Vec::with_capacity(b);
         let mut elapsed = Vec::with_capacity(b);
         let mut hands = Vec::with_capacity(b * 2);
+        let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
             // No draw for the share when it is 0, so that such runs keep their random stream.
             let first = options.first_window_share > 0.0
@@ -251,9 +261,11 @@ impl TrainingSet {
             if mirrored {
                 w = mirror(&w, &self.skeleton);
             }
-            let [left, right] = self.hands_of[window.sequence];
-            let (left, right) = if mirrored { (right, left) } else { (left, right) };
-            hands.extend([f32::from(u8::from(left)), f32::from(u8::from(right))]);
+            for (of, out) in [(&self.hands_of, &mut hands), (&self.sides_of, &mut sides)] {
+                let [left, right] = of[window.sequence];
+                let (left, right) = if mirrored { (right, left) } else { (left, right) };
+                out.extend([f32::from(u8::from(left)), f32::from(u8::from(right))]);
+            }
             for k in 0..t_all {
                 frame_mask[i * t_all + k] = if k < window.valid_frames { 1.0 } else { 0.0 };
                 for s in 0..MAX_OBJECTS {
@@ -313,6 +325,7 @@ impl TrainingSet {
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,
+            sides: tensor(sides, &[b, 2])?,
         })
     }
 }

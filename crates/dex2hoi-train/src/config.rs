@@ -70,7 +70,7 @@ pub struct LossConfig {
     /// Beyond the paper, for the built-in text encoder only: the weight of a logistic loss
     /// that reads the first two channels of each text's embedding (scaled) as logits of "the
     /// left hand holds an object in this sequence" and "the right hand does", against the
-    /// data's hand contacts ([`crate::batch::Batch::hands`]; [`crate::LossContext::text_hands`]).
+    /// data's hand contacts ([`crate::batch::Batch::hands`]; [`crate::LossContext::text_terms`]).
     /// Default 0, the paper's objective.
     ///
     /// Why: a denoiser that can guess the hand from where the object stands passes no
@@ -79,6 +79,16 @@ pub struct LossConfig {
     /// encoder tell them apart (`docs/results/long-generations.md`, "The hand from the words:
     /// a text term").
     pub text_hands: f64,
+    /// Beyond the paper, for the built-in text encoder only: the weight of the same logistic
+    /// loss on the embedding's third and fourth channels, read as logits of "an object ends
+    /// to the person's left of where it stood" and "one ends to the right", against the
+    /// data's object motion ([`crate::batch::Batch::sides`];
+    /// [`crate::LossContext::text_terms`]). Default 0, the paper's objective.
+    ///
+    /// Why: with `text_hands` alone the encoder brought the sides closer together as it told
+    /// the hands apart, and objects ended on the side asked for in about half the
+    /// generations (`docs/results/long-generations.md`, "The side from the words").
+    pub text_sides: f64,
     /// Huber threshold `delta` of `L_dist` in cm (default 1).
     pub huber_delta_cm: f64,
     /// Approach radius `d_min` of `L_dist` in metres (default 0.10, the paper's).
@@ -128,6 +138,7 @@ impl Default for LossConfig {
             global: 0.0,
             distance: 1.0,
             text_hands: 0.0,
+            text_sides: 0.0,
             huber_delta_cm: 1.0,
             approach_radius: 0.10,
             contact_turns_objects: true,
@@ -356,6 +367,7 @@ impl TrainConfig {
             ("loss.global", l.global),
             ("loss.distance", l.distance),
             ("loss.text_hands", l.text_hands),
+            ("loss.text_sides", l.text_sides),
         ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(field, "a non-negative weight", &w);
@@ -391,12 +403,16 @@ impl TrainConfig {
                 }
             }
             TextConfig::Bert { .. } | TextConfig::Clip { .. } => {
-                if l.text_hands > 0.0 {
-                    return bad(
-                        "loss.text_hands",
-                        "0 with a frozen text encoder (the term trains the built-in one)",
-                        &l.text_hands,
-                    );
+                for (field, weight) in
+                    [("loss.text_hands", l.text_hands), ("loss.text_sides", l.text_sides)]
+                {
+                    if weight > 0.0 {
+                        return bad(
+                            field,
+                            "0 with a frozen text encoder (the term trains the built-in one)",
+                            &weight,
+                        );
+                    }
                 }
             }
         }

@@ -4,8 +4,9 @@
 //! lambda_o L_off + lambda_p L_dist` (Eq. 12; the velocity, foot and penetration terms are the
 //! "geometry regularization losses" the paper takes from InterGen, CoDA and HOIDiNi), plus,
 //! beyond the paper and off by default, `lambda_g` times the global branch's error (the
-//! `global` term, [`LossConfig::global`]) and a logistic loss on the hands the text names,
-//! read from its embedding (the `text_hands` term, [`LossConfig::text_hands`]). Every term
+//! `global` term, [`LossConfig::global`]) and logistic losses on the hands and the side the
+//! text names, read from its embedding (the `text_hands` and `text_sides` terms,
+//! [`LossConfig::text_hands`], [`LossConfig::text_sides`]). Every term
 //! is a masked mean over what exists: predicted frames that are real (not padding, not the
 //! prefix), object slots that hold an object, and for the geometric terms, samples whose
 //! diffusion step is at most `geometric_max_timestep`. Lengths are in centimetres.
@@ -41,16 +42,23 @@ use crate::batch::{Batch, SurfaceCloud};
 use crate::config::LossConfig;
 use crate::error::Result;
 
-/// The text term's logits are its two channels times this, so that the channels stay near
+/// The text terms' logits are their two channels times this, so that the channels stay near
 /// the size of the embedding's others (a few tenths) while the logits reach a few units.
-pub const HAND_LOGIT_SCALE: f64 = 4.0;
+pub const TEXT_LOGIT_SCALE: f64 = 4.0;
 
-/// The text term's targets are 0 and 1 moved this far in, so that its best logits are finite
-/// (`ln(0.98 / 0.02)`, about 3.9: channels of about 1 at [`HAND_LOGIT_SCALE`]) and the two
+/// The text terms' targets are 0 and 1 moved this far in, so that their best logits are
+/// finite (`ln(0.98 / 0.02)`, about 3.9: channels of about 1 at [`TEXT_LOGIT_SCALE`]) and the
 /// channels stop growing once the hands are told apart; with targets of 0 and 1 they kept
 /// growing in training, and the sides came closer beside them
 /// (`docs/results/long-generations.md`, "The hand from the words: a text term").
-pub const HAND_TARGET_MARGIN: f64 = 0.02;
+pub const TEXT_TARGET_MARGIN: f64 = 0.02;
+
+/// The embedding channels the `text_hands` term reads: left hand, right hand.
+pub const HAND_CHANNELS: std::ops::Range<usize> = 0..2;
+
+/// The embedding channels the `text_sides` term reads: an object ends to the left, to the
+/// right.
+pub const SIDE_CHANNELS: std::ops::Range<usize> = 2..4;
 
 /// Centimetres per metre: geometric terms are measured in centimetres.
 pub const CENTIMETRES: f64 = 100.0;
@@ -82,11 +90,14 @@ pub enum Term {
     /// The hands the text names, read from its embedding (beyond the paper, see
     /// [`LossConfig::text_hands`]).
     TextHands,
+    /// The side the text names, read from its embedding (beyond the paper, see
+    /// [`LossConfig::text_sides`]).
+    TextSides,
 }
 
 impl Term {
     /// Every term, in reporting order.
-    pub const ALL: [Term; 11] = [
+    pub const ALL: [Term; 12] = [
         Term::Diffusion,
         Term::FeatureVelocity,
         Term::JointVelocity,
@@ -98,6 +109,7 @@ impl Term {
         Term::Global,
         Term::Distance,
         Term::TextHands,
+        Term::TextSides,
     ];
 
     /// The name in logs and `metrics.jsonl`.
@@ -114,6 +126,7 @@ impl Term {
             Term::Global => "global",
             Term::Distance => "distance",
             Term::TextHands => "text_hands",
+            Term::TextSides => "text_sides",
         }
     }
 
@@ -124,9 +137,9 @@ impl Term {
     }
 
     /// Whether the term is a function of the model's prediction ([`LossContext::objective`]);
-    /// the text term is one of the text embedding ([`LossContext::text_hands`]).
+    /// the text terms are functions of the text embedding ([`LossContext::text_terms`]).
     pub fn reads_prediction(self) -> bool {
-        self != Term::TextHands
+        !matches!(self, Term::TextHands | Term::TextSides)
     }
 
     /// The weight of the term in a configuration.
@@ -143,6 +156,7 @@ impl Term {
             Term::Global => config.global,
             Term::Distance => config.distance,
             Term::TextHands => config.text_hands,
+            Term::TextSides => config.text_sides,
         }
     }
 }
@@ -157,8 +171,8 @@ pub struct Objective {
 }
 
 impl Objective {
-    /// Adds a term computed apart from [`LossContext::objective`] (the text term), weighted
-    /// as the configuration says.
+    /// Adds a term, weighted as the configuration says: each of [`LossContext::objective`]'s
+    /// and those computed apart from it (the text terms).
     pub fn add(&mut self, term: Term, value: Tensor, config: &LossConfig) -> Result<()> {
         let weighted = value.affine(term.weight(config), 0.0)?;
         self.total = (&self.total + weighted.to_dtype(self.total.dtype())?)?;
@@ -243,36 +257,41 @@ impl LossContext {
         if geometric {
             self.geometric_terms(&window, prediction, &target, &mut terms)?;
         }
-        let mut total: Option<Tensor> = None;
-        for (term, value) in &terms {
-            let weighted = value.affine(term.weight(&self.config), 0.0)?;
-            total = Some(match total {
-                Some(t) => (t + weighted)?,
-                None => weighted,
-            });
+        let total = Tensor::zeros((), window.dtype, &window.device)?;
+        let mut objective = Objective { total, terms: Vec::with_capacity(terms.len()) };
+        for (term, value) in terms {
+            objective.add(term, value, &self.config)?;
         }
-        let total = match total {
-            Some(t) => t,
-            None => Tensor::zeros((), window.dtype, &window.device)?,
-        };
-        Ok(Objective { total, terms })
+        Ok(objective)
     }
 
-    /// The `text_hands` term ([`LossConfig::text_hands`]), `None` when it is off: the first
-    /// two channels of each text's embedding, times [`HAND_LOGIT_SCALE`], as the logits of
-    /// "the left hand holds an object" and "the right hand does", the mean [`logistic_loss`]
-    /// against [`Batch::hands`] moved [`HAND_TARGET_MARGIN`] in from 0 and 1.
+    /// The active text terms, each with its value: `text_hands` ([`LossConfig::text_hands`])
+    /// reads channels [`HAND_CHANNELS`] of each text's embedding, times [`TEXT_LOGIT_SCALE`],
+    /// as the logits of "the left hand holds an object" and "the right hand does", against
+    /// [`Batch::hands`]; `text_sides` ([`LossConfig::text_sides`]) reads [`SIDE_CHANNELS`] as
+    /// those of "an object ends to the left of where it stood" and "one ends to the right",
+    /// against [`Batch::sides`]. Each is the mean [`logistic_loss`] against its targets moved
+    /// [`TEXT_TARGET_MARGIN`] in from 0 and 1.
     ///
     /// # Shapes
-    /// - `embedding`: `[batch, E]`, `E >= 2`, the encoder's output before the text dropout
-    pub fn text_hands(&self, embedding: &Tensor, batch: &Batch) -> Result<Option<Tensor>> {
-        if !self.active(Term::TextHands) {
-            return Ok(None);
+    /// - `embedding`: `[batch, E]`, `E >= 4`, the encoder's output before the text dropout
+    pub fn text_terms(&self, embedding: &Tensor, batch: &Batch) -> Result<Vec<(Term, Tensor)>> {
+        let mut terms = Vec::new();
+        for (term, channels, targets) in [
+            (Term::TextHands, HAND_CHANNELS, &batch.hands),
+            (Term::TextSides, SIDE_CHANNELS, &batch.sides),
+        ] {
+            if self.active(term) {
+                let logits = embedding
+                    .narrow(1, channels.start, channels.len())?
+                    .affine(TEXT_LOGIT_SCALE, 0.0)?;
+                let margin = TEXT_TARGET_MARGIN;
+                let targets =
+                    targets.to_dtype(logits.dtype())?.affine(1.0 - 2.0 * margin, margin)?;
+                terms.push((term, logistic_loss(&logits, &targets)?));
+            }
         }
-        let logits = embedding.narrow(1, 0, 2)?.affine(HAND_LOGIT_SCALE, 0.0)?;
-        let margin = HAND_TARGET_MARGIN;
-        let targets = batch.hands.to_dtype(logits.dtype())?.affine(1.0 - 2.0 * margin, margin)?;
-        Ok(Some(logistic_loss(&logits, &targets)?))
+        Ok(terms)
     }
 
     /// `L_diff` and the feature part of `L_vel` on normalised features: the body once (both

@@ -293,8 +293,8 @@ impl Trainer {
         timing.forward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let mut objective = self.loss.objective(prediction.tensor(), &batch, &timesteps)?;
-        if let Some(value) = self.loss.text_hands(&embedding, &batch)? {
-            objective.add(Term::TextHands, value, &c.loss)?;
+        for (term, value) in self.loss.text_terms(&embedding, &batch)? {
+            objective.add(term, value, &c.loss)?;
         }
         timing.objective = clock.elapsed().as_secs_f64();
         Ok((objective, prediction))

@@ -224,30 +224,42 @@ fn the_logistic_loss_is_the_cross_entropy_and_has_its_gradient() {
     }
 }
 
-/// The text term's targets sit inside (0, 1), so its best channels are finite: channels of
-/// `±ln(0.98 / 0.02) / HAND_LOGIT_SCALE` (positive for a hand that holds) cost less than the
-/// same channels halved or doubled, and have no gradient there.
+/// The text terms' targets sit inside (0, 1), so their best channels are finite: channels of
+/// `±ln(0.98 / 0.02) / TEXT_LOGIT_SCALE` (positive for a hand that holds, a side an object
+/// ends on) cost less than the same channels halved or doubled, and have no gradient there.
 #[test]
-fn the_text_term_is_least_at_finite_channels() {
-    use dex2hoi_train::loss::{HAND_LOGIT_SCALE, HAND_TARGET_MARGIN};
-    let Setup { trainer, batch, .. } = Setup::new(|config| config.loss.text_hands = 1.0);
-    let best = ((1.0 - HAND_TARGET_MARGIN) / HAND_TARGET_MARGIN).ln() / HAND_LOGIT_SCALE;
-    let hands = batch.hands.to_dtype(DType::F64).unwrap();
+fn the_text_terms_are_least_at_finite_channels() {
+    use dex2hoi_train::loss::{TEXT_LOGIT_SCALE, TEXT_TARGET_MARGIN};
+    let Setup { trainer, batch, .. } = Setup::new(|config| {
+        config.loss.text_hands = 1.0;
+        config.loss.text_sides = 1.0;
+    });
+    let best = ((1.0 - TEXT_TARGET_MARGIN) / TEXT_TARGET_MARGIN).ln() / TEXT_LOGIT_SCALE;
+    let targets = Tensor::cat(&[&batch.hands, &batch.sides], 1).unwrap();
+    let signs = targets.to_dtype(DType::F64).unwrap().affine(2.0, -1.0).unwrap();
     let channels = |size: f64| {
-        let signs = hands.affine(2.0, -1.0).unwrap();
-        let rest = Tensor::zeros((batch.size, 6), DType::F64, &Device::Cpu).unwrap();
+        let rest = Tensor::zeros((batch.size, 4), DType::F64, &Device::Cpu).unwrap();
         Tensor::cat(&[&signs.affine(size, 0.0).unwrap(), &rest], 1).unwrap()
     };
-    let term = |embedding: &Tensor| {
-        let value = trainer.loss_context().text_hands(embedding, &batch).unwrap().unwrap();
-        value.to_scalar::<f64>().unwrap()
+    let terms = |embedding: &Tensor| {
+        let terms = trainer.loss_context().text_terms(embedding, &batch).unwrap();
+        let names: Vec<Term> = terms.iter().map(|(term, _)| *term).collect();
+        assert_eq!(names, [Term::TextHands, Term::TextSides]);
+        terms.into_iter().map(|(_, value)| value).collect::<Vec<_>>()
     };
-    let at_best = term(&channels(best));
-    assert!(at_best < term(&channels(0.5 * best)), "halved channels cost more");
-    assert!(at_best < term(&channels(2.0 * best)), "doubled channels cost more");
+    let costs = |embedding: &Tensor| -> Vec<f64> {
+        terms(embedding).iter().map(|v| v.to_scalar::<f64>().unwrap()).collect()
+    };
+    let at_best = costs(&channels(best));
+    for (scale, what) in [(0.5, "halved"), (2.0, "doubled")] {
+        for (best, other) in at_best.iter().zip(costs(&channels(scale * best))) {
+            assert!(*best < other, "{what} channels cost more: {best} against {other}");
+        }
+    }
     let embedding = Var::from_tensor(&channels(best)).unwrap();
-    let value = trainer.loss_context().text_hands(embedding.as_tensor(), &batch).unwrap().unwrap();
-    let gradient = value.backward().unwrap().get(embedding.as_tensor()).unwrap().clone();
-    let largest = gradient.abs().unwrap().max_all().unwrap().to_scalar::<f64>().unwrap();
-    assert!(largest < 1e-9, "gradient {largest} at the best channels");
+    for value in terms(embedding.as_tensor()) {
+        let gradient = value.backward().unwrap().get(embedding.as_tensor()).unwrap().clone();
+        let largest = gradient.abs().unwrap().max_all().unwrap().to_scalar::<f64>().unwrap();
+        assert!(largest < 1e-9, "gradient {largest} at the best channels");
+    }
 }

@@ -87,6 +87,83 @@ fn a_share_of_windows_comes_from_the_first_windows() {
     assert!(!toml.contains("first_window_share"), "{toml}");
 }
 
+/// The side text term's targets: in the procedural data, a pick and place ends to the side
+/// its texts name (or, where the table's edge stopped it, within the centre band), never to
+/// the other; a mirrored window's targets are the other sides.
+#[test]
+fn the_sides_a_batch_moves_to_are_those_its_texts_name() {
+    let data = dex2hoi_synth::build_dataset(48, 5, 20.0, &|_| {}).unwrap();
+    let config = TrainConfig::preset("tiny").unwrap();
+    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    // The side words of a text that are not a hand's: `[left, right]`.
+    let sides_named = |text: &str| {
+        let words: Vec<String> = dex2hoi_model::text::words(text);
+        let mut named = [0usize; 2];
+        for (i, word) in words.iter().enumerate() {
+            let of_hand = words.get(i + 1).is_some_and(|w| w == "hand" || w == "handed");
+            for (side, name) in ["left", "right"].iter().enumerate() {
+                named[side] += usize::from(word == name && !of_hand);
+            }
+        }
+        named
+    };
+    let (mut agree, mut centre) = (0, 0);
+    for sequence in trainer.training_set().sequences() {
+        if sequence.action.as_deref() != Some("pick_place") {
+            continue;
+        }
+        let travel = sequence.objects_travel();
+        for text in &sequence.texts {
+            let side = match sides_named(text) {
+                [1, 0] => 0,
+                [0, 1] => 1,
+                _ => continue,
+            };
+            assert!(!travel[1 - side], "{text}: the object ends on the other side");
+            if travel[side] {
+                agree += 1;
+            } else {
+                centre += 1;
+            }
+        }
+    }
+    assert!(agree >= 10 && centre * 10 <= agree, "{agree} texts agree, {centre} end in the centre");
+    // Every window mirrored or none: a window whose (mirrored) text names one side, says
+    // nothing of where it ends against another object ("next to", "of") and passes nothing
+    // from hand to hand (a hand over puts the object down on the taking hand's side of the
+    // body, which may be the other way from where it stood) moves an object to that side or
+    // to none.
+    for mirror_probability in [0.0, 1.0] {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let options = BatchOptions {
+            size: 160,
+            swap_probability: 0.5,
+            mirror_probability,
+            first_window_share: 0.0,
+        };
+        let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
+        let sides = batch.sides.to_vec2::<f32>().unwrap();
+        let mut checked = 0;
+        for (text, moved) in batch.texts.iter().zip(&sides) {
+            let words = dex2hoi_model::text::words(text);
+            let both_hands = ["left", "right"].iter().all(|side| {
+                words.windows(2).any(|w| w[0] == *side && (w[1] == "hand" || w[1] == "handed"))
+            });
+            if both_hands || words.iter().any(|w| w == "next" || w == "of" || w == "other") {
+                continue;
+            }
+            let side = match sides_named(text) {
+                [1, 0] => 0,
+                [0, 1] => 1,
+                _ => continue,
+            };
+            assert_eq!(moved[1 - side], 0.0, "{text}: {moved:?}");
+            checked += usize::from(moved[side] == 1.0);
+        }
+        assert!(checked > 5, "{checked} windows move an object to the side they name");
+    }
+}
+
 /// The text term's targets: in the procedural data, a one-handed task's text that names one
 /// hand names the hand that holds an object and no other (in a pour the other hand steadies
 /// the bowl, so both hold there); a mirrored window's targets are the other hands.

@@ -63,11 +63,15 @@ fn tiny_training_lowers_every_term() {
         (before, evaluate(&trainer))
     };
     let (before, after) = run(&config);
-    // The global branch's term and the text term are beyond the paper and off by default
+    // The global branch's term and the text terms are beyond the paper and off by default
     // (below, on their own).
-    let off = [Term::Global, Term::TextHands];
+    let off = [Term::Global, Term::TextHands, Term::TextSides];
     assert!(before.iter().all(|(t, _)| !off.contains(t)));
-    assert_eq!(before.len(), Term::ALL.len() - 2, "every other term is active in the tiny preset");
+    assert_eq!(
+        before.len(),
+        Term::ALL.len() - off.len(),
+        "every other term is active in the tiny preset"
+    );
     let mut without = config.clone();
     without.loss.feature_velocity = 1e-9;
     without.loss.joint_velocity = 1e-9;
@@ -79,6 +83,7 @@ fn tiny_training_lowers_every_term() {
     let mut with_both = config.clone();
     with_both.loss.global = 0.01;
     with_both.loss.text_hands = 1.0;
+    with_both.loss.text_sides = 1.0;
     let (both_before, both_after) = run(&with_both);
     for term in off {
         let (start, end) = (value(&both_before, term), value(&both_after, term));
@@ -289,14 +294,20 @@ fn configurations_and_datasets_that_do_not_fit_are_refused() {
             .unwrap_err()
             .to_string();
     assert!(error.contains("training.batch_size"), "{error}");
-    // The text term trains the built-in encoder; a frozen one has nothing to learn from it.
+    // The text terms train the built-in encoder; a frozen one has nothing to learn from them.
     let mut frozen = TrainConfig::preset("tiny").unwrap();
     frozen.text = dex2hoi_sample::TextConfig::Clip { path: "clip".into() };
     frozen.model.text_embedding = 512;
     frozen.validate("frozen.toml").unwrap();
-    frozen.loss.text_hands = 0.1;
-    let error = frozen.validate("frozen.toml").unwrap_err().to_string();
-    assert!(error.contains("frozen.toml") && error.contains("loss.text_hands"), "{error}");
+    for (field, set) in [
+        ("loss.text_hands", (|c: &mut TrainConfig| c.loss.text_hands = 0.1) as fn(&mut _)),
+        ("loss.text_sides", |c: &mut TrainConfig| c.loss.text_sides = 0.1),
+    ] {
+        let mut config = frozen.clone();
+        set(&mut config);
+        let error = config.validate("frozen.toml").unwrap_err().to_string();
+        assert!(error.contains("frozen.toml") && error.contains(field), "{error}");
+    }
 
     let data = dataset(8);
     let mut config = TrainConfig::preset("tiny").unwrap();
@@ -595,8 +606,8 @@ fn train_steps(config: &TrainConfig, data: &Dataset, steps: usize) -> (Vec<(f64,
 /// On the CPU a batch trains as groups of `training.group_windows` windows, one forward and
 /// backward pass each (`Trainer::step`). Without dropout that is the same step as one pass over
 /// the whole batch, up to float rounding: the same losses, gradient norms and parameters after
-/// a few steps, with groups of uneven sizes (8 windows in groups of 2, 3, 3), the text term on
-/// (its gradient reaches the text encoder outside the groups' passes). And with dropout
+/// a few steps, with groups of uneven sizes (8 windows in groups of 2, 3, 3), the text terms on
+/// (their gradient reaches the text encoder outside the groups' passes). And with dropout
 /// (each group's masks from its own seed) a grouped run gives the same bits on one thread as
 /// on two.
 #[test]
@@ -605,6 +616,7 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     let mut config = TrainConfig::preset("tiny").unwrap();
     assert_eq!((config.model.dropout, config.training.batch_size), (0.0, 8));
     config.loss.text_hands = 1.0;
+    config.loss.text_sides = 1.0;
     config.training.group_windows = None;
     let (whole, whole_parameters) = train_steps(&config, &data, 4);
     config.training.group_windows = Some(3);

@@ -33,8 +33,8 @@ use super::sample::MotionSample;
 pub const MOVED_TRAVEL_M: f32 = 0.10;
 /// Rise above the clip's first frame beyond which an object has moved.
 pub const MOVED_RISE_M: f32 = 0.05;
-/// Half-width of the "centre" band of [`Side`].
-pub const SIDE_MARGIN_M: f32 = 0.05;
+/// Half-width of the "centre" band of [`Side`]: the data's, which training reads too.
+pub use dex2hoi_data::processed::SIDE_MARGIN_M;
 /// Hand-to-surface distance beyond which an object counts as untouched.
 pub const UNTOUCHED_DISTANCE_M: f32 = 0.15;
 /// Drop below the resting height beyond which an object counts as sunk into its support (a
