@@ -87,7 +87,8 @@ pub struct LossConfig {
     ///
     /// Why: with `text_hands` alone the encoder brought the sides closer together as it told
     /// the hands apart, and objects ended on the side asked for in about half the
-    /// generations (`docs/results/long-generations.md`, "The side from the words").
+    /// generations; the term alone did not change that (`docs/results/long-generations.md`,
+    /// "The side from the words: a text term for the side (not shipped)").
     pub text_sides: f64,
     /// Huber threshold `delta` of `L_dist` in cm (default 1).
     pub huber_delta_cm: f64,
