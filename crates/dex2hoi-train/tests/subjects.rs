@@ -87,6 +87,21 @@ fn a_share_of_windows_comes_from_the_first_windows() {
     assert!(!toml.contains("first_window_share"), "{toml}");
 }
 
+/// Two batches of `size` windows drawn with the same seed, streams swapped at random: no window
+/// mirrored, then every window.
+fn unmirrored_and_mirrored(trainer: &Trainer, size: usize) -> [dex2hoi_train::batch::Batch; 2] {
+    [0.0, 1.0].map(|mirror_probability| {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let options = BatchOptions {
+            size,
+            swap_probability: 0.5,
+            mirror_probability,
+            first_window_share: 0.0,
+        };
+        trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
+    })
+}
+
 /// The side text term's targets: in the procedural data, a pick and place ends to the side
 /// its texts name (or, where the table's edge stopped it, within the centre band), never to
 /// the other; a mirrored window's targets are the other sides.
@@ -133,15 +148,7 @@ fn the_sides_a_batch_moves_to_are_those_its_texts_name() {
     // from hand to hand (a hand over puts the object down on the taking hand's side of the
     // body, which may be the other way from where it stood) moves an object to that side or
     // to none.
-    for mirror_probability in [0.0, 1.0] {
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let options = BatchOptions {
-            size: 160,
-            swap_probability: 0.5,
-            mirror_probability,
-            first_window_share: 0.0,
-        };
-        let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
+    for batch in unmirrored_and_mirrored(&trainer, 160) {
         let sides = batch.sides.to_vec2::<f32>().unwrap();
         let mut checked = 0;
         for (text, moved) in batch.texts.iter().zip(&sides) {
@@ -192,15 +199,7 @@ fn the_hands_a_batch_holds_are_those_its_texts_name() {
     }
     assert!(one_handed > 20, "{one_handed} texts name one hand");
     // Every window mirrored or none: the hand a window's (mirrored) text names holds.
-    for mirror_probability in [0.0, 1.0] {
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let options = BatchOptions {
-            size: 48,
-            swap_probability: 0.5,
-            mirror_probability,
-            first_window_share: 0.0,
-        };
-        let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
+    for batch in unmirrored_and_mirrored(&trainer, 48) {
         let hands = batch.hands.to_vec2::<f32>().unwrap();
         let mut checked = 0;
         for (text, held) in batch.texts.iter().zip(&hands) {
