@@ -29,6 +29,31 @@ pub const SURFACE_SAMPLES: usize = 512;
 /// left axis (docs/CONVENTIONS.md, "The long-generation protocol").
 pub const SIDE_MARGIN_M: f32 = 0.05;
 
+/// Where an object is, or how far it travelled, across the body: along the body's left axis,
+/// beyond [`SIDE_MARGIN_M`] or within it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Side {
+    /// More than [`SIDE_MARGIN_M`] to the body's left.
+    Left,
+    /// Within [`SIDE_MARGIN_M`] of the body's midline.
+    Centre,
+    /// More than [`SIDE_MARGIN_M`] to the body's right.
+    Right,
+}
+
+impl Side {
+    /// The side of a distance along the body's left axis (metres, positive to the left).
+    pub fn of_across(across: f32) -> Self {
+        if across > SIDE_MARGIN_M {
+            Side::Left
+        } else if across < -SIDE_MARGIN_M {
+            Side::Right
+        } else {
+            Side::Centre
+        }
+    }
+}
+
 impl ObjectAsset {
     /// BPS and surface samples of a mesh (the samples are seeded by `seed`).
     pub fn new(name: &str, mesh: Mesh, basis: &BpsBasis, seed: u64) -> Result<Self> {
@@ -129,9 +154,11 @@ impl ProcessedSequence {
         let [first, last] = [self.object_poses_at(0), self.object_poses_at(self.frames - 1)];
         for (start, end) in first.iter().zip(&last) {
             if let (Some(start), Some(end)) = (start, end) {
-                let across = end.position.x - start.position.x;
-                sides[0] |= across > SIDE_MARGIN_M;
-                sides[1] |= across < -SIDE_MARGIN_M;
+                match Side::of_across(end.position.x - start.position.x) {
+                    Side::Left => sides[0] = true,
+                    Side::Right => sides[1] = true,
+                    Side::Centre => {}
+                }
             }
         }
         sides

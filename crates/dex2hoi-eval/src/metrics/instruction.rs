@@ -33,8 +33,9 @@ use super::sample::MotionSample;
 pub const MOVED_TRAVEL_M: f32 = 0.10;
 /// Rise above the clip's first frame beyond which an object has moved.
 pub const MOVED_RISE_M: f32 = 0.05;
-/// Half-width of the "centre" band of [`Side`]: the data's, which training reads too.
-pub use dex2hoi_data::processed::SIDE_MARGIN_M;
+/// The sides across the body and the half-width of their centre band: the data's, which training
+/// reads too.
+pub use dex2hoi_data::processed::{SIDE_MARGIN_M, Side};
 /// Hand-to-surface distance beyond which an object counts as untouched.
 pub const UNTOUCHED_DISTANCE_M: f32 = 0.15;
 /// Drop below the resting height beyond which an object counts as sunk into its support (a
@@ -77,17 +78,6 @@ impl Holder {
             (true, true) => Self::Both,
         }
     }
-}
-
-/// Where an object is across the body: along the body's left axis from its pelvis.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Side {
-    /// More than [`SIDE_MARGIN_M`] to the body's left.
-    Left,
-    /// Within [`SIDE_MARGIN_M`] of the body's midline.
-    Centre,
-    /// More than [`SIDE_MARGIN_M`] to the body's right.
-    Right,
 }
 
 /// The instruction-following counts of one clip (or, merged, of many).
@@ -196,19 +186,6 @@ pub(super) fn left_axis(body: &MotionSample<'_>, frame: usize) -> Vec3 {
     let groups = body.skeleton.groups();
     let left = body.joint(frame, groups.left_foot[0]) - body.joint(frame, groups.right_foot[0]);
     Vec3::new(left.x, 0.0, left.z).normalize_or_zero()
-}
-
-impl Side {
-    /// The side of a distance along the body's left axis (metres, positive to the left).
-    pub fn of_across(across: f32) -> Self {
-        if across > SIDE_MARGIN_M {
-            Side::Left
-        } else if across < -SIDE_MARGIN_M {
-            Side::Right
-        } else {
-            Side::Centre
-        }
-    }
 }
 
 /// Compares a generated clip with its ground truth over the same frames (moved objects,
