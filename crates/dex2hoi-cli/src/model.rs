@@ -174,6 +174,14 @@ pub fn run(command: ModelCommand) -> Result<()> {
                 model.fusion_layers,
                 run.model_vars.var_map().all_vars().iter().map(|v| v.elem_count()).sum::<usize>()
             );
+            let beyond: Vec<&str> =
+                [(model.prompt_clock, "prompt clock"), (model.start_pose, "start pose")]
+                    .into_iter()
+                    .filter_map(|(on, name)| on.then_some(name))
+                    .collect();
+            if !beyond.is_empty() {
+                println!("  the condition also reads: {}", beyond.join(", "));
+            }
             println!(
                 "  data: {} ({} skeleton, {} fps); objects: {}",
                 run.manifest.source,

@@ -126,6 +126,12 @@ pub struct ModelConfig {
     /// (false) in the models made before it.
     #[serde(default)]
     pub prompt_clock: bool,
+    /// The start pose (beyond the paper): the condition also sees where each object stood at
+    /// the first frame of the prompt in force ([`crate::model::ModelInput::start`]), so that
+    /// an object put back after a hold longer than the prefix goes back where it stood.
+    /// Absent (false) in the models made before it.
+    #[serde(default)]
+    pub start_pose: bool,
 }
 
 impl ModelConfig {

@@ -24,4 +24,6 @@ pub use config::{
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
 pub use model::inference::{InferenceModel, PreparedCondition};
-pub use model::{CLOCK_FRAMES, Model, ModelInput, row_groups};
+pub use model::{
+    CLOCK_FRAMES, Model, ModelInput, PromptState, START_POSE_PARTS, START_POSE_WIDTH, row_groups,
+};

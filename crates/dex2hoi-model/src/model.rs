@@ -18,6 +18,15 @@ use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
 };
 
+/// The parts of an object's representation the start pose reads: its rotation and its world
+/// position (the hand-relative parts say where the hands were, not where the object stood).
+pub const START_POSE_PARTS: [std::ops::Range<usize>; 2] = [ROTATION_RANGE, GLOBAL_POSITION_RANGE];
+
+/// Numbers the start pose reads per object: 6 + 3.
+pub const START_POSE_WIDTH: usize = ROTATION_RANGE.end - ROTATION_RANGE.start
+    + GLOBAL_POSITION_RANGE.end
+    - GLOBAL_POSITION_RANGE.start;
+
 use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, Prediction, StreamLayout};
 use crate::error::{ModelError, Result};
 use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
@@ -56,11 +65,44 @@ pub struct ModelInput<'a> {
     /// `[batch]`: what the prompt clock reads (`ModelConfig::prompt_clock`; ignored without
     /// it, required with it). Clamped to [`CLOCK_FRAMES`].
     pub elapsed: Option<&'a Tensor>,
+    /// Both streams' normalised rows at the first frame of the prompt in force, `[batch, 2,
+    /// 6J + 3 + 18]`: where the start pose reads each object's rotation and world position
+    /// (`ModelConfig::start_pose`; ignored without it, required with it).
+    pub start: Option<&'a Tensor>,
 }
 
 /// The prompt clock stops here (frames): twelve seconds at 20 fps, beyond the longest rest
 /// that follows a task in the procedural data, so every reading it takes was trained on.
 pub const CLOCK_FRAMES: f64 = 240.0;
+
+/// What the condition reads of the prompt in force besides its words.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct PromptState<'a> {
+    /// See [`ModelInput::elapsed`].
+    pub elapsed: Option<&'a Tensor>,
+    /// See [`ModelInput::start`].
+    pub start: Option<&'a Tensor>,
+}
+
+impl<'a> PromptState<'a> {
+    fn of(input: &ModelInput<'a>) -> Self {
+        Self { elapsed: input.elapsed, start: input.start }
+    }
+}
+
+/// Each object's start pose read from the stream rows at a prompt's first frame: its rotation
+/// and world position ([`START_POSE_PARTS`]).
+///
+/// # Shapes
+/// - `rows`: `[batch, 2, 6J + 3 + 18]`; returns `[batch, 2, START_POSE_WIDTH]`
+fn start_poses(layout: FeatureLayout, rows: &Tensor, dtype: DType) -> Result<Tensor> {
+    let object = layout.object_of(&rows.to_dtype(dtype)?)?;
+    let parts = START_POSE_PARTS
+        .into_iter()
+        .map(|part| object.narrow(D::Minus1, part.start, part.len()))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    Ok(Tensor::cat(&parts, D::Minus1)?)
+}
 
 /// The condition embedding of each stream: timestep MLP + projected text + the stream's object
 /// (BPS MLP and presence), the sum split in the part that changes with the timestep and the
@@ -76,6 +118,9 @@ struct Conditioning {
     /// The prompt clock's MLP (its output layer zero-initialised, so that a model that gains
     /// the clock starts as it was).
     clock: Option<(Dense, Dense)>,
+    /// The start pose's MLP over this stream's object and the other's (its output layer
+    /// zero-initialised, like the clock's).
+    start: Option<(Dense, Dense)>,
     latent: usize,
 }
 
@@ -94,33 +139,60 @@ impl Conditioning {
             } else {
                 None
             },
+            start: if cfg.start_pose {
+                Some((
+                    dense(2 * START_POSE_WIDTH, l, vb.pp("start_in"))?,
+                    zero_dense(l, l, vb.pp("start_out"))?,
+                ))
+            } else {
+                None
+            },
             latent: l,
         })
     }
 
     /// The part that does not change over a sample's diffusion steps: projected text, object
-    /// (BPS MLP), presence and, with the prompt clock, the elapsed frames.
+    /// (BPS MLP), presence and, with the prompt clock, the elapsed frames, and with the start
+    /// pose, where the objects stood when the prompt began.
     ///
     /// # Shapes
     /// - `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`; `presence`: `[batch, 2]`;
-    ///   `elapsed`: `[batch]`; returns `[batch, latent]`
+    ///   `elapsed`: `[batch]`; `start`: `[batch, 2 * START_POSE_WIDTH]` (this stream's object,
+    ///   then the other's, zero where absent); returns `[batch, latent]`
     fn fixed_part(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
-        elapsed: Option<&Tensor>,
+        (elapsed, start): (Option<&Tensor>, Option<&Tensor>),
     ) -> Result<Tensor> {
         let object = self.bps_out.forward(&self.bps_in.forward(bps)?.silu()?)?;
-        let fixed = ((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?;
-        let Some((clock_in, clock_out)) = &self.clock else { return Ok(fixed) };
-        let elapsed = elapsed.ok_or_else(|| {
-            ModelError::shape("elapsed", "the frames since each prompt began (prompt clock)", &[])
-        })?;
-        let elapsed = elapsed.to_dtype(DType::F64)?.clamp(0.0, CLOCK_FRAMES)?;
-        let device = self.time_in.weight.device();
-        let embedded = timestep_embedding(&elapsed, self.latent, fixed.dtype(), device)?;
-        Ok((fixed + clock_out.forward(&clock_in.forward(&embedded)?.silu()?)?)?)
+        let mut fixed =
+            ((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?;
+        if let Some((clock_in, clock_out)) = &self.clock {
+            let elapsed = elapsed.ok_or_else(|| {
+                ModelError::shape(
+                    "elapsed",
+                    "the frames since each prompt began (prompt clock)",
+                    &[],
+                )
+            })?;
+            let elapsed = elapsed.to_dtype(DType::F64)?.clamp(0.0, CLOCK_FRAMES)?;
+            let device = self.time_in.weight.device();
+            let embedded = timestep_embedding(&elapsed, self.latent, fixed.dtype(), device)?;
+            fixed = (fixed + clock_out.forward(&clock_in.forward(&embedded)?.silu()?)?)?;
+        }
+        if let Some((start_in, start_out)) = &self.start {
+            let start = start.ok_or_else(|| {
+                ModelError::shape(
+                    "start",
+                    "the rows at each prompt's first frame (start pose)",
+                    &[],
+                )
+            })?;
+            fixed = (fixed + start_out.forward(&start_in.forward(start)?.silu()?)?)?;
+        }
+        Ok(fixed)
     }
 
     /// The timestep MLP.
@@ -491,8 +563,8 @@ impl DualStream {
     /// # Shapes
     /// - see [`ModelInput`]; returns `[2 batch, latent]`, stream A first
     fn condition(&self, input: &ModelInput<'_>, dtype: DType) -> Result<Tensor> {
-        let fixed =
-            self.fixed_condition(input.text, input.bps, input.presence, input.elapsed, dtype)?;
+        let prompt = PromptState::of(input);
+        let fixed = self.fixed_condition(input.text, input.bps, input.presence, prompt, dtype)?;
         let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
         Ok((self.conditioning.time(&timesteps, dtype)? + fixed)?)
     }
@@ -500,26 +572,35 @@ impl DualStream {
     /// The part of [`Self::condition`] that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`, `elapsed`: see [`ModelInput`]; returns
+    /// - `text`, `bps`, `presence`, `prompt`: see [`ModelInput`]; returns
     ///   `[2 batch, latent]`
     fn fixed_condition(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
-        elapsed: Option<&Tensor>,
+        prompt: PromptState<'_>,
         dtype: DType,
     ) -> Result<Tensor> {
         let own = streams_into_batch(&presence.to_dtype(dtype)?.unsqueeze(2)?)?;
         let flags = Tensor::cat(&[&own, &swap_streams(&own)?], 1)?;
         let bps = streams_into_batch(bps)?.broadcast_mul(&own)?;
         let text = text.to_dtype(dtype)?;
-        let elapsed = elapsed.map(|e| Tensor::cat(&[e, e], 0)).transpose()?;
+        let elapsed = prompt.elapsed.map(|e| Tensor::cat(&[e, e], 0)).transpose()?;
+        // Each stream reads its own object's start pose first, then the other's.
+        let start = match prompt.start {
+            Some(rows) => {
+                let own_pose = streams_into_batch(&start_poses(self.layout, rows, dtype)?)?
+                    .broadcast_mul(&own)?;
+                Some(Tensor::cat(&[&own_pose, &swap_streams(&own_pose)?], 1)?)
+            }
+            None => None,
+        };
         self.conditioning.fixed_part(
             &Tensor::cat(&[&text, &text], 0)?,
             &bps,
             &flags,
-            elapsed.as_ref(),
+            (elapsed.as_ref(), start.as_ref()),
         )
     }
 
@@ -594,8 +675,8 @@ impl SingleStream {
     fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         let single = self.frames(input.prefix, input.noisy)?;
         let dtype = single.dtype();
-        let fixed =
-            self.fixed_condition(input.text, input.bps, input.presence, input.elapsed, dtype)?;
+        let prompt = PromptState::of(input);
+        let fixed = self.fixed_condition(input.text, input.bps, input.presence, prompt, dtype)?;
         let condition = (self.conditioning.time(input.timesteps, dtype)? + fixed)?;
         let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
         let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
@@ -617,19 +698,30 @@ impl SingleStream {
     /// The part of the condition that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`, `elapsed`: see [`ModelInput`]; returns `[batch, latent]`
+    /// - `text`, `bps`, `presence`, `prompt`: see [`ModelInput`]; returns `[batch, latent]`
     fn fixed_condition(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
-        elapsed: Option<&Tensor>,
+        prompt: PromptState<'_>,
         dtype: DType,
     ) -> Result<Tensor> {
         let batch = text.dim(0)?;
         let presence = presence.to_dtype(dtype)?;
         let bps = bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
-        self.conditioning.fixed_part(&text.to_dtype(dtype)?, &bps, &presence, elapsed)
+        // Both objects' start poses, slot A first, zero where a slot is empty.
+        let start = prompt
+            .start
+            .map(|rows| {
+                start_poses(self.layout, rows, dtype)?
+                    .broadcast_mul(&presence.unsqueeze(2)?)?
+                    .reshape((batch, ()))
+                    .map_err(ModelError::from)
+            })
+            .transpose()?;
+        let text = text.to_dtype(dtype)?;
+        self.conditioning.fixed_part(&text, &bps, &presence, (prompt.elapsed, start.as_ref()))
     }
 
     /// The denoiser's single-stream output as both streams' frames.
@@ -713,6 +805,9 @@ impl Model {
         }
         if let Some(elapsed) = input.elapsed {
             expect("elapsed", elapsed, vec![batch])?;
+        }
+        if let Some(start) = input.start {
+            expect("start", start, vec![batch, 2, d])?;
         }
         Ok(())
     }

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_model::layers::{layer_norm, softmax};
 use dex2hoi_model::{
     BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction,
-    SeededVarMap, StreamLayout, fused,
+    PromptState, SeededVarMap, StreamLayout, fused,
 };
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
@@ -230,7 +230,9 @@ fn variants() -> Vec<ModelConfig> {
 #[test]
 fn the_inference_model_equals_the_composite_forward_for_every_variant() {
     let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
-    for cfg in variants().into_iter().chain([clocked]) {
+    let posed = ModelConfig { start_pose: true, ..clocked.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..posed.clone() };
+    for cfg in variants().into_iter().chain([clocked, posed, single]) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -246,6 +248,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let presence = Tensor::new(&[[1f32, 1.0], [1.0, 0.0], [1.0, 1.0]], &Device::Cpu).unwrap();
         let timesteps = Tensor::new(&[0u32, 411, 999], &Device::Cpu).unwrap();
         let elapsed = Tensor::new(&[0f32, 37.0, 500.0], &Device::Cpu).unwrap();
+        let start = random(&[batch, 2, d], &mut rng);
         let input = ModelInput {
             noisy: &noisy,
             prefix: &prefix,
@@ -255,11 +258,13 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             presence: &presence,
             frame_mask: None,
             elapsed: cfg.prompt_clock.then_some(&elapsed),
+            start: cfg.start_pose.then_some(&start),
         };
         let expected = model.forward(&input, None).unwrap();
         let scale = expected.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
         assert!(scale.to_scalar::<f32>().unwrap() > 0.1, "{cfg:?}: the randomised model does work");
-        let condition = inference.prepare(&text, &bps, &presence, input.elapsed).unwrap();
+        let prompt = PromptState { elapsed: input.elapsed, start: input.start };
+        let condition = inference.prepare(&text, &bps, &presence, prompt).unwrap();
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
         assert!(difference < 1e-4, "{cfg:?}: {difference}");
@@ -306,7 +311,7 @@ fn other_dtypes_run_the_composite_model() {
     let bps = f64(random(&[1, 2, cfg.bps_points * 3], &mut rng));
     let presence = f64(Tensor::new(&[[1f32, 1.0]], &Device::Cpu).unwrap());
     let timesteps = Tensor::new(&[3u32], &Device::Cpu).unwrap();
-    let condition = inference.prepare(&text, &bps, &presence, None).unwrap();
+    let condition = inference.prepare(&text, &bps, &presence, PromptState::default()).unwrap();
     let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
     let input = ModelInput {
         noisy: &noisy,
@@ -317,6 +322,7 @@ fn other_dtypes_run_the_composite_model() {
         presence: &presence,
         frame_mask: None,
         elapsed: None,
+        start: None,
     };
     let expected = model.forward(&input, None).unwrap();
     let difference = (got - expected).unwrap().abs().unwrap().max_all().unwrap();

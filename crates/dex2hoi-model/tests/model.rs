@@ -6,11 +6,14 @@ use candle_core::{DType, Device, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use dex2hoi_data::FeatureLayout;
 use dex2hoi_model::{
     BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction, SeededVarMap,
     StreamLayout,
 };
-use dex2hoi_repr::object_repr::{LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE};
+use dex2hoi_repr::object_repr::{
+    GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
+};
 
 struct Inputs {
     noisy: Tensor,
@@ -21,6 +24,7 @@ struct Inputs {
     presence: Tensor,
     mask: Tensor,
     elapsed: Tensor,
+    start: Tensor,
 }
 
 impl Inputs {
@@ -36,6 +40,7 @@ impl Inputs {
         let prefix = t(&[batch, 2, cfg.prefix_frames, d]);
         let text = t(&[batch, cfg.text_embedding]);
         let bps = t(&[batch, 2, cfg.bps_points * 3]);
+        let start = t(&[batch, 2, d]);
         let presence: Vec<f64> =
             (0..batch).flat_map(|b| [1.0, if b % 2 == 0 { 1.0 } else { 0.0 }]).collect();
         let mut mask = vec![1.0f64; batch * cfg.window_frames()];
@@ -67,6 +72,7 @@ impl Inputs {
             .unwrap()
             .to_dtype(dtype)
             .unwrap(),
+            start,
         }
     }
 
@@ -79,8 +85,10 @@ impl Inputs {
             bps: &self.bps,
             presence: &self.presence,
             frame_mask: Some(&self.mask),
-            // Read by the variants with the prompt clock, ignored by the others.
+            // Read by the variants with the prompt clock and the start pose, ignored by the
+            // others.
             elapsed: Some(&self.elapsed),
+            start: Some(&self.start),
         }
     }
 }
@@ -377,8 +385,7 @@ fn bad_inputs_and_configs_are_refused() {
 /// the noisy input, in f64, for each variant.
 #[test]
 fn gradients_of_every_parameter_match_finite_differences() {
-    let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
-    for cfg in variants().into_iter().chain([clocked]) {
+    for cfg in variants().into_iter().chain(with_prompt_state()) {
         let cfg = ModelConfig {
             joints: 2,
             prefix_frames: 2,
@@ -505,6 +512,72 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     std::fs::write(&path, b"not a checkpoint").unwrap();
     assert!(load_file(&path, None).unwrap_err().to_string().contains("model.safetensors"));
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The tiny model with the prompt clock, and with the start pose in both stream layouts.
+fn with_prompt_state() -> [ModelConfig; 3] {
+    let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
+    let posed = ModelConfig { start_pose: true, ..clocked.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..posed.clone() };
+    [clocked, posed, single]
+}
+
+#[test]
+fn the_start_pose_reads_each_objects_rotation_and_world_position_at_the_prompts_start() {
+    for layout in [StreamLayout::Dual, StreamLayout::Single] {
+        let cfg = ModelConfig { start_pose: true, stream_layout: layout, ..ModelConfig::tiny() };
+        let (model, vars) = build(&cfg, 3, DType::F32);
+        // Sample 0 holds two objects, sample 1 one (its slot B empty).
+        let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
+        let error = model
+            .forward(&ModelInput { start: None, ..inputs.view() }, None)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("start"), "{layout:?}: required with the start pose: {error}");
+        let short = inputs.start.narrow(2, 0, 5).unwrap();
+        assert!(model.forward(&ModelInput { start: Some(&short), ..inputs.view() }, None).is_err());
+        let features = FeatureLayout::new(cfg.joints);
+        // The start rows with `value` added to channel `channel` of stream `stream`'s row.
+        let moved = |stream: usize, channel: usize, value: f32| {
+            let mut rows: Vec<f32> = inputs.start.flatten_all().unwrap().to_vec1().unwrap();
+            let d = cfg.stream_features();
+            for sample in 0..2 {
+                rows[(sample * 2 + stream) * d + channel] += value;
+            }
+            Tensor::from_vec(rows, (2, 2, d), &Device::Cpu).unwrap()
+        };
+        let run = |start: &Tensor| {
+            model.forward(&ModelInput { start: Some(start), ..inputs.view() }, None).unwrap()
+        };
+        // Per sample and stream, the largest change between two outputs.
+        let changed = |a: &Tensor, b: &Tensor| -> Vec<f32> {
+            let d = (a - b).unwrap().abs().unwrap();
+            d.flatten_from(2).unwrap().max(2).unwrap().flatten_all().unwrap().to_vec1().unwrap()
+        };
+        let position = features.object_part_range(GLOBAL_POSITION_RANGE).start;
+        let rotation = features.object_part_range(ROTATION_RANGE).start;
+        // Zero-initialised output layer: nothing changes until it is trained.
+        assert!(
+            changed(&run(&inputs.start), &run(&moved(0, position, 1.0))).iter().all(|&c| c == 0.0)
+        );
+        randomise(&vars, 11);
+        let base = run(&inputs.start);
+        for channel in [position, rotation + 2] {
+            // Slot A's object at the start: every stream of both samples reads it.
+            let a = changed(&base, &run(&moved(0, channel, 1.0)));
+            assert!(a.iter().all(|&c| c > 1e-4), "{layout:?}, channel {channel}: {a:?}");
+            // Slot B's: read where the slot holds an object (sample 0), not where it is empty
+            // (sample 1, whose output is the same to the bit).
+            let b = changed(&base, &run(&moved(1, channel, 1.0)));
+            assert!(b[0] > 1e-4 && b[1] > 1e-4, "{layout:?}, channel {channel}: {b:?}");
+            assert_eq!(&b[2..], &[0.0, 0.0], "{layout:?}, channel {channel}");
+        }
+        // The body's rows, the hand-relative channels and the mixture are not read.
+        let body = changed(&base, &run(&moved(0, 0, 1.0)));
+        let mixture = features.object_part_range(MIXTURE_RANGE).start;
+        let hands = changed(&base, &run(&moved(0, mixture, 1.0)));
+        assert!(body.iter().chain(&hands).all(|&c| c == 0.0), "{layout:?}: {body:?} {hands:?}");
+    }
 }
 
 #[test]

@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_diffusion::{CosineSchedule, Denoiser, DiffusionError, SamplerConfig, sample};
 use std::sync::Mutex;
 
-use dex2hoi_model::{InferenceModel, PreparedCondition};
+use dex2hoi_model::{InferenceModel, PreparedCondition, PromptState};
 
 /// Everything a window is conditioned on, for a batch of `B` samples.
 #[derive(Debug, Clone)]
@@ -23,6 +23,9 @@ pub struct WindowCondition {
     /// Frames from the start of the prompt in force to the window's first prefix frame, `[B]`
     /// (read by a model with the prompt clock).
     pub elapsed: Option<Tensor>,
+    /// Both streams' normalised rows at the first frame of the prompt in force, `[B, 2, D]`
+    /// (read by a model with the start pose).
+    pub start: Option<Tensor>,
 }
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
@@ -66,10 +69,10 @@ impl<'a> ModelDenoiser<'a> {
         let bps = repeat_rows(&self.condition.bps, times)?;
         let presence = repeat_rows(&self.condition.presence, times)?;
         let elapsed = self.condition.elapsed.as_ref().map(|e| repeat_rows(e, times)).transpose()?;
-        let prepared = self
-            .model
-            .prepare(&text, &bps, &presence, elapsed.as_ref())
-            .map_err(DiffusionError::denoiser)?;
+        let start = self.condition.start.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
+        let prompt = PromptState { elapsed: elapsed.as_ref(), start: start.as_ref() };
+        let prepared =
+            self.model.prepare(&text, &bps, &presence, prompt).map_err(DiffusionError::denoiser)?;
         let prefix = repeat_rows(&self.condition.prefix, times)?;
         *cache = Some((null_condition.to_vec(), prepared.clone(), prefix.clone()));
         Ok((prepared, prefix))

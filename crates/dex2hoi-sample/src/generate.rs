@@ -156,10 +156,18 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     let mut windows = Vec::new();
     let frames = request.frames.get();
     let total_windows = frames.div_ceil(tf.max(1));
+    // The start pose: the rows at the first prefix frame of each prompt's first window (for
+    // the first prompt the initial prefix's first frame, as a training window at the start of
+    // its sequence reads its frame 0), with the start frame of the prompt they belong to.
+    let mut start: Option<(usize, Tensor)> = None;
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
         let prompt = in_force(&request.timeline, |t| t.start_frame, produced)
             .unwrap_or(&request.timeline[0]);
+        if start.as_ref().is_none_or(|(of, _)| *of != prompt.start_frame) {
+            let first = history.narrow(2, history.dims()[2] - tp, 1)?.squeeze(2)?;
+            start = Some((prompt.start_frame, first));
+        }
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
         // prompt applies from its first frame, so a window whose prefix ends at generated frame
         // `produced` starts `produced - start_frame` frames into its prompt.
@@ -174,6 +182,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
                 Tensor::full(elapsed, batch, request.initial_prefix.device())?
                     .to_dtype(request.model.dtype())?,
             ),
+            start: start.as_ref().map(|(_, rows)| rows.clone()),
         };
         let window =
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;

@@ -28,9 +28,12 @@ fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
 }
 
 fn tiny_model() -> InferenceModel {
-    let cfg = ModelConfig::tiny();
+    tiny_model_of(&ModelConfig::tiny())
+}
+
+fn tiny_model_of(cfg: &ModelConfig) -> InferenceModel {
     let vars = SeededVarMap::new(0);
-    let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
+    let model = Model::new(cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
     // Untrained heads predict zeros; give every parameter a value so the output depends on all
     // inputs.
     let mut rng = ChaCha8Rng::seed_from_u64(1);
@@ -44,9 +47,17 @@ fn tiny_model() -> InferenceModel {
     InferenceModel::new(&model).unwrap()
 }
 
+/// The tiny model, and the same with the prompt clock and the start pose (which a generation
+/// must feed each window, or the model refuses it).
 #[test]
 fn generation_runs_window_by_window_with_a_timeline() {
-    let model = tiny_model();
+    let posed = ModelConfig { prompt_clock: true, start_pose: true, ..ModelConfig::tiny() };
+    for cfg in [ModelConfig::tiny(), posed] {
+        runs_window_by_window_with_a_timeline(&tiny_model_of(&cfg));
+    }
+}
+
+fn runs_window_by_window_with_a_timeline(model: &InferenceModel) {
     let cfg = model.config().clone();
     let d = cfg.stream_features();
     let schedule = CosineSchedule::new(1000).unwrap();
@@ -58,7 +69,7 @@ fn generation_runs_window_by_window_with_a_timeline() {
     let first = random(&[1, cfg.text_embedding], &mut rng);
     let second = random(&[1, cfg.text_embedding], &mut rng);
     let base = Generation {
-        model: &model,
+        model,
         schedule: &schedule,
         normaliser: &normaliser,
         initial_prefix: random(&[1, 2, cfg.prefix_frames, d], &mut rng),

@@ -86,6 +86,10 @@ pub struct Batch {
     /// Frames from the start of each window's sequence (where its texts begin to apply) to
     /// the window's first frame, `[B]`: what the prompt clock reads.
     pub elapsed: Tensor,
+    /// Both streams' normalised rows at the first frame of each window's sequence (where its
+    /// texts begin to apply; swapped and mirrored with the window), `[B, 2, D]`: what the start
+    /// pose reads.
+    pub start: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Whether each hand holds an object at some time of the window's whole sequence
@@ -234,6 +238,7 @@ impl TrainingSet {
         let mut rest_offsets = Vec::with_capacity(b * joints * 3);
         let mut clouds = Vec::with_capacity(b);
         let mut elapsed = Vec::with_capacity(b);
+        let mut start = vec![0.0f32; b * 2 * width];
         let mut hands = Vec::with_capacity(b * 2);
         let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
@@ -260,6 +265,19 @@ impl TrainingSet {
             }
             if mirrored {
                 w = mirror(&w, &self.skeleton);
+            }
+            let whole = Window { sequence: window.sequence, start: 0, valid_frames: 1 };
+            let mut first = whole.cut(source, 1);
+            if swap {
+                first = swap_streams(&first);
+            }
+            if mirrored {
+                first = mirror(&first, &self.skeleton);
+            }
+            for s in 0..MAX_OBJECTS {
+                let row = &mut start[(i * 2 + s) * width..][..width];
+                layout.write_stream_row(&first.body, &first.objects, 0, s, row);
+                self.stats.normalise_row(row);
             }
             for (of, out) in [(&self.hands_of, &mut hands), (&self.sides_of, &mut sides)] {
                 let [left, right] = of[window.sequence];
@@ -322,6 +340,7 @@ impl TrainingSet {
             foot_contact_values: foot_contact,
             root_start: tensor(root_start, &[b, 1, 3])?,
             elapsed: tensor(elapsed, &[b])?,
+            start: tensor(start, &[b, 2, width])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,

@@ -161,9 +161,14 @@ impl Trainer {
         let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
+        // A run may add the prompt clock or the start pose: both start with no effect.
         let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
         if gains_clock {
             stored.model.prompt_clock = true;
+        }
+        let gains_start = !stored.model.start_pose && self.config.model.start_pose;
+        if gains_start {
+            stored.model.start_pose = true;
         }
         for (section, model, run) in [
             (
@@ -216,7 +221,9 @@ impl Trainer {
             }
             let name = format!("ema.{}", p.name);
             let Some(t) = tensors.get(&name) else {
-                if gains_clock && p.name.contains(".clock_") {
+                let gained = (gains_clock && p.name.contains(".clock_"))
+                    || (gains_start && p.name.contains(".start_"));
+                if gained {
                     initialisation.kept.push(p.name.clone());
                     continue;
                 }
@@ -317,7 +324,8 @@ pub struct Initialisation {
     pub words_carried: usize,
     /// Words the model never saw, started as its unknown-word embedding.
     pub words_new: usize,
-    /// Parameters the model does not have, kept at their initialisation (the prompt clock's).
+    /// Parameters the model does not have, kept at their initialisation (the prompt clock's
+    /// or the start pose's).
     pub kept: Vec<String>,
     /// Parameters started afresh on request ([`Fresh`]), though the model has them.
     pub fresh: Vec<String>,

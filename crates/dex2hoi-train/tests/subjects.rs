@@ -214,3 +214,40 @@ fn the_hands_a_batch_holds_are_those_its_texts_name() {
         assert!(hands.iter().any(|h| h[0] != h[1]), "some windows hold with one hand");
     }
 }
+
+/// The start pose's rows: each window's sequence at frame 0, swapped and mirrored with the
+/// window. A batch of first windows starts at those rows; in a batch of windows from anywhere,
+/// a window that starts later reads rows other than its own first frame.
+#[test]
+fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_window() {
+    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    let batch = |share: f64| {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let options = BatchOptions {
+            size: 32,
+            swap_probability: 0.5,
+            mirror_probability: 0.5,
+            first_window_share: share,
+        };
+        trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
+    };
+    // Per window, whether its start rows equal its own first frame's, and its start frame.
+    let own_first_frame = |share: f64| -> Vec<(bool, f32)> {
+        let batch = batch(share);
+        let frame_zero = batch.features.narrow(2, 0, 1).unwrap().squeeze(2).unwrap();
+        let difference = (&batch.start - &frame_zero).unwrap().abs().unwrap();
+        let largest: Vec<f32> =
+            difference.flatten_from(1).unwrap().max(1).unwrap().to_vec1().unwrap();
+        let starts: Vec<f32> = batch.elapsed.to_vec1().unwrap();
+        largest.iter().zip(starts).map(|(&d, start)| (d == 0.0, start)).collect()
+    };
+    assert!(own_first_frame(1.0).iter().all(|&(same, start)| same && start == 0.0));
+    let anywhere = own_first_frame(0.0);
+    assert!(anywhere.iter().all(|&(same, start)| same || start > 0.0));
+    let later = anywhere.iter().filter(|(_, start)| *start > 0.0).count();
+    let elsewhere = anywhere.iter().filter(|(same, _)| !same).count();
+    assert!(later > 16 && elsewhere == later, "{elsewhere} of {later} later windows");
+}

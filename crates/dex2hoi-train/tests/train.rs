@@ -565,6 +565,23 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
             None => assert!(p.name.contains("clock_in"), "{}", p.name),
         }
     }
+    // One that adds the start pose (and the clock): likewise, its output layer zero.
+    let mut posed = tuned.clone();
+    posed.model.prompt_clock = true;
+    posed.model.start_pose = true;
+    let mut trainer = Trainer::new(posed, &data, Path::new("d"), &Device::Cpu).unwrap();
+    let bridged = trainer.initialise_from(&packed).unwrap();
+    assert_eq!(bridged.kept.len(), 8, "{:?}", bridged.kept);
+    for p in trainer.parameters() {
+        let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        match ema.get(&format!("ema.{}", p.name)) {
+            Some(model) => assert_eq!(&values, model, "{}", p.name),
+            None if p.name.contains("_out.") => assert!(values.iter().all(|&v| v == 0.0)),
+            None => {
+                assert!(p.name.contains("clock_in") || p.name.contains("start_in"), "{}", p.name)
+            }
+        }
+    }
     // A run's own checkpoint is a starting point too (its EMA weights).
     let mut trainer = Trainer::new(config, &data, Path::new("d"), &Device::Cpu).unwrap();
     trainer.initialise_from(&base.join("checkpoint.safetensors")).unwrap();
@@ -617,6 +634,9 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     assert_eq!((config.model.dropout, config.training.batch_size), (0.0, 8));
     config.loss.text_hands = 1.0;
     config.loss.text_sides = 1.0;
+    // The prompt state splits into the groups with the rest of the batch.
+    config.model.prompt_clock = true;
+    config.model.start_pose = true;
     config.training.group_windows = None;
     let (whole, whole_parameters) = train_steps(&config, &data, 4);
     config.training.group_windows = Some(3);

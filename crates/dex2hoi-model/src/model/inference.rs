@@ -19,6 +19,7 @@
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 
+use super::PromptState;
 use super::{Denoiser, DualStream, Fusion, FusionLayers, Layout, Model, ModelInput, SingleStream};
 use super::{present_average, streams_into_batch};
 use crate::error::Result;
@@ -360,6 +361,7 @@ pub struct PreparedCondition {
     bps: Tensor,
     presence: Tensor,
     elapsed: Option<Tensor>,
+    start: Option<Tensor>,
     /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
     /// dual layout (stream A first), `[batch, latent]` in the single one.
     fixed: Tensor,
@@ -382,6 +384,7 @@ impl PreparedCondition {
             bps: self.bps.narrow(0, start, len)?,
             presence: self.presence.narrow(0, start, len)?,
             elapsed: self.elapsed.as_ref().map(|e| e.narrow(0, start, len)).transpose()?,
+            start: self.start.as_ref().map(|s| s.narrow(0, start, len)).transpose()?,
             fixed: self
                 .fixed
                 .reshape((streams, batch, latent))?
@@ -456,27 +459,26 @@ impl InferenceModel {
     ///
     /// # Shapes
     /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
-    ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `elapsed`: `[batch]` (see
-    ///   [`ModelInput::elapsed`])
+    ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `prompt`: `[batch]` and
+    ///   `[batch, 2, D]` (see [`ModelInput::elapsed`] and [`ModelInput::start`])
     pub fn prepare(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
-        elapsed: Option<&Tensor>,
+        prompt: PromptState<'_>,
     ) -> Result<PreparedCondition> {
         let dtype = self.model.dtype();
         let fixed = match &self.model.layout {
-            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, elapsed, dtype)?,
-            Layout::Single(single) => {
-                single.fixed_condition(text, bps, presence, elapsed, dtype)?
-            }
+            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, prompt, dtype)?,
+            Layout::Single(single) => single.fixed_condition(text, bps, presence, prompt, dtype)?,
         };
         Ok(PreparedCondition {
             text: text.detach(),
             bps: bps.detach(),
             presence: presence.detach(),
-            elapsed: elapsed.map(Tensor::detach),
+            elapsed: prompt.elapsed.map(Tensor::detach),
+            start: prompt.start.map(Tensor::detach),
             fixed: fixed.detach(),
         })
     }
@@ -541,6 +543,7 @@ impl InferenceModel {
             presence: &condition.presence,
             frame_mask: None,
             elapsed: condition.elapsed.as_ref(),
+            start: condition.start.as_ref(),
         }
     }
 
