@@ -104,6 +104,19 @@ fn start_poses(layout: FeatureLayout, rows: &Tensor, dtype: DType) -> Result<Ten
     Ok(Tensor::cat(&parts, D::Minus1)?)
 }
 
+/// `Linear -> SiLU -> Linear`.
+///
+/// # Shapes
+/// - `x`: `[..., input]`; returns `[..., output]`
+fn two_layers((first, second): &(Dense, Dense), x: &Tensor) -> Result<Tensor> {
+    second.forward(&first.forward(x)?.silu()?)
+}
+
+/// An input the configuration requires, or an error that names it and what it holds.
+fn required<'a>(input: Option<&'a Tensor>, name: &str, holding: &str) -> Result<&'a Tensor> {
+    input.ok_or_else(|| ModelError::shape(name, holding, &[]))
+}
+
 /// The condition embedding of each stream: timestep MLP + projected text + the stream's object
 /// (BPS MLP and presence), the sum split in the part that changes with the timestep and the
 /// part that does not (computed once per sample by the inference path).
@@ -169,28 +182,18 @@ impl Conditioning {
         let object = self.bps_out.forward(&self.bps_in.forward(bps)?.silu()?)?;
         let mut fixed =
             ((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?;
-        if let Some((clock_in, clock_out)) = &self.clock {
-            let elapsed = elapsed.ok_or_else(|| {
-                ModelError::shape(
-                    "elapsed",
-                    "the frames since each prompt began (prompt clock)",
-                    &[],
-                )
-            })?;
+        if let Some(clock) = &self.clock {
+            let elapsed =
+                required(elapsed, "elapsed", "the frames since each prompt began (prompt clock)")?;
             let elapsed = elapsed.to_dtype(DType::F64)?.clamp(0.0, CLOCK_FRAMES)?;
             let device = self.time_in.weight.device();
             let embedded = timestep_embedding(&elapsed, self.latent, fixed.dtype(), device)?;
-            fixed = (fixed + clock_out.forward(&clock_in.forward(&embedded)?.silu()?)?)?;
+            fixed = (fixed + two_layers(clock, &embedded)?)?;
         }
-        if let Some((start_in, start_out)) = &self.start {
-            let start = start.ok_or_else(|| {
-                ModelError::shape(
-                    "start",
-                    "the rows at each prompt's first frame (start pose)",
-                    &[],
-                )
-            })?;
-            fixed = (fixed + start_out.forward(&start_in.forward(start)?.silu()?)?)?;
+        if let Some(start_pose) = &self.start {
+            let start =
+                required(start, "start", "the rows at each prompt's first frame (start pose)")?;
+            fixed = (fixed + two_layers(start_pose, start)?)?;
         }
         Ok(fixed)
     }

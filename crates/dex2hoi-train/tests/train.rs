@@ -550,35 +550,26 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         };
         assert_eq!(row(&new_rows, new_id), expected, "{word}");
     }
-    // A configuration that adds the prompt clock: the clock starts at its initialisation, its
-    // output layer zero, everything else from the model.
-    let mut clocked = tuned.clone();
-    clocked.model.prompt_clock = true;
-    let mut trainer = Trainer::new(clocked, &data, Path::new("d"), &Device::Cpu).unwrap();
-    let bridged = trainer.initialise_from(&packed).unwrap();
-    assert_eq!(bridged.kept.len(), 4, "{:?}", bridged.kept);
-    for p in trainer.parameters() {
-        let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        match ema.get(&format!("ema.{}", p.name)) {
-            Some(model) => assert_eq!(&values, model, "{}", p.name),
-            None if p.name.contains("clock_out") => assert!(values.iter().all(|&v| v == 0.0)),
-            None => assert!(p.name.contains("clock_in"), "{}", p.name),
-        }
-    }
-    // One that adds the start pose (and the clock): likewise, its output layer zero.
-    let mut posed = tuned.clone();
-    posed.model.prompt_clock = true;
-    posed.model.start_pose = true;
-    let mut trainer = Trainer::new(posed, &data, Path::new("d"), &Device::Cpu).unwrap();
-    let bridged = trainer.initialise_from(&packed).unwrap();
-    assert_eq!(bridged.kept.len(), 8, "{:?}", bridged.kept);
-    for p in trainer.parameters() {
-        let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        match ema.get(&format!("ema.{}", p.name)) {
-            Some(model) => assert_eq!(&values, model, "{}", p.name),
-            None if p.name.contains("_out.") => assert!(values.iter().all(|&v| v == 0.0)),
-            None => {
-                assert!(p.name.contains("clock_in") || p.name.contains("start_in"), "{}", p.name)
+    // A configuration that adds the prompt clock, and one that adds the start pose too: what
+    // they add starts at its initialisation, its output layers zero, everything else from the
+    // model.
+    for (start_pose, added) in [(false, ["clock_"].as_slice()), (true, &["clock_", "start_"])] {
+        let mut gaining = tuned.clone();
+        gaining.model.prompt_clock = true;
+        gaining.model.start_pose = start_pose;
+        let mut trainer = Trainer::new(gaining, &data, Path::new("d"), &Device::Cpu).unwrap();
+        let bridged = trainer.initialise_from(&packed).unwrap();
+        assert_eq!(bridged.kept.len(), 4 * added.len(), "{:?}", bridged.kept);
+        for p in trainer.parameters() {
+            let values = p.var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            match ema.get(&format!("ema.{}", p.name)) {
+                Some(model) => assert_eq!(&values, model, "{}", p.name),
+                None => {
+                    assert!(added.iter().any(|a| p.name.contains(a)), "{}", p.name);
+                    if p.name.contains("_out.") {
+                        assert!(values.iter().all(|&v| v == 0.0), "{}", p.name);
+                    }
+                }
             }
         }
     }
