@@ -174,11 +174,17 @@ pub fn run(command: ModelCommand) -> Result<()> {
                 model.fusion_layers,
                 run.model_vars.var_map().all_vars().iter().map(|v| v.elem_count()).sum::<usize>()
             );
-            let beyond: Vec<&str> =
-                [(model.prompt_clock, "prompt clock"), (model.start_pose, "start pose")]
-                    .into_iter()
-                    .filter_map(|(on, name)| on.then_some(name))
-                    .collect();
+            let object_start = match model.object_start {
+                dex2hoi_model::ObjectStart::Off => None,
+                dex2hoi_model::ObjectStart::Absolute => {
+                    Some("where the objects stood at the start")
+                }
+                dex2hoi_model::ObjectStart::FromPrefix => {
+                    Some("how far the objects are from where they stood at the start")
+                }
+            };
+            let clock = model.prompt_clock.then_some("the prompt clock");
+            let beyond: Vec<&str> = [clock, object_start].into_iter().flatten().collect();
             if !beyond.is_empty() {
                 println!("  the condition also reads: {}", beyond.join(", "));
             }

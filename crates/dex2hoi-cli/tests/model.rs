@@ -191,6 +191,6 @@ fn the_shipped_model_samples_without_a_run_and_gives_the_recorded_motion() {
     let info = ok(&dex2hoi_with(&["model", "info"], None));
     assert!(info.contains("the shipped model"), "{info}");
     // The demo preset's model reads the prompt clock beyond the paper.
-    assert!(info.contains("the condition also reads: prompt clock"), "{info}");
+    assert!(info.contains("the condition also reads: the prompt clock"), "{info}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -50,6 +50,28 @@ pub enum BodyFusion {
     Average,
 }
 
+/// What the condition reads of where the objects stood when the prompt began (beyond the
+/// paper; docs/CONVENTIONS.md, "Object start").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ObjectStart {
+    /// Nothing: the paper's condition.
+    #[default]
+    Off,
+    /// Each object's rotation and world position at the prompt's first frame.
+    Absolute,
+    /// The same less the object's at the window's last prefix frame: the change that puts it
+    /// back, in the units of the prefix-residual head's output.
+    FromPrefix,
+}
+
+impl ObjectStart {
+    /// Whether the condition reads nothing of it.
+    pub fn is_off(&self) -> bool {
+        *self == Self::Off
+    }
+}
+
 /// What the output head predicts (beyond the paper).
 ///
 /// See docs/CONVENTIONS.md, "Prefix-residual prediction".
@@ -126,12 +148,12 @@ pub struct ModelConfig {
     /// (false) in the models made before it.
     #[serde(default)]
     pub prompt_clock: bool,
-    /// The start pose (beyond the paper): the condition also sees where each object stood at
-    /// the first frame of the prompt in force ([`crate::model::ModelInput::start`]), so that
-    /// an object put back after a hold longer than the prefix goes back where it stood.
-    /// Absent (false) in the models made before it.
-    #[serde(default)]
-    pub start_pose: bool,
+    /// What the condition reads of where each object stood at the first frame of the prompt in
+    /// force (beyond the paper; [`crate::model::ModelInput::object_start`]), so that an object
+    /// put back after a hold longer than the prefix can go back where it stood. Absent (off)
+    /// in the models made before it, and left out of a written configuration when off.
+    #[serde(default, skip_serializing_if = "ObjectStart::is_off")]
+    pub object_start: ObjectStart,
 }
 
 impl ModelConfig {

@@ -19,11 +19,12 @@ pub mod text_clip;
 pub mod transformer;
 
 pub use config::{
-    BodyFusion, ModelConfig, ObjectRepresentation, PRESETS, Prediction, StreamLayout,
+    BodyFusion, ModelConfig, ObjectRepresentation, ObjectStart, PRESETS, Prediction, StreamLayout,
 };
 pub use error::{ModelError, Result};
 pub use init::SeededVarMap;
 pub use model::inference::{InferenceModel, PreparedCondition};
 pub use model::{
-    CLOCK_FRAMES, Model, ModelInput, PromptState, START_POSE_PARTS, START_POSE_WIDTH, row_groups,
+    CLOCK_FRAMES, Model, ModelInput, OBJECT_START_PARTS, OBJECT_START_WIDTH, PromptState,
+    row_groups,
 };

@@ -18,16 +18,18 @@ use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
 };
 
-/// The parts of an object's representation the start pose reads: its rotation and its world
+/// The parts of an object's representation the object start reads: its rotation and its world
 /// position (the hand-relative parts say where the hands were, not where the object stood).
-pub const START_POSE_PARTS: [std::ops::Range<usize>; 2] = [ROTATION_RANGE, GLOBAL_POSITION_RANGE];
+pub const OBJECT_START_PARTS: [std::ops::Range<usize>; 2] = [ROTATION_RANGE, GLOBAL_POSITION_RANGE];
 
-/// Numbers the start pose reads per object: 6 + 3.
-pub const START_POSE_WIDTH: usize = ROTATION_RANGE.end - ROTATION_RANGE.start
+/// Numbers the object start reads per object: 6 + 3.
+pub const OBJECT_START_WIDTH: usize = ROTATION_RANGE.end - ROTATION_RANGE.start
     + GLOBAL_POSITION_RANGE.end
     - GLOBAL_POSITION_RANGE.start;
 
-use crate::config::{BodyFusion, ModelConfig, ObjectRepresentation, Prediction, StreamLayout};
+use crate::config::{
+    BodyFusion, ModelConfig, ObjectRepresentation, ObjectStart, Prediction, StreamLayout,
+};
 use crate::error::{ModelError, Result};
 use crate::layers::{Dense, Modulation, dense, timestep_embedding, zero_dense};
 use crate::transformer::{BlockConfig, Norm, Other, TransformerBlock, TransformerEncoder};
@@ -66,9 +68,9 @@ pub struct ModelInput<'a> {
     /// it, required with it). Clamped to [`CLOCK_FRAMES`].
     pub elapsed: Option<&'a Tensor>,
     /// Both streams' normalised rows at the first frame of the prompt in force, `[batch, 2,
-    /// 6J + 3 + 18]`: where the start pose reads each object's rotation and world position
-    /// (`ModelConfig::start_pose`; ignored without it, required with it).
-    pub start: Option<&'a Tensor>,
+    /// 6J + 3 + 18]`: where the object start reads each object's rotation and world position
+    /// (`ModelConfig::object_start`; ignored when it is off, required otherwise).
+    pub object_start: Option<&'a Tensor>,
 }
 
 /// The prompt clock stops here (frames): twelve seconds at 20 fps, beyond the longest rest
@@ -80,24 +82,24 @@ pub const CLOCK_FRAMES: f64 = 240.0;
 pub struct PromptState<'a> {
     /// See [`ModelInput::elapsed`].
     pub elapsed: Option<&'a Tensor>,
-    /// See [`ModelInput::start`].
-    pub start: Option<&'a Tensor>,
+    /// See [`ModelInput::object_start`].
+    pub object_start: Option<&'a Tensor>,
 }
 
 impl<'a> PromptState<'a> {
     fn of(input: &ModelInput<'a>) -> Self {
-        Self { elapsed: input.elapsed, start: input.start }
+        Self { elapsed: input.elapsed, object_start: input.object_start }
     }
 }
 
-/// Each object's start pose read from the stream rows at a prompt's first frame: its rotation
-/// and world position ([`START_POSE_PARTS`]).
+/// Each object's placement in stream rows: its rotation and world position
+/// ([`OBJECT_START_PARTS`]).
 ///
 /// # Shapes
-/// - `rows`: `[batch, 2, 6J + 3 + 18]`; returns `[batch, 2, START_POSE_WIDTH]`
-fn start_poses(layout: FeatureLayout, rows: &Tensor, dtype: DType) -> Result<Tensor> {
+/// - `rows`: `[batch, 2, 6J + 3 + 18]`; returns `[batch, 2, OBJECT_START_WIDTH]`
+fn placements(layout: FeatureLayout, rows: &Tensor, dtype: DType) -> Result<Tensor> {
     let object = layout.object_of(&rows.to_dtype(dtype)?)?;
-    let parts = START_POSE_PARTS
+    let parts = OBJECT_START_PARTS
         .into_iter()
         .map(|part| object.narrow(D::Minus1, part.start, part.len()))
         .collect::<candle_core::Result<Vec<_>>>()?;
@@ -131,9 +133,10 @@ struct Conditioning {
     /// The prompt clock's MLP (its output layer zero-initialised, so that a model that gains
     /// the clock starts as it was).
     clock: Option<(Dense, Dense)>,
-    /// The start pose's MLP over this stream's object and the other's (its output layer
-    /// zero-initialised, like the clock's).
-    start: Option<(Dense, Dense)>,
+    /// What the object start reads, and its MLP over this stream's object and the other's
+    /// (its output layer zero-initialised, like the clock's).
+    object_start: Option<(ObjectStart, (Dense, Dense))>,
+    layout: FeatureLayout,
     latent: usize,
 }
 
@@ -152,26 +155,29 @@ impl Conditioning {
             } else {
                 None
             },
-            start: if cfg.start_pose {
-                Some((
-                    dense(2 * START_POSE_WIDTH, l, vb.pp("start_in"))?,
-                    zero_dense(l, l, vb.pp("start_out"))?,
-                ))
-            } else {
-                None
+            object_start: match cfg.object_start {
+                ObjectStart::Off => None,
+                reading => Some((
+                    reading,
+                    (
+                        dense(2 * OBJECT_START_WIDTH, l, vb.pp("object_start_in"))?,
+                        zero_dense(l, l, vb.pp("object_start_out"))?,
+                    ),
+                )),
             },
+            layout: cfg.layout(),
             latent: l,
         })
     }
 
     /// The part that does not change over a sample's diffusion steps: projected text, object
-    /// (BPS MLP), presence and, with the prompt clock, the elapsed frames, and with the start
-    /// pose, where the objects stood when the prompt began.
+    /// (BPS MLP), presence and, with the prompt clock, the elapsed frames, and with the object
+    /// start, where the objects stood when the prompt began ([`Self::object_start`]).
     ///
     /// # Shapes
     /// - `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`; `presence`: `[batch, 2]`;
-    ///   `elapsed`: `[batch]`; `start`: `[batch, 2 * START_POSE_WIDTH]` (this stream's object,
-    ///   then the other's, zero where absent); returns `[batch, latent]`
+    ///   `elapsed`: `[batch]`; `start`: `[batch, 2 * OBJECT_START_WIDTH]` (this stream's
+    ///   object, then the other's, zero where absent); returns `[batch, latent]`
     fn fixed_part(
         &self,
         text: &Tensor,
@@ -190,12 +196,35 @@ impl Conditioning {
             let embedded = timestep_embedding(&elapsed, self.latent, fixed.dtype(), device)?;
             fixed = (fixed + two_layers(clock, &embedded)?)?;
         }
-        if let Some(start_pose) = &self.start {
-            let start =
-                required(start, "start", "the rows at each prompt's first frame (start pose)")?;
-            fixed = (fixed + two_layers(start_pose, start)?)?;
+        if let Some((_, mlp)) = &self.object_start {
+            let start = required(start, "object_start", "each object's start (object start)")?;
+            fixed = (fixed + two_layers(mlp, start)?)?;
         }
         Ok(fixed)
+    }
+
+    /// What the object start reads of each object: its placement at the prompt's first frame,
+    /// or that less its placement at the window's last prefix frame; `None` when it is off.
+    ///
+    /// # Shapes
+    /// - `rows`: `[batch, 2, D]` (see [`ModelInput::object_start`]); `prefix`: `[batch, 2,
+    ///   T_p, D]`; returns `[batch, 2, OBJECT_START_WIDTH]`
+    fn object_start(
+        &self,
+        rows: Option<&Tensor>,
+        prefix: &Tensor,
+        dtype: DType,
+    ) -> Result<Option<Tensor>> {
+        let Some((reading, _)) = self.object_start else { return Ok(None) };
+        let rows = required(rows, "object_start", "the rows at each prompt's first frame")?;
+        let start = placements(self.layout, rows, dtype)?;
+        Ok(Some(match reading {
+            ObjectStart::FromPrefix => {
+                let last = prefix.narrow(2, prefix.dim(2)? - 1, 1)?.squeeze(2)?;
+                (start - placements(self.layout, &last, dtype)?)?
+            }
+            _ => start,
+        }))
     }
 
     /// The timestep MLP.
@@ -567,7 +596,14 @@ impl DualStream {
     /// - see [`ModelInput`]; returns `[2 batch, latent]`, stream A first
     fn condition(&self, input: &ModelInput<'_>, dtype: DType) -> Result<Tensor> {
         let prompt = PromptState::of(input);
-        let fixed = self.fixed_condition(input.text, input.bps, input.presence, prompt, dtype)?;
+        let fixed = self.fixed_condition(
+            input.text,
+            input.bps,
+            input.presence,
+            prompt,
+            input.prefix,
+            dtype,
+        )?;
         let timesteps = Tensor::cat(&[input.timesteps, input.timesteps], 0)?;
         Ok((self.conditioning.time(&timesteps, dtype)? + fixed)?)
     }
@@ -575,7 +611,7 @@ impl DualStream {
     /// The part of [`Self::condition`] that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`, `prompt`: see [`ModelInput`]; returns
+    /// - `text`, `bps`, `presence`, `prompt`, `prefix`: see [`ModelInput`]; returns
     ///   `[2 batch, latent]`
     fn fixed_condition(
         &self,
@@ -583,6 +619,7 @@ impl DualStream {
         bps: &Tensor,
         presence: &Tensor,
         prompt: PromptState<'_>,
+        prefix: &Tensor,
         dtype: DType,
     ) -> Result<Tensor> {
         let own = streams_into_batch(&presence.to_dtype(dtype)?.unsqueeze(2)?)?;
@@ -590,15 +627,14 @@ impl DualStream {
         let bps = streams_into_batch(bps)?.broadcast_mul(&own)?;
         let text = text.to_dtype(dtype)?;
         let elapsed = prompt.elapsed.map(|e| Tensor::cat(&[e, e], 0)).transpose()?;
-        // Each stream reads its own object's start pose first, then the other's.
-        let start = match prompt.start {
-            Some(rows) => {
-                let own_pose = streams_into_batch(&start_poses(self.layout, rows, dtype)?)?
-                    .broadcast_mul(&own)?;
-                Some(Tensor::cat(&[&own_pose, &swap_streams(&own_pose)?], 1)?)
-            }
-            None => None,
-        };
+        // Each stream reads its own object's start first, then the other's.
+        let start = self.conditioning.object_start(prompt.object_start, prefix, dtype)?;
+        let start = start
+            .map(|start| -> Result<Tensor> {
+                let own_start = streams_into_batch(&start)?.broadcast_mul(&own)?;
+                Ok(Tensor::cat(&[&own_start, &swap_streams(&own_start)?], 1)?)
+            })
+            .transpose()?;
         self.conditioning.fixed_part(
             &Tensor::cat(&[&text, &text], 0)?,
             &bps,
@@ -679,7 +715,14 @@ impl SingleStream {
         let single = self.frames(input.prefix, input.noisy)?;
         let dtype = single.dtype();
         let prompt = PromptState::of(input);
-        let fixed = self.fixed_condition(input.text, input.bps, input.presence, prompt, dtype)?;
+        let fixed = self.fixed_condition(
+            input.text,
+            input.bps,
+            input.presence,
+            prompt,
+            input.prefix,
+            dtype,
+        )?;
         let condition = (self.conditioning.time(input.timesteps, dtype)? + fixed)?;
         let mask = input.frame_mask.map(|m| m.to_dtype(dtype)).transpose()?;
         let out = self.denoiser.forward(&single, &condition, None, mask.as_ref(), rng)?;
@@ -701,26 +744,25 @@ impl SingleStream {
     /// The part of the condition that does not depend on the timestep.
     ///
     /// # Shapes
-    /// - `text`, `bps`, `presence`, `prompt`: see [`ModelInput`]; returns `[batch, latent]`
+    /// - `text`, `bps`, `presence`, `prompt`, `prefix`: see [`ModelInput`]; returns
+    ///   `[batch, latent]`
     fn fixed_condition(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
         prompt: PromptState<'_>,
+        prefix: &Tensor,
         dtype: DType,
     ) -> Result<Tensor> {
         let batch = text.dim(0)?;
         let presence = presence.to_dtype(dtype)?;
         let bps = bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
-        // Both objects' start poses, slot A first, zero where a slot is empty.
-        let start = prompt
-            .start
-            .map(|rows| {
-                start_poses(self.layout, rows, dtype)?
-                    .broadcast_mul(&presence.unsqueeze(2)?)?
-                    .reshape((batch, ()))
-                    .map_err(ModelError::from)
+        // Both objects' starts, slot A first, zero where a slot is empty.
+        let start = self.conditioning.object_start(prompt.object_start, prefix, dtype)?;
+        let start = start
+            .map(|start| -> Result<Tensor> {
+                Ok(start.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?)
             })
             .transpose()?;
         let text = text.to_dtype(dtype)?;
@@ -809,8 +851,8 @@ impl Model {
         if let Some(elapsed) = input.elapsed {
             expect("elapsed", elapsed, vec![batch])?;
         }
-        if let Some(start) = input.start {
-            expect("start", start, vec![batch, 2, d])?;
+        if let Some(start) = input.object_start {
+            expect("object_start", start, vec![batch, 2, d])?;
         }
         Ok(())
     }

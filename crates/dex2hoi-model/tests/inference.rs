@@ -8,8 +8,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_model::layers::{layer_norm, softmax};
 use dex2hoi_model::{
-    BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction,
-    PromptState, SeededVarMap, StreamLayout, fused,
+    BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, ObjectStart,
+    Prediction, PromptState, SeededVarMap, StreamLayout, fused,
 };
 
 fn random(shape: &[usize], rng: &mut ChaCha8Rng) -> Tensor {
@@ -230,9 +230,10 @@ fn variants() -> Vec<ModelConfig> {
 #[test]
 fn the_inference_model_equals_the_composite_forward_for_every_variant() {
     let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
-    let posed = ModelConfig { start_pose: true, ..clocked.clone() };
-    let single = ModelConfig { stream_layout: StreamLayout::Single, ..posed.clone() };
-    for cfg in variants().into_iter().chain([clocked, posed, single]) {
+    let absolute = ModelConfig { object_start: ObjectStart::Absolute, ..clocked.clone() };
+    let from_prefix = ModelConfig { object_start: ObjectStart::FromPrefix, ..clocked.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..from_prefix.clone() };
+    for cfg in variants().into_iter().chain([clocked, absolute, from_prefix, single]) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -258,13 +259,13 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             presence: &presence,
             frame_mask: None,
             elapsed: cfg.prompt_clock.then_some(&elapsed),
-            start: cfg.start_pose.then_some(&start),
+            object_start: (!cfg.object_start.is_off()).then_some(&start),
         };
         let expected = model.forward(&input, None).unwrap();
         let scale = expected.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
         assert!(scale.to_scalar::<f32>().unwrap() > 0.1, "{cfg:?}: the randomised model does work");
-        let prompt = PromptState { elapsed: input.elapsed, start: input.start };
-        let condition = inference.prepare(&text, &bps, &presence, prompt).unwrap();
+        let prompt = PromptState { elapsed: input.elapsed, object_start: input.object_start };
+        let condition = inference.prepare(&text, &bps, &presence, prompt, &prefix).unwrap();
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
         assert!(difference < 1e-4, "{cfg:?}: {difference}");
@@ -311,7 +312,8 @@ fn other_dtypes_run_the_composite_model() {
     let bps = f64(random(&[1, 2, cfg.bps_points * 3], &mut rng));
     let presence = f64(Tensor::new(&[[1f32, 1.0]], &Device::Cpu).unwrap());
     let timesteps = Tensor::new(&[3u32], &Device::Cpu).unwrap();
-    let condition = inference.prepare(&text, &bps, &presence, PromptState::default()).unwrap();
+    let condition =
+        inference.prepare(&text, &bps, &presence, PromptState::default(), &prefix).unwrap();
     let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
     let input = ModelInput {
         noisy: &noisy,
@@ -322,7 +324,7 @@ fn other_dtypes_run_the_composite_model() {
         presence: &presence,
         frame_mask: None,
         elapsed: None,
-        start: None,
+        object_start: None,
     };
     let expected = model.forward(&input, None).unwrap();
     let difference = (got - expected).unwrap().abs().unwrap().max_all().unwrap();

@@ -8,8 +8,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::FeatureLayout;
 use dex2hoi_model::{
-    BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction, SeededVarMap,
-    StreamLayout,
+    BodyFusion, Model, ModelConfig, ModelInput, ObjectRepresentation, ObjectStart, Prediction,
+    SeededVarMap, StreamLayout,
 };
 use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
@@ -85,10 +85,10 @@ impl Inputs {
             bps: &self.bps,
             presence: &self.presence,
             frame_mask: Some(&self.mask),
-            // Read by the variants with the prompt clock and the start pose, ignored by the
+            // Read by the variants with the prompt clock and the object start, ignored by the
             // others.
             elapsed: Some(&self.elapsed),
-            start: Some(&self.start),
+            object_start: Some(&self.start),
         }
     }
 }
@@ -514,28 +514,35 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// The tiny model with the prompt clock, and with the start pose in both stream layouts.
-fn with_prompt_state() -> [ModelConfig; 3] {
+/// The tiny model with the prompt clock, and with the object start, both readings, in both
+/// stream layouts.
+fn with_prompt_state() -> [ModelConfig; 4] {
     let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
-    let posed = ModelConfig { start_pose: true, ..clocked.clone() };
-    let single = ModelConfig { stream_layout: StreamLayout::Single, ..posed.clone() };
-    [clocked, posed, single]
+    let absolute = ModelConfig { object_start: ObjectStart::Absolute, ..clocked.clone() };
+    let from_prefix = ModelConfig { object_start: ObjectStart::FromPrefix, ..clocked.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..from_prefix.clone() };
+    [clocked, absolute, from_prefix, single]
 }
 
+const LAYOUTS: [StreamLayout; 2] = [StreamLayout::Dual, StreamLayout::Single];
+
 #[test]
-fn the_start_pose_reads_each_objects_rotation_and_world_position_at_the_prompts_start() {
-    for layout in [StreamLayout::Dual, StreamLayout::Single] {
-        let cfg = ModelConfig { start_pose: true, stream_layout: layout, ..ModelConfig::tiny() };
+fn the_object_start_reads_each_objects_rotation_and_world_position_at_the_prompts_start() {
+    let readings = [ObjectStart::Absolute, ObjectStart::FromPrefix];
+    for (object_start, layout) in readings.into_iter().flat_map(|r| LAYOUTS.map(|l| (r, l))) {
+        let cfg = ModelConfig { object_start, stream_layout: layout, ..ModelConfig::tiny() };
         let (model, vars) = build(&cfg, 3, DType::F32);
         // Sample 0 holds two objects, sample 1 one (its slot B empty).
         let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
         let error = model
-            .forward(&ModelInput { start: None, ..inputs.view() }, None)
+            .forward(&ModelInput { object_start: None, ..inputs.view() }, None)
             .unwrap_err()
             .to_string();
-        assert!(error.contains("start"), "{layout:?}: required with the start pose: {error}");
+        assert!(error.contains("object_start"), "{object_start:?}, {layout:?}: required: {error}");
         let short = inputs.start.narrow(2, 0, 5).unwrap();
-        assert!(model.forward(&ModelInput { start: Some(&short), ..inputs.view() }, None).is_err());
+        let refused =
+            model.forward(&ModelInput { object_start: Some(&short), ..inputs.view() }, None);
+        assert!(refused.is_err());
         let features = FeatureLayout::new(cfg.joints);
         // The start rows with `value` added to channel `channel` of stream `stream`'s row.
         let moved = |stream: usize, channel: usize, value: f32| {
@@ -547,7 +554,7 @@ fn the_start_pose_reads_each_objects_rotation_and_world_position_at_the_prompts_
             Tensor::from_vec(rows, (2, 2, d), &Device::Cpu).unwrap()
         };
         let run = |start: &Tensor| {
-            model.forward(&ModelInput { start: Some(start), ..inputs.view() }, None).unwrap()
+            model.forward(&ModelInput { object_start: Some(start), ..inputs.view() }, None).unwrap()
         };
         // Per sample and stream, the largest change between two outputs.
         let changed = |a: &Tensor, b: &Tensor| -> Vec<f32> {
@@ -565,18 +572,59 @@ fn the_start_pose_reads_each_objects_rotation_and_world_position_at_the_prompts_
         for channel in [position, rotation + 2] {
             // Slot A's object at the start: every stream of both samples reads it.
             let a = changed(&base, &run(&moved(0, channel, 1.0)));
-            assert!(a.iter().all(|&c| c > 1e-4), "{layout:?}, channel {channel}: {a:?}");
+            assert!(
+                a.iter().all(|&c| c > 1e-4),
+                "{object_start:?}, {layout:?}, channel {channel}: {a:?}"
+            );
             // Slot B's: read where the slot holds an object (sample 0), not where it is empty
             // (sample 1, whose output is the same to the bit).
             let b = changed(&base, &run(&moved(1, channel, 1.0)));
-            assert!(b[0] > 1e-4 && b[1] > 1e-4, "{layout:?}, channel {channel}: {b:?}");
-            assert_eq!(&b[2..], &[0.0, 0.0], "{layout:?}, channel {channel}");
+            assert!(
+                b[0] > 1e-4 && b[1] > 1e-4,
+                "{object_start:?}, {layout:?}, channel {channel}: {b:?}"
+            );
+            assert_eq!(&b[2..], &[0.0, 0.0], "{object_start:?}, {layout:?}, channel {channel}");
         }
         // The body's rows, the hand-relative channels and the mixture are not read.
         let body = changed(&base, &run(&moved(0, 0, 1.0)));
         let mixture = features.object_part_range(MIXTURE_RANGE).start;
         let hands = changed(&base, &run(&moved(0, mixture, 1.0)));
-        assert!(body.iter().chain(&hands).all(|&c| c == 0.0), "{layout:?}: {body:?} {hands:?}");
+        assert!(
+            body.iter().chain(&hands).all(|&c| c == 0.0),
+            "{object_start:?}, {layout:?}: {body:?} {hands:?}"
+        );
+    }
+}
+
+/// From the prefix, the object start reads the start less the last prefix frame's placement:
+/// with that placement at zero both readings give the same output (the same weights), and
+/// otherwise not.
+#[test]
+fn the_object_start_from_the_prefix_is_the_start_less_the_last_prefix_frame() {
+    for stream_layout in LAYOUTS {
+        let models = [ObjectStart::Absolute, ObjectStart::FromPrefix].map(|object_start| {
+            let cfg = ModelConfig { object_start, stream_layout, ..ModelConfig::tiny() };
+            let (model, vars) = build(&cfg, 3, DType::F32);
+            randomise(&vars, 11);
+            model
+        });
+        let cfg = models[0].config().clone();
+        let mut inputs = Inputs::random(&cfg, 2, DType::F32, 4);
+        let difference = |inputs: &Inputs| {
+            let [a, b] = models.each_ref().map(|m| m.forward(&inputs.view(), None).unwrap());
+            (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
+        };
+        assert!(difference(&inputs) > 1e-4, "{stream_layout:?}");
+        let features = FeatureLayout::new(cfg.joints);
+        let (d, tp) = (cfg.stream_features(), cfg.prefix_frames);
+        let mut prefix: Vec<f32> = inputs.prefix.flatten_all().unwrap().to_vec1().unwrap();
+        for row in prefix.chunks_exact_mut(d).skip(tp - 1).step_by(tp) {
+            for part in [ROTATION_RANGE, GLOBAL_POSITION_RANGE] {
+                row[features.object_part_range(part)].fill(0.0);
+            }
+        }
+        inputs.prefix = Tensor::from_vec(prefix, inputs.prefix.dims(), &Device::Cpu).unwrap();
+        assert_eq!(difference(&inputs), 0.0, "{stream_layout:?}");
     }
 }
 

@@ -44,7 +44,7 @@ fn main() {
             presence: &presence,
             frame_mask: None,
             elapsed: None,
-            start: None,
+            object_start: None,
         };
         let output = model.forward(&input, None).expect("a forward pass");
         let mut tensors: HashMap<String, Tensor> = HashMap::new();

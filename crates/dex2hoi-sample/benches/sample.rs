@@ -107,7 +107,7 @@ fn main() {
             .unwrap(),
             presence: Tensor::ones((1, 2), DType::F32, &device).unwrap(),
             elapsed: None,
-            start: None,
+            object_start: None,
         };
         reset_peak_memory();
         let window = median(runs, || {

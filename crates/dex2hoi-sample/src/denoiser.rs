@@ -24,8 +24,8 @@ pub struct WindowCondition {
     /// (read by a model with the prompt clock).
     pub elapsed: Option<Tensor>,
     /// Both streams' normalised rows at the first frame of the prompt in force, `[B, 2, D]`
-    /// (read by a model with the start pose).
-    pub start: Option<Tensor>,
+    /// (read by a model with the object start).
+    pub object_start: Option<Tensor>,
 }
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
@@ -69,11 +69,14 @@ impl<'a> ModelDenoiser<'a> {
         let bps = repeat_rows(&self.condition.bps, times)?;
         let presence = repeat_rows(&self.condition.presence, times)?;
         let elapsed = self.condition.elapsed.as_ref().map(|e| repeat_rows(e, times)).transpose()?;
-        let start = self.condition.start.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
-        let prompt = PromptState { elapsed: elapsed.as_ref(), start: start.as_ref() };
-        let prepared =
-            self.model.prepare(&text, &bps, &presence, prompt).map_err(DiffusionError::denoiser)?;
+        let object_start =
+            self.condition.object_start.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
+        let prompt = PromptState { elapsed: elapsed.as_ref(), object_start: object_start.as_ref() };
         let prefix = repeat_rows(&self.condition.prefix, times)?;
+        let prepared = self
+            .model
+            .prepare(&text, &bps, &presence, prompt, &prefix)
+            .map_err(DiffusionError::denoiser)?;
         *cache = Some((null_condition.to_vec(), prepared.clone(), prefix.clone()));
         Ok((prepared, prefix))
     }

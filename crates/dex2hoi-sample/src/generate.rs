@@ -156,7 +156,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     let mut windows = Vec::new();
     let frames = request.frames.get();
     let total_windows = frames.div_ceil(tf.max(1));
-    // The start pose: the rows at the first prefix frame of each prompt's first window (for
+    // The object start: the rows at the first prefix frame of each prompt's first window (for
     // the first prompt the initial prefix's first frame, as a training window at the start of
     // its sequence reads its frame 0), with the start frame of the prompt they belong to.
     let mut start: Option<(usize, Tensor)> = None;
@@ -182,7 +182,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
                 Tensor::full(elapsed, batch, request.initial_prefix.device())?
                     .to_dtype(request.model.dtype())?,
             ),
-            start: start.as_ref().map(|(_, rows)| rows.clone()),
+            object_start: start.as_ref().map(|(_, rows)| rows.clone()),
         };
         let window =
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;

@@ -10,7 +10,7 @@ use glam::{Mat3, Vec3};
 use dex2hoi_data::FeatureLayout;
 use dex2hoi_data::start::StartPose;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
-use dex2hoi_model::{InferenceModel, Model, ModelConfig, SeededVarMap};
+use dex2hoi_model::{InferenceModel, Model, ModelConfig, ObjectStart, SeededVarMap};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};
 use dex2hoi_sample::{
     Generation, Normaliser, PrefixEncoding, ProgressHook, SampleError, TimedText, WindowProgress,
@@ -47,12 +47,16 @@ fn tiny_model_of(cfg: &ModelConfig) -> InferenceModel {
     InferenceModel::new(&model).unwrap()
 }
 
-/// The tiny model, and the same with the prompt clock and the start pose (which a generation
+/// The tiny model, and the same with the prompt clock and the object start (which a generation
 /// must feed each window, or the model refuses it).
 #[test]
 fn generation_runs_window_by_window_with_a_timeline() {
-    let posed = ModelConfig { prompt_clock: true, start_pose: true, ..ModelConfig::tiny() };
-    for cfg in [ModelConfig::tiny(), posed] {
+    let from_prefix = ModelConfig {
+        prompt_clock: true,
+        object_start: ObjectStart::FromPrefix,
+        ..ModelConfig::tiny()
+    };
+    for cfg in [ModelConfig::tiny(), from_prefix] {
         runs_window_by_window_with_a_timeline(&tiny_model_of(&cfg));
     }
 }

@@ -87,9 +87,9 @@ pub struct Batch {
     /// the window's first frame, `[B]`: what the prompt clock reads.
     pub elapsed: Tensor,
     /// Both streams' normalised rows at the first frame of each window's sequence (where its
-    /// texts begin to apply; swapped and mirrored with the window), `[B, 2, D]`: what the start
-    /// pose reads.
-    pub start: Tensor,
+    /// texts begin to apply; swapped and mirrored with the window), `[B, 2, D]`: what the object
+    /// start reads.
+    pub object_start: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Whether each hand holds an object at some time of the window's whole sequence
@@ -340,7 +340,7 @@ impl TrainingSet {
             foot_contact_values: foot_contact,
             root_start: tensor(root_start, &[b, 1, 3])?,
             elapsed: tensor(elapsed, &[b])?,
-            start: tensor(start, &[b, 2, width])?,
+            object_start: tensor(start, &[b, 2, width])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,

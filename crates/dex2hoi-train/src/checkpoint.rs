@@ -161,14 +161,15 @@ impl Trainer {
         let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
-        // A run may add the prompt clock or the start pose: both start with no effect.
+        // A run may add the prompt clock or the object start: both start with no effect.
         let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
         if gains_clock {
             stored.model.prompt_clock = true;
         }
-        let gains_start = !stored.model.start_pose && self.config.model.start_pose;
+        let gains_start =
+            stored.model.object_start.is_off() && !self.config.model.object_start.is_off();
         if gains_start {
-            stored.model.start_pose = true;
+            stored.model.object_start = self.config.model.object_start;
         }
         for (section, model, run) in [
             (
@@ -222,7 +223,7 @@ impl Trainer {
             let name = format!("ema.{}", p.name);
             let Some(t) = tensors.get(&name) else {
                 let gained = (gains_clock && p.name.contains(".clock_"))
-                    || (gains_start && p.name.contains(".start_"));
+                    || (gains_start && p.name.contains(".object_start_"));
                 if gained {
                     initialisation.kept.push(p.name.clone());
                     continue;
@@ -325,7 +326,7 @@ pub struct Initialisation {
     /// Words the model never saw, started as its unknown-word embedding.
     pub words_new: usize,
     /// Parameters the model does not have, kept at their initialisation (the prompt clock's
-    /// or the start pose's).
+    /// or the object start's).
     pub kept: Vec<String>,
     /// Parameters started afresh on request ([`Fresh`]), though the model has them.
     pub fresh: Vec<String>,

@@ -286,7 +286,7 @@ impl Trainer {
             presence: &batch.presence,
             frame_mask: Some(&batch.frame_mask),
             elapsed: Some(&batch.elapsed),
-            start: Some(&batch.start),
+            object_start: Some(&batch.object_start),
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -337,7 +337,7 @@ impl Trainer {
                 let rows = |t: &Tensor| t.narrow(0, start, len);
                 let mask = input.frame_mask.map(rows).transpose()?;
                 let elapsed = input.elapsed.map(rows).transpose()?;
-                let start_rows = input.start.map(rows).transpose()?;
+                let object_start = input.object_start.map(rows).transpose()?;
                 let group = ModelInput {
                     noisy: &rows(input.noisy)?,
                     prefix: &rows(input.prefix)?,
@@ -347,7 +347,7 @@ impl Trainer {
                     presence: &rows(input.presence)?,
                     frame_mask: mask.as_ref(),
                     elapsed: elapsed.as_ref(),
-                    start: start_rows.as_ref(),
+                    object_start: object_start.as_ref(),
                 };
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 Ok(model.forward(&group, Some(&mut rng))?)

@@ -59,7 +59,7 @@ fn input<'a>(t: &[&'a Tensor]) -> ModelInput<'a> {
         presence: t[5],
         frame_mask: None,
         elapsed: None,
-        start: None,
+        object_start: None,
     }
 }
 

@@ -215,7 +215,7 @@ fn the_hands_a_batch_holds_are_those_its_texts_name() {
     }
 }
 
-/// The start pose's rows: each window's sequence at frame 0, swapped and mirrored with the
+/// The object start's rows: each window's sequence at frame 0, swapped and mirrored with the
 /// window. A batch of first windows starts at those rows; in a batch of windows from anywhere,
 /// a window that starts later reads rows other than its own first frame.
 #[test]
@@ -238,7 +238,7 @@ fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_w
     let own_first_frame = |share: f64| -> Vec<(bool, f32)> {
         let batch = batch(share);
         let frame_zero = batch.features.narrow(2, 0, 1).unwrap().squeeze(2).unwrap();
-        let difference = (&batch.start - &frame_zero).unwrap().abs().unwrap();
+        let difference = (&batch.object_start - &frame_zero).unwrap().abs().unwrap();
         let largest: Vec<f32> =
             difference.flatten_from(1).unwrap().max(1).unwrap().to_vec1().unwrap();
         let starts: Vec<f32> = batch.elapsed.to_vec1().unwrap();

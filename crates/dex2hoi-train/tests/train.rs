@@ -8,6 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use candle_core::Device;
 
 use dex2hoi_data::dataset::Dataset;
+use dex2hoi_model::ObjectStart;
 use dex2hoi_model::checkpoint::read_tensors;
 use dex2hoi_train::checkpoint::Fresh;
 use dex2hoi_train::{RunStart, Term, TrainConfig, TrainError, TrainOptions, Trainer, train};
@@ -550,13 +551,17 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         };
         assert_eq!(row(&new_rows, new_id), expected, "{word}");
     }
-    // A configuration that adds the prompt clock, and one that adds the start pose too: what
+    // A configuration that adds the prompt clock, and one that adds the object start too: what
     // they add starts at its initialisation, its output layers zero, everything else from the
     // model.
-    for (start_pose, added) in [(false, ["clock_"].as_slice()), (true, &["clock_", "start_"])] {
+    let adding = [
+        (ObjectStart::Off, ["clock_"].as_slice()),
+        (ObjectStart::FromPrefix, &["clock_", "object_start_"]),
+    ];
+    for (object_start, added) in adding {
         let mut gaining = tuned.clone();
         gaining.model.prompt_clock = true;
-        gaining.model.start_pose = start_pose;
+        gaining.model.object_start = object_start;
         let mut trainer = Trainer::new(gaining, &data, Path::new("d"), &Device::Cpu).unwrap();
         let bridged = trainer.initialise_from(&packed).unwrap();
         assert_eq!(bridged.kept.len(), 4 * added.len(), "{:?}", bridged.kept);
@@ -627,7 +632,7 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     config.loss.text_sides = 1.0;
     // The prompt state splits into the groups with the rest of the batch.
     config.model.prompt_clock = true;
-    config.model.start_pose = true;
+    config.model.object_start = ObjectStart::FromPrefix;
     config.training.group_windows = None;
     let (whole, whole_parameters) = train_steps(&config, &data, 4);
     config.training.group_windows = Some(3);

@@ -361,7 +361,7 @@ pub struct PreparedCondition {
     bps: Tensor,
     presence: Tensor,
     elapsed: Option<Tensor>,
-    start: Option<Tensor>,
+    object_start: Option<Tensor>,
     /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
     /// dual layout (stream A first), `[batch, latent]` in the single one.
     fixed: Tensor,
@@ -384,7 +384,11 @@ impl PreparedCondition {
             bps: self.bps.narrow(0, start, len)?,
             presence: self.presence.narrow(0, start, len)?,
             elapsed: self.elapsed.as_ref().map(|e| e.narrow(0, start, len)).transpose()?,
-            start: self.start.as_ref().map(|s| s.narrow(0, start, len)).transpose()?,
+            object_start: self
+                .object_start
+                .as_ref()
+                .map(|s| s.narrow(0, start, len))
+                .transpose()?,
             fixed: self
                 .fixed
                 .reshape((streams, batch, latent))?
@@ -460,25 +464,32 @@ impl InferenceModel {
     /// # Shapes
     /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
     ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `prompt`: `[batch]` and
-    ///   `[batch, 2, D]` (see [`ModelInput::elapsed`] and [`ModelInput::start`])
+    ///   `[batch, 2, D]` (see [`ModelInput::elapsed`] and [`ModelInput::object_start`]);
+    ///   `prefix`: `[batch, 2, T_p, D]`, the prefix the window's steps will see (read by an
+    ///   object start from the prefix)
     pub fn prepare(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
         prompt: PromptState<'_>,
+        prefix: &Tensor,
     ) -> Result<PreparedCondition> {
         let dtype = self.model.dtype();
         let fixed = match &self.model.layout {
-            Layout::Dual(dual) => dual.fixed_condition(text, bps, presence, prompt, dtype)?,
-            Layout::Single(single) => single.fixed_condition(text, bps, presence, prompt, dtype)?,
+            Layout::Dual(dual) => {
+                dual.fixed_condition(text, bps, presence, prompt, prefix, dtype)?
+            }
+            Layout::Single(single) => {
+                single.fixed_condition(text, bps, presence, prompt, prefix, dtype)?
+            }
         };
         Ok(PreparedCondition {
             text: text.detach(),
             bps: bps.detach(),
             presence: presence.detach(),
             elapsed: prompt.elapsed.map(Tensor::detach),
-            start: prompt.start.map(Tensor::detach),
+            object_start: prompt.object_start.map(Tensor::detach),
             fixed: fixed.detach(),
         })
     }
@@ -543,7 +554,7 @@ impl InferenceModel {
             presence: &condition.presence,
             frame_mask: None,
             elapsed: condition.elapsed.as_ref(),
-            start: condition.start.as_ref(),
+            object_start: condition.object_start.as_ref(),
         }
     }
 
