@@ -51,7 +51,7 @@ pub enum BodyFusion {
 }
 
 /// What the condition reads of where the objects stood when the prompt began (beyond the
-/// paper; docs/CONVENTIONS.md, "Object start").
+/// paper; docs/CONVENTIONS.md, "Denoiser").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ObjectStart {
