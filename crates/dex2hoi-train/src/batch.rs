@@ -256,24 +256,25 @@ impl TrainingSet {
             let text = source.texts[rng.random_range(0..source.texts.len())].clone();
             let swap = rng.random_bool(options.swap_probability);
             let mirrored = rng.random_bool(options.mirror_probability);
+            // The window and its sequence's first frame, each swapped and mirrored alike.
+            let augmented = |mut cut: ProcessedSequence| {
+                if swap {
+                    cut = swap_streams(&cut);
+                }
+                if mirrored {
+                    cut = mirror(&cut, &self.skeleton);
+                }
+                cut
+            };
             let mut w = window.cut(source, t_all);
             w.texts = vec![text];
+            let mut w = augmented(w);
             let mut slots = self.assets_of[window.sequence];
             if swap {
-                w = swap_streams(&w);
                 slots.swap(0, 1);
             }
-            if mirrored {
-                w = mirror(&w, &self.skeleton);
-            }
             let whole = Window { sequence: window.sequence, start: 0, valid_frames: 1 };
-            let mut first = whole.cut(source, 1);
-            if swap {
-                first = swap_streams(&first);
-            }
-            if mirrored {
-                first = mirror(&first, &self.skeleton);
-            }
+            let first = augmented(whole.cut(source, 1));
             for s in 0..MAX_OBJECTS {
                 let row = &mut start[(i * 2 + s) * width..][..width];
                 layout.write_stream_row(&first.body, &first.objects, 0, s, row);
