@@ -26,8 +26,8 @@ use dex2hoi_data::{Sequence, SequenceObject};
 
 pub use error::{Result, SynthError};
 use plan::{
-    Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, RestAroundTask, Task, minimum_jerk,
-    plan_task_with,
+    Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, RestAroundTask, Task, layout_stream,
+    minimum_jerk, plan_task_laid_out,
 };
 
 /// Distance from the grasped surface to the wrist joint along the surface normal.
@@ -364,6 +364,9 @@ pub const MIN_STRAY_DISTANCE: f32 = 0.04;
 /// How many plans a sequence may draw before generation gives up.
 const MAX_DRAWS: usize = 100;
 
+/// How many of those keep the sequence's first layout ([`plan::layout_stream`]).
+const LAYOUT_DRAWS: usize = MAX_DRAWS / 2;
+
 /// Generates sequence `index` of the dataset with `seed` at `fps`: task family
 /// `index mod 8`, everything else drawn from a random stream of `(seed, index)`.
 pub fn generate(index: usize, seed: u64, fps: f32) -> Result<SynthSequence> {
@@ -381,8 +384,13 @@ pub fn generate_with(
         ChaCha8Rng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ index as u64);
     let task = Task::ALL[index % Task::ALL.len()];
     let mut last_problem = String::new();
-    for _attempt in 0..MAX_DRAWS {
-        let plan = plan_task_with(task, rest, &mut rng);
+    let mut layout = layout_stream(&rng);
+    for attempt in 0..MAX_DRAWS {
+        if attempt == LAYOUT_DRAWS {
+            // The layout itself may be what no draw of the rest can realise.
+            layout = layout_stream(&rng);
+        }
+        let plan = plan_task_laid_out(task, rest, layout.clone(), &mut rng);
         let synth = match realise(&plan, fps, &mut rng, index) {
             Ok(synth) => synth,
             Err(error) => {

@@ -225,12 +225,14 @@ impl RestAroundTask {
 /// reach are refused with the rest of the physical checks.
 pub const ONE_HANDED_REACH: std::ops::Range<f32> = -0.22..0.22;
 
+/// Sideways places where one hand puts an object down (metres along X times `hand.side()`): less
+/// far across the body than [`ONE_HANDED_REACH`], since the object is set down, not taken.
+/// Wide objects set down further across are mostly out of the arm's reach.
+pub const ONE_HANDED_PUT_DOWN: std::ops::Range<f32> = -0.16..0.22;
+
 /// How much nearer the table's edge an object stands per metre across the body from the
 /// middle, for the hand that reaches it (see [`ONE_HANDED_REACH`]).
 const ACROSS_NEARER: f32 = 0.8;
-
-/// How far across the body, from the middle, a hand puts an object down.
-const PUT_DOWN_ACROSS: f32 = 0.14;
 
 /// Seconds the fingers take to close after arriving and to open before leaving; the object
 /// is still then.
@@ -308,6 +310,13 @@ struct Pair {
 /// they always have; a new draw changes every later number of the sequence.
 struct Planner<'r> {
     rng: &'r mut ChaCha8Rng,
+    /// The draws that decide what the words say against where the objects stand (a pick and
+    /// place's side, and its object's place), from a stream of their own that
+    /// [`crate::generate`] keeps over its redraws: the physical checks refuse put-downs across
+    /// the body more often than on the hand's own side, and redrawing the side with the rest
+    /// would make a pick and place from the middle of the table go towards the hand's side
+    /// 70% of the time.
+    layout: ChaCha8Rng,
     table: Table,
     /// Seconds the person stands still before the first reach.
     idle: f32,
@@ -322,13 +331,14 @@ struct Planner<'r> {
 
 impl<'r> Planner<'r> {
     /// Draws the scene: the table's height and near edge, the idle time, the main hand.
-    fn start(rng: &'r mut ChaCha8Rng, rest: RestAroundTask) -> Self {
+    fn start(rng: &'r mut ChaCha8Rng, layout: ChaCha8Rng, rest: RestAroundTask) -> Self {
         let height = rng.random_range(0.86..0.94);
         let near = rng.random_range(0.20..0.26);
         let idle = rest.idle_before(rng.random_range(IDLE_BEFORE_TASK));
         let hand = if rng.random_bool(0.5) { Hand::Left } else { Hand::Right };
         Self {
             rng,
+            layout,
             table: Table { height, near },
             idle,
             hand,
@@ -451,17 +461,33 @@ impl<'r> Planner<'r> {
     /// the idle time.
     fn place_for_main_hand(&mut self, pool: &[&'static CatalogueObject]) -> Placed {
         let object = pick(self.rng, pool);
-        let x = self.hand.side() * self.rng.random_range(ONE_HANDED_REACH);
-        let z = self.depth();
-        // Across the body the arm reaches less far ahead (the shoulder is further away and
-        // the torso leans but does not turn): nearer the edge the further across.
-        let across = (-x * self.hand.side()).max(0.0);
-        let z = (z - across * ACROSS_NEARER).max(self.table.near + footprint(object) + 0.04);
-        let yaw = self.yaw();
-        let rest = self.table.rest(object, x, z, yaw);
+        let towards_hand = self.rng.random_range(ONE_HANDED_REACH);
+        self.place_for_main_hand_at(object, towards_hand)
+    }
+
+    /// [`Self::place_for_main_hand`] at `towards_hand` sideways (metres along X times
+    /// `hand.side()`, within [`ONE_HANDED_REACH`]).
+    fn place_for_main_hand_at(
+        &mut self,
+        object: &'static CatalogueObject,
+        towards_hand: f32,
+    ) -> Placed {
+        let x = self.hand.side() * towards_hand;
+        let rest = self.rest_in_reach(object, x);
         let index = self.add_object(object, rest);
         let grasp = self.reach();
         Placed { object, rest, index, grasp }
+    }
+
+    /// A resting pose for `object` at `x` across the table that the main hand reaches: a drawn
+    /// depth, nearer the edge across the body (the shoulder is further away there and the
+    /// torso leans but does not turn).
+    fn rest_in_reach(&mut self, object: &CatalogueObject, x: f32) -> Pose {
+        let across = (-x * self.hand.side()).max(0.0);
+        let z = self.depth() - across * ACROSS_NEARER;
+        let z = z.max(self.table.near + footprint(object) + 0.04);
+        let yaw = self.yaw();
+        self.table.rest(object, x, z, yaw)
     }
 
     /// Two different small objects side by side, `spread` from the middle, the left one on
@@ -492,21 +518,23 @@ impl<'r> Planner<'r> {
         Pair { left, right, left_rest, right_rest, left_index, right_index }
     }
 
-    /// [`Task::PickPlace`]: the main hand moves an object a little to the side.
+    /// [`Task::PickPlace`]: the main hand moves an object a little to the side: towards its own
+    /// side or across the body, each half the time whoever's hand it is and wherever the object
+    /// stands. The object starts where both its start and where it is put down are within
+    /// [`ONE_HANDED_REACH`]: in the middle of the table either way is as likely, so that only
+    /// the words tell the side (a model learns what the data lets it read: when the side
+    /// followed from the hand and the object's place, the side words went unread).
     fn pick_place(&mut self) -> Description<'static> {
         let hand = self.hand;
-        let o = self.place_for_main_hand(&pool(|o| o.one_handed));
-        let distance: f32 = self.rng.random_range(0.10..0.16);
-        let direction = if self.rng.random_bool(0.5) { 1.0 } else { -1.0 };
-        let mut x = o.rest.position.x + hand.side() * distance * direction;
-        // Not further across the body than a hand reaches comfortably: the other way instead.
-        if x * hand.side() < -PUT_DOWN_ACROSS {
-            x = o.rest.position.x + hand.side() * distance;
-        }
-        let x = x.clamp(-0.25, 0.25);
-        let z = self.depth();
-        let yaw = self.yaw();
-        let target = self.table.rest(o.object, x, z, yaw);
+        let distance: f32 = self.layout.random_range(0.10..0.16);
+        let shift = if self.layout.random_bool(0.5) { distance } else { -distance };
+        let starts = (ONE_HANDED_PUT_DOWN.start - shift).max(ONE_HANDED_REACH.start)
+            ..(ONE_HANDED_PUT_DOWN.end - shift).min(ONE_HANDED_REACH.end);
+        let start = self.layout.random_range(starts);
+        let object = pick(self.rng, &pool(|o| o.one_handed));
+        let o = self.place_for_main_hand_at(object, start);
+        let x = o.rest.position.x + hand.side() * shift;
+        let target = self.rest_in_reach(o.object, x);
         let lift = self.duration(0.12..0.2);
         let arrive = self.carry_over(o.index, o.grasp, &o.rest, target, lift);
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
@@ -743,7 +771,30 @@ pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
 
 /// [`plan_task`] with the given rest around the task.
 pub fn plan_task_with(task: Task, rest: RestAroundTask, rng: &mut ChaCha8Rng) -> Plan {
-    let mut planner = Planner::start(rng, rest);
+    let layout = layout_stream(rng);
+    plan_task_laid_out(task, rest, layout, rng)
+}
+
+/// The stream of a plan's layout draws (see [`Planner`]'s `layout`): `rng`'s seed on a stream
+/// of its own, so that the layout draws leave `rng`'s draws as they are.
+pub fn layout_stream(rng: &ChaCha8Rng) -> ChaCha8Rng {
+    let mut layout = rng.clone();
+    layout.set_stream(LAYOUT_STREAM);
+    layout
+}
+
+/// The stream number of [`layout_stream`].
+const LAYOUT_STREAM: u64 = 1;
+
+/// [`plan_task_with`] with the layout draws from `layout`: [`crate::generate`] passes the same
+/// layout to its redraws.
+pub fn plan_task_laid_out(
+    task: Task,
+    rest: RestAroundTask,
+    layout: ChaCha8Rng,
+    rng: &mut ChaCha8Rng,
+) -> Plan {
+    let mut planner = Planner::start(rng, layout, rest);
     let description = match task {
         Task::PickPlace => planner.pick_place(),
         Task::Inspect => planner.inspect(),

@@ -1,6 +1,7 @@
 //! Properties of the procedural plans over many seeds: the hand the words name does not follow
-//! from where the object stands, every sequence ends at rest, the box is lifted, and an object
-//! no hand holds stands on the table top.
+//! from where the object stands, nor the side a pick and place names from the hand or the
+//! object's place; every sequence ends at rest, the box is lifted, and an object no hand holds
+//! stands on the table top.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -9,23 +10,28 @@ use dex2hoi_data::character::Hand;
 use dex2hoi_synth::plan::{
     IDLE_BEFORE_TASK, ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task,
 };
+use dex2hoi_synth::text::Description;
 use dex2hoi_synth::{SynthSequence, generate};
 
 fn plans(task: Task, seeds: std::ops::Range<u64>) -> impl Iterator<Item = Plan> {
     seeds.map(move |seed| plan_task(task, &mut ChaCha8Rng::seed_from_u64(seed)))
 }
 
-/// Where the object of a one-handed task starts, sideways towards the acting hand's side
-/// (positive: on that hand's side), and the hand, in a generated sequence (after the draws
+/// Where the object of a one-handed task stands on `frame`, sideways towards the acting hand's
+/// side (positive: on that hand's side), and the hand, in a generated sequence (after the draws
 /// the physical checks refused).
-fn start_towards_hand(synth: &SynthSequence) -> (f32, Hand) {
+fn towards_hand_at(synth: &SynthSequence, frame: usize) -> (f32, Hand) {
     let first = &synth.attachments[0];
     let object = &synth.sequence.objects[first.object];
-    // The scene is turned about +Y and moved: measure in the character's frame.
+    // The scene is turned about +Y and moved: measure in the character's frame at the start.
     let root = synth.sequence.root_positions[0];
     let turn = synth.sequence.local_rotations[0];
-    let local = turn.transpose() * (object.translations[0] - root);
+    let local = turn.transpose() * (object.translations[frame] - root);
     (local.x * first.hand.side(), first.hand)
+}
+
+fn start_towards_hand(synth: &SynthSequence) -> (f32, Hand) {
+    towards_hand_at(synth, 0)
 }
 
 #[test]
@@ -51,6 +57,39 @@ fn the_hand_does_not_follow_from_where_the_object_stands() {
         let share = by_right / on_left.len() as f32;
         assert!((0.2..0.8).contains(&share), "{task:?}: right hand takes {share} of left objects");
     }
+}
+
+#[test]
+fn the_side_a_pick_and_place_names_follows_neither_the_hand_nor_the_place() {
+    let family = Task::ALL.iter().position(|&t| t == Task::PickPlace).expect("a task family");
+    let mut own_side = 0;
+    let mut middle = (0, 0);
+    for k in 0..400 {
+        let synth = generate(family + 8 * k, 9, 20.0).expect("generated");
+        let (start, hand) = start_towards_hand(&synth);
+        let (end, _) = towards_hand_at(&synth, synth.sequence.frames() - 1);
+        let Description::PickPlace { hand: named, towards, .. } = synth.description else {
+            panic!("{}: not a pick and place", synth.sequence.source_id);
+        };
+        assert_eq!(named, hand, "{}", synth.sequence.source_id);
+        // The words say where the motion puts it: 10-16 cm that way, within reach.
+        let moved = (end - start) * if towards == hand { 1.0 } else { -1.0 };
+        assert!((0.09..0.17).contains(&moved), "{}: {moved} m", synth.sequence.source_id);
+        let reach = ONE_HANDED_REACH.start - 1e-4..=ONE_HANDED_REACH.end + 1e-4;
+        assert!(reach.contains(&end), "{}: put down at {end} m", synth.sequence.source_id);
+        own_side += usize::from(towards == hand);
+        if start.abs() < 0.05 {
+            middle.0 += 1;
+            middle.1 += usize::from(towards == hand);
+        }
+    }
+    // Towards the hand's own side about half the time, in the middle of the table too: the
+    // hand and where the object stands do not tell the side, only the words do.
+    let share = own_side as f32 / 400.0;
+    assert!((0.42..0.58).contains(&share), "{share} of pick and places go to the hand's side");
+    assert!(middle.0 >= 60, "{} of 400 objects start in the middle", middle.0);
+    let share = middle.1 as f32 / middle.0 as f32;
+    assert!((0.35..0.65).contains(&share), "{share} of those in the middle go to the hand's side");
 }
 
 #[test]
