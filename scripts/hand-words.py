@@ -3,7 +3,8 @@
 held the mug (the wrist within 20 cm of the mug's centre, median over the frames it is lifted
 more than 3 cm), the side asked for and the side it ended on (more than 3 cm from where it
 stood; "back" asks for its own place), and the lifts; then how many samples got the hand and
-the side right.
+the side right; last, for each hand and seed, how far apart "to the left" and "to the right" put
+the mug down (same noise, only the side word differs: near 0 when the words go unread).
 
     scripts/hand-words.py OUT_DIR
 """
@@ -32,7 +33,7 @@ def read(path):
                 held += side
     moved = mug[-1, 0] - mug[0, 0]
     ended = "left" if moved > MOVED else "right" if moved < -MOVED else "back"
-    return held or "-", ended, lifts
+    return held or "-", ended, lifts, moved
 
 
 def main():
@@ -40,6 +41,7 @@ def main():
         sys.exit(__doc__)
     root = sys.argv[1]
     right_hand = right_side = total = 0
+    travels = {}
     for name in sorted(os.listdir(root)):
         path = os.path.join(root, name, "motion.npz")
         if not os.path.isfile(path):
@@ -48,13 +50,23 @@ def main():
         if len(parts) != 4:
             continue
         task, hand, side, _seed = parts
-        held, ended, lifts = read(path)
+        held, ended, lifts, moved = read(path)
+        travels[(task, hand, side, _seed)] = moved
         total += 1
         right_hand += held == hand
         right_side += ended == side
         print(f"{name:18s} hand asked {hand}, held {held:2s}  side asked {side:5s}, ended {ended:5s}  lifts {lifts}")
     if total:
         print(f"the hand asked for: {right_hand} of {total}; the side asked for: {right_side} of {total}")
+    apart = []
+    for (task, hand, side, seed), left in sorted(travels.items()):
+        right = travels.get((task, hand, "right", seed))
+        if side != "left" or right is None:
+            continue
+        apart.append(left - right)
+        print(f"{task}-{hand} seed {seed}: to the left ends {left * 100:+.1f} cm, to the right {right * 100:+.1f} cm")
+    if apart:
+        print(f"the side words move where the mug ends by a median {np.median(apart) * 100:+.1f} cm (left minus right)")
 
 
 if __name__ == "__main__":

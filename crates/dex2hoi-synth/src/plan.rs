@@ -304,10 +304,10 @@ struct Pair {
 /// A plan being built: the scene every task starts from (table, idle time, main hand), the
 /// clock of the next reach, the object tracks and who holds what.
 ///
-/// Every number is drawn from `rng`, and the order of the draws is part of the dataset: the
-/// same seed gives the same sequences only while every task draws the same numbers in the same
-/// order. That is why the methods below draw into named variables one at a time, in the order
-/// they always have; a new draw changes every later number of the sequence.
+/// Every number is drawn from `rng` or `layout`, and the order of the draws is part of the
+/// dataset: the same seed gives the same sequences only while every task draws the same numbers
+/// in the same order. That is why the methods below draw into named variables one at a time,
+/// in the order they always have; a new draw changes every later number of the sequence.
 struct Planner<'r> {
     rng: &'r mut ChaCha8Rng,
     /// The draws that decide what the words say against where the objects stand (a pick and
