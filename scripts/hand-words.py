@@ -49,9 +49,9 @@ def main():
         parts = name.split("-")
         if len(parts) != 4:
             continue
-        task, hand, side, _seed = parts
+        task, hand, side, seed = parts
         held, ended, lifts, moved = read(path)
-        travels[(task, hand, side, _seed)] = moved
+        travels[(task, hand, side, seed)] = moved
         total += 1
         right_hand += held == hand
         right_side += ended == side

@@ -520,10 +520,10 @@ impl<'r> Planner<'r> {
 
     /// [`Task::PickPlace`]: the main hand moves an object a little to the side: towards its own
     /// side or across the body, each half the time whoever's hand it is and wherever the object
-    /// stands. The object starts where both its start and where it is put down are within
-    /// [`ONE_HANDED_REACH`]: in the middle of the table either way is as likely, so that only
-    /// the words tell the side (a model learns what the data lets it read: when the side
-    /// followed from the hand and the object's place, the side words went unread).
+    /// stands. The object starts within [`ONE_HANDED_REACH`] where the put-down that way is
+    /// within [`ONE_HANDED_PUT_DOWN`]: in the middle of the table either way is as likely, so
+    /// that only the words tell the side (a model learns what the data lets it read: when the
+    /// side followed from the hand and the object's place, the side words went unread).
     fn pick_place(&mut self) -> Description<'static> {
         let hand = self.hand;
         let distance: f32 = self.layout.random_range(0.10..0.16);

@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::character::Hand;
 use dex2hoi_synth::plan::{
-    IDLE_BEFORE_TASK, ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task,
+    IDLE_BEFORE_TASK, ONE_HANDED_PUT_DOWN, ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task,
 };
 use dex2hoi_synth::text::Description;
 use dex2hoi_synth::{SynthSequence, generate};
@@ -75,7 +75,7 @@ fn the_side_a_pick_and_place_names_follows_neither_the_hand_nor_the_place() {
         // The words say where the motion puts it: 10-16 cm that way, within reach.
         let moved = (end - start) * if towards == hand { 1.0 } else { -1.0 };
         assert!((0.09..0.17).contains(&moved), "{}: {moved} m", synth.sequence.source_id);
-        let reach = ONE_HANDED_REACH.start - 1e-4..=ONE_HANDED_REACH.end + 1e-4;
+        let reach = ONE_HANDED_PUT_DOWN.start - 1e-4..=ONE_HANDED_PUT_DOWN.end + 1e-4;
         assert!(reach.contains(&end), "{}: put down at {end} m", synth.sequence.source_id);
         own_side += usize::from(towards == hand);
         if start.abs() < 0.05 {
