@@ -230,6 +230,20 @@ pub const ONE_HANDED_REACH: std::ops::Range<f32> = -0.22..0.22;
 /// Wide objects set down further across are mostly out of the arm's reach.
 pub const ONE_HANDED_PUT_DOWN: std::ops::Range<f32> = -0.16..0.22;
 
+/// Sideways places on a hand's own side of the table (metres along X times `hand.side()`):
+/// within its comfortable reach, clear of the middle.
+const SIDE_SPOT: std::ops::Range<f32> = 0.10..0.22;
+
+/// Sideways places where a hand-over's object starts, towards the giving hand (as
+/// [`ONE_HANDED_REACH`]): at most 12 cm across the body, so that the taking hand always puts it
+/// down at least [`HANDOVER_TRAVEL`] further on its own side, where the words say it ends. An
+/// object on the person's left is still given by either hand.
+pub const HANDOVER_START: std::ops::Range<f32> = -0.12..0.22;
+
+/// The least a hand-over moves its object sideways, towards the taking hand's side (metres):
+/// past the 5 cm within which an object counts as put back where it stood.
+pub const HANDOVER_TRAVEL: f32 = 0.08;
+
 /// How much nearer the table's edge an object stands per metre across the body from the
 /// middle, for the hand that reaches it (see [`ONE_HANDED_REACH`]).
 const ACROSS_NEARER: f32 = 0.8;
@@ -380,7 +394,7 @@ impl<'r> Planner<'r> {
 
     /// A place across the table on `hand`'s side, within its comfortable reach.
     fn side_x(&mut self, hand: Hand) -> f32 {
-        hand.side() * self.rng.random_range(0.10..0.22)
+        hand.side() * self.rng.random_range(SIDE_SPOT)
     }
 
     fn depth(&mut self) -> f32 {
@@ -390,6 +404,11 @@ impl<'r> Planner<'r> {
     /// A resting pose for `object` on `hand`'s side of the table.
     fn spot_beside(&mut self, object: &CatalogueObject, hand: Hand) -> Pose {
         let x = self.side_x(hand);
+        self.spot_at(object, x)
+    }
+
+    /// A resting pose for `object` at `x` across the table, at a drawn depth and turn.
+    fn spot_at(&mut self, object: &CatalogueObject, x: f32) -> Pose {
         let z = self.depth();
         let yaw = self.yaw();
         self.table.rest(object, x, z, yaw)
@@ -590,10 +609,13 @@ impl<'r> Planner<'r> {
     }
 
     /// [`Task::Handover`]: the main hand brings an object to the middle, the other hand takes
-    /// it there and puts it down on its own side.
+    /// it there and puts it down on its own side, at least [`HANDOVER_TRAVEL`] further that way
+    /// than it stood (it starts within [`HANDOVER_START`]).
     fn handover(&mut self) -> Description<'static> {
         let (hand, other) = (self.hand, self.hand.other());
-        let o = self.place_for_main_hand(&small_one_handed());
+        let object = pick(self.rng, &small_one_handed());
+        let towards_hand = self.rng.random_range(HANDOVER_START);
+        let o = self.place_for_main_hand_at(object, towards_hand);
         let middle = Pose {
             rotation: o.rest.rotation,
             position: Vec3::new(0.0, self.table.height + 0.25, self.table.near + 0.14),
@@ -605,7 +627,11 @@ impl<'r> Planner<'r> {
         let give_end = take + CLOSE_TIME + 0.3;
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, give_end);
         self.key(o.index, give_end, middle);
-        let target = self.spot_beside(o.object, other);
+        // Sideways on the taking hand's side: where the object stood, and where it goes down.
+        let stood = -towards_hand;
+        let put_down =
+            self.rng.random_range(SIDE_SPOT.start.max(stood + HANDOVER_TRAVEL)..SIDE_SPOT.end);
+        let target = self.spot_at(o.object, other.side() * put_down);
         let lift = self.duration(0.08..0.15);
         // The taking hand's fingers closed while both held it: it carries on from `give_end`.
         let place = self.carry_over(o.index, give_end - CLOSE_TIME, &middle, target, lift);

@@ -1,6 +1,6 @@
 //! Properties of the procedural plans over many seeds: the hand the words name does not follow
 //! from where the object stands, nor the side a pick and place names from the hand or the
-//! object's place; every sequence ends at rest, the box is lifted, and an object no hand holds
+//! object's place; a hand-over ends on the taking hand's side; every sequence ends at rest, the box is lifted, and an object no hand holds
 //! stands on the table top.
 
 use rand::SeedableRng;
@@ -8,7 +8,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::character::Hand;
 use dex2hoi_synth::plan::{
-    IDLE_BEFORE_TASK, ONE_HANDED_PUT_DOWN, ONE_HANDED_REACH, Plan, REST_AFTER_TASK, Task, plan_task,
+    HANDOVER_START, HANDOVER_TRAVEL, IDLE_BEFORE_TASK, ONE_HANDED_PUT_DOWN, ONE_HANDED_REACH, Plan,
+    REST_AFTER_TASK, Task, plan_task,
 };
 use dex2hoi_synth::text::Description;
 use dex2hoi_synth::{SynthSequence, generate};
@@ -90,6 +91,29 @@ fn the_side_a_pick_and_place_names_follows_neither_the_hand_nor_the_place() {
     assert!(middle.0 >= 60, "{} of 400 objects start in the middle", middle.0);
     let share = middle.1 as f32 / middle.0 as f32;
     assert!((0.35..0.65).contains(&share), "{share} of those in the middle go to the hand's side");
+}
+
+#[test]
+fn a_handover_ends_further_on_the_taking_hands_side_than_it_started() {
+    let family = Task::ALL.iter().position(|&t| t == Task::Handover).expect("a task family");
+    let mut on_taking_side = 0;
+    for k in 0..200 {
+        let synth = generate(family + 8 * k, 9, 20.0).expect("generated");
+        let id = &synth.sequence.source_id;
+        let (start, giver) = start_towards_hand(&synth);
+        let (end, _) = towards_hand_at(&synth, synth.sequence.frames() - 1);
+        let Description::Handover { from, .. } = synth.description else {
+            panic!("{id}: not a hand-over");
+        };
+        assert_eq!(from, giver, "{id}");
+        let starts = HANDOVER_START.start - 1e-4..=HANDOVER_START.end + 1e-4;
+        assert!(starts.contains(&start), "{id}: starts at {start} m");
+        // Positive towards the giving hand: the words' side is the other way.
+        assert!(start - end >= HANDOVER_TRAVEL - 1e-3, "{id}: from {start} m to {end} m");
+        on_taking_side += usize::from(start < -0.05);
+    }
+    // Some objects already stand on the taking hand's side, and still go further that way.
+    assert!(on_taking_side >= 20, "{on_taking_side} of 200 start on the taking hand's side");
 }
 
 #[test]
