@@ -49,7 +49,8 @@ pub struct SampleArgs {
     /// --data, first the names of that dataset's objects) or an OBJ/PLY file, optionally
     /// `@x,y,z` (metres; +Z ahead, +X left, +Y up). Once or twice. Unplaced, it stands on the
     /// table in front: one object on the side of the hand the (first) prompt names, else in
-    /// the middle; two objects side by side, the first on the left.
+    /// the middle; two objects one on each side, the one the first named hand holds on that
+    /// hand's side (else the first on the left).
     #[arg(long = "object", required_unless_present = "sequence", conflicts_with = "sequence")]
     objects: Vec<String>,
     /// A dataset directory (`data prepare`, `data synth`) whose objects --object can name and

@@ -1,6 +1,7 @@
 //! `dex2hoi sample` end to end on a tiny run: the four files for one and two objects (a
-//! catalogue name and a user's OBJ), a timeline, the same seed giving the same files, and bad
-//! input refused without writing anything.
+//! catalogue name and a user's OBJ), two unplaced objects placed by the hands the prompt names,
+//! a timeline, the same seed giving the same files, and bad input refused without writing
+//! anything.
 
 use std::path::Path;
 
@@ -118,6 +119,31 @@ fn sample_exports_four_files_and_refuses_bad_input() {
     let glb = std::fs::read(two.join("motion.glb")).unwrap();
     assert!(glb.windows(4).any(|w| w == b"cube"), "the user's object is in the scene");
     assert!(glb.windows(4).any(|w| w == b"bowl"), "the catalogue object is in the scene");
+
+    // Two unplaced objects: the one the named hand holds stands on that hand's side (-X is the
+    // person's right), whichever is given first.
+    let pour = dir.join("pour");
+    ok(&dex2hoi(&[
+        "sample",
+        "--run",
+        run,
+        "--text",
+        "The person holds the bowl with the left hand and pours from the bottle with the right hand.",
+        "--object",
+        "bottle",
+        "--object",
+        "bowl",
+        "--frames",
+        "4",
+        "--ddim-steps",
+        "1",
+        "--out",
+        pour.to_str().unwrap(),
+    ]));
+    let (places, shape) = common::npz_array(&pour.join("motion.npz"), "object_translations");
+    let frames = shape[1];
+    let (bottle_x, bowl_x) = (places[0], places[frames * 3]);
+    assert!(bottle_x < -0.1 && bowl_x > 0.1, "bottle at x {bottle_x}, bowl at x {bowl_x}");
 
     // With the user's SMPL-X model the GLB carries its skinned mesh on its skeleton.
     let model = dir.join("SMPLX_NEUTRAL.npz");

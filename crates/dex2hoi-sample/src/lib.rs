@@ -65,7 +65,7 @@ pub use run::{TrainedRun, Weights};
 pub use scene::{
     DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, DEFAULT_TABLE_HALF_EXTENTS, DEFAULT_TABLE_HEIGHT,
     DEFAULT_TABLE_NEAR_EDGE, ON_TABLE_TOLERANCE_M, SceneObject, SceneTable, SequenceScene,
-    default_lone_object_side,
+    default_lone_object_side, default_pair_sides,
 };
 pub use text::{TextModule, unknown_words_warning};
 pub use timeline::{Prompt, parse_timeline};

@@ -17,7 +17,7 @@ use crate::generate::{Conditioning, ProgressHook, generate_motion};
 use crate::rest::{FreeObjects, ObjectsAtRest};
 use crate::run::TrainedRun;
 use crate::scene::{
-    DEFAULT_OBJECT_DEPTH, DEFAULT_OBJECT_SIDE, SceneObject, default_lone_object_side,
+    DEFAULT_OBJECT_DEPTH, SceneObject, default_lone_object_side, default_pair_sides,
 };
 use crate::timeline::Prompt;
 
@@ -87,14 +87,13 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
     let texts: Vec<&str> = request.prompts.iter().map(|p| p.text.as_str()).collect();
     reject_empty(&texts)?;
     let config = &run.config.model;
-    let places: Vec<(f32, f32)> = if request.objects.len() == 1 {
-        let first_prompt = request.prompts.first().map_or("", |p| p.text.as_str());
-        vec![(default_lone_object_side(first_prompt), DEFAULT_OBJECT_DEPTH)]
+    let first_prompt = request.prompts.first().map_or("", |p| p.text.as_str());
+    let places: Vec<(f32, f32)> = if let [one, other] = request.objects.as_slice() {
+        default_pair_sides(first_prompt, [one.name.as_str(), other.name.as_str()])
+            .map(|side| (side, DEFAULT_OBJECT_DEPTH))
+            .to_vec()
     } else {
-        vec![
-            (DEFAULT_OBJECT_SIDE, DEFAULT_OBJECT_DEPTH),
-            (-DEFAULT_OBJECT_SIDE, DEFAULT_OBJECT_DEPTH),
-        ]
+        vec![(default_lone_object_side(first_prompt), DEFAULT_OBJECT_DEPTH)]
     };
     let mut poses = [None; MAX_OBJECTS];
     let mut present = [false; MAX_OBJECTS];
