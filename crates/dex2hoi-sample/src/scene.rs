@@ -67,8 +67,9 @@ impl SceneTable {
 /// prompt names no single hand ("with both hands", or no hand at all).
 ///
 /// A model of the procedural data reads the hand from the layout as well as from the words: the
-/// model shipped before 2026-11-29 took a lone object in the middle or across the body with the
-/// hand the words name in 78% of ten-second generations, one on that hand's side in 94%.
+/// model shipped before 2026-11-29 used the hand the words name in 78% of ten-second
+/// generations with a lone object moved to the middle or across the body, against 94% with the
+/// test split's own placements.
 pub fn default_lone_object_side(prompt: &str) -> f32 {
     first_named_hand(&words(prompt)).map_or(0.0, |(_, hand)| hand.side() * DEFAULT_OBJECT_SIDE)
 }
