@@ -101,7 +101,7 @@ enum DataCommand {
         /// the task's three fixed template sentences (80 words in all; the same motions).
         #[arg(long, value_enum, default_value_t = SynthTexts::Grammar)]
         texts: SynthTexts,
-        /// How long the person stands still around the task: 0.4-2.5 s before and 0.5-4 s
+        /// How long the person stands still around the task: 0.4-2.5 s before and 0.5-8 s
         /// after (drawn), or 0.4-0.9 s before and none after (short; otherwise the same
         /// sequences).
         #[arg(long, value_enum, default_value_t = SynthRest::Drawn)]

@@ -177,8 +177,12 @@ pub const HELD_OUT_TEXTS: usize = 1;
 /// pick and place from the standing pose).
 pub const IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..2.5;
 
-/// Seconds the person stands at rest after the last hand is back, drawn per sequence.
-pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..4.0;
+/// Seconds the person stands at rest after the last hand is back, drawn per sequence. Up to 8 s,
+/// so that the data hold the person at rest at every time of the prompt clock a generation of
+/// 10-12 s reads (`dex2hoi_model::model::CLOCK_FRAMES`): a window starting 8 s into a prompt
+/// needs a sequence of at least 11 s, and with up to 4 s of rest no pick and place lasted that
+/// long, so a model met those clock readings only in generation.
+pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..8.0;
 
 /// Seconds of the short idle time ([`RestAroundTask::Short`]) before the first reach.
 pub const SHORT_IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..0.9;

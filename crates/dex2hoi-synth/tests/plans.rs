@@ -132,7 +132,7 @@ fn every_plan_ends_with_the_person_at_rest_for_a_varying_time() {
     }
     let (shortest, longest) =
         tails.iter().fold((f32::INFINITY, 0.0f32), |(a, b), &t| (a.min(t), b.max(t)));
-    assert!(shortest < 1.0 && longest > 3.5, "rest tails from {shortest} to {longest} s");
+    assert!(shortest < 1.0 && longest > 7.0, "rest tails from {shortest} to {longest} s");
 }
 
 #[test]
