@@ -92,29 +92,14 @@ pub fn default_pair_sides(prompt: &str, names: [&str; 2]) -> [f32; 2] {
     let Some((at, hand)) = first_named_hand(&tokens) else {
         return first_left;
     };
-    // Where each object is named: the index of each occurrence of its name's words.
-    let mentions: Vec<(usize, usize)> = names
-        .iter()
-        .enumerate()
-        .flat_map(|(slot, name)| {
-            let name = words(name);
-            let found: Vec<usize> = if name.is_empty() {
-                Vec::new()
-            } else {
-                tokens
-                    .windows(name.len())
-                    .enumerate()
-                    .filter(|(_, w)| *w == name)
-                    .map(|(i, _)| i)
-                    .collect()
-            };
-            found.into_iter().map(move |i| (i, slot))
-        })
-        .collect();
-    let before = mentions.iter().filter(|&&(i, _)| i < at).max_by_key(|&&(i, _)| i);
-    let after = mentions.iter().filter(|&&(i, _)| i > at).min_by_key(|&&(i, _)| i);
+    // The mention nearest the hand before it, else the first after it (of two names at the
+    // same word, the second before the hand and the first after it).
+    let names = names.map(words);
+    let named_at = |i: usize, name: &Vec<String>| !name.is_empty() && tokens[i..].starts_with(name);
+    let before = (0..at).rev().find_map(|i| names.iter().rposition(|n| named_at(i, n)));
+    let after = (at + 1..tokens.len()).find_map(|i| names.iter().position(|n| named_at(i, n)));
     match before.or(after) {
-        Some(&(_, slot)) => {
+        Some(slot) => {
             let mut sides = [-hand.side() * DEFAULT_OBJECT_SIDE; 2];
             sides[slot] = hand.side() * DEFAULT_OBJECT_SIDE;
             sides

@@ -479,12 +479,16 @@ impl<'r> Planner<'r> {
         retract_end
     }
 
-    /// An object from `pool` anywhere the main hand reaches comfortably
-    /// ([`ONE_HANDED_REACH`]: across the body too), and the main hand reaching for it after
-    /// the idle time.
-    fn place_for_main_hand(&mut self, pool: &[&'static CatalogueObject]) -> Placed {
+    /// An object from `pool` at a place drawn from `towards_hand` (metres along X times
+    /// `hand.side()`, within [`ONE_HANDED_REACH`]: across the body too), and the main hand
+    /// reaching for it after the idle time.
+    fn place_for_main_hand(
+        &mut self,
+        pool: &[&'static CatalogueObject],
+        towards_hand: std::ops::Range<f32>,
+    ) -> Placed {
         let object = pick(self.rng, pool);
-        let towards_hand = self.rng.random_range(ONE_HANDED_REACH);
+        let towards_hand = self.rng.random_range(towards_hand);
         self.place_for_main_hand_at(object, towards_hand)
     }
 
@@ -570,7 +574,7 @@ impl<'r> Planner<'r> {
     /// one way and the other, and puts it back where it was.
     fn inspect(&mut self) -> Description<'static> {
         let hand = self.hand;
-        let o = self.place_for_main_hand(&pool(|o| o.one_handed));
+        let o = self.place_for_main_hand(&pool(|o| o.one_handed), ONE_HANDED_REACH);
         let held = Pose {
             rotation: o.rest.rotation,
             position: Vec3::new(hand.side() * 0.12, 1.18, self.table.near + 0.12),
@@ -617,9 +621,7 @@ impl<'r> Planner<'r> {
     /// than it stood (it starts within [`HANDOVER_START`]).
     fn handover(&mut self) -> Description<'static> {
         let (hand, other) = (self.hand, self.hand.other());
-        let object = pick(self.rng, &small_one_handed());
-        let towards_hand = self.rng.random_range(HANDOVER_START);
-        let o = self.place_for_main_hand_at(object, towards_hand);
+        let o = self.place_for_main_hand(&small_one_handed(), HANDOVER_START);
         let middle = Pose {
             rotation: o.rest.rotation,
             position: Vec3::new(0.0, self.table.height + 0.25, self.table.near + 0.14),
@@ -632,7 +634,7 @@ impl<'r> Planner<'r> {
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, give_end);
         self.key(o.index, give_end, middle);
         // Sideways on the taking hand's side: where the object stood, and where it goes down.
-        let stood = -towards_hand;
+        let stood = o.rest.position.x * other.side();
         let put_down =
             self.rng.random_range(SIDE_SPOT.start.max(stood + HANDOVER_TRAVEL)..SIDE_SPOT.end);
         let target = self.spot_at(o.object, other.side() * put_down);

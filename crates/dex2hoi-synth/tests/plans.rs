@@ -1,7 +1,7 @@
 //! Properties of the procedural plans over many seeds: the hand the words name does not follow
 //! from where the object stands, nor the side a pick and place names from the hand or the
-//! object's place; a hand-over ends on the taking hand's side; every sequence ends at rest, the box is lifted, and an object no hand holds
-//! stands on the table top.
+//! object's place; a hand-over ends on the taking hand's side; every sequence ends at rest, the
+//! box is lifted, and an object no hand holds stands on the table top.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
