@@ -66,7 +66,8 @@ pub use instruction::{
 pub use linalg::{SymmetricEigen, symmetric_eigen};
 pub use long_generation::{
     HandsUsed, LIFT_M, LongCounts, MIN_HOLD_S, MIN_LIFT_S, ObjectCourse, PUT_DOWN_GAP_S,
-    judge_courses, lift_count, long_generation, long_medians, object_courses,
+    SeamCourse, judge_courses, lift_count, long_generation, long_medians, object_courses,
+    seam_course,
 };
 pub use matching::{
     R_PRECISION_BATCH, Retrieval, matching_distance, r_precision, r_precision_of_ranks,

@@ -917,7 +917,9 @@ fn instruction_following_by_hand() {
 
 #[test]
 fn long_generation_by_hand() {
-    use dex2hoi_eval::metrics::{LIFT_M, lift_count, long_generation, long_medians};
+    use dex2hoi_eval::metrics::{
+        LIFT_M, LongCounts, lift_count, long_generation, long_medians, seam_course,
+    };
     let skeleton = Skeleton::smplx();
     let half = 0.04;
     let query = MeshQuery::new(&box_mesh(Vec3::splat(half))).unwrap();
@@ -984,7 +986,7 @@ fn long_generation_by_hand() {
     assert!((counts.deepest_sink_m[1] - 0.03).abs() < 1e-5, "{:?}", counts.deepest_sink_m);
     assert_eq!(counts.highest_float_m, vec![0.0, 0.0]);
     assert_eq!(counts.start_jumps_m, vec![0.0, 0.0]);
-    let [off, sink, float, _, jump] = long_medians(&counts);
+    let [off, sink, float, _, jump, ..] = long_medians(&counts);
     assert!((off.unwrap() - 0.015).abs() < 1e-5 && (sink.unwrap() - 0.015).abs() < 1e-5);
     assert_eq!((float, jump), (Some(0.0), Some(0.0)));
     // The ground truth against itself: the task as asked, nothing lifted again, nothing off its
@@ -1022,6 +1024,38 @@ fn long_generation_by_hand() {
     assert_eq!(lift_count(&heights, 2, 3), 2);
     assert_eq!(lift_count(&heights, 2, 1), 3);
     assert_eq!(lift_count(&heights, 1, 1), 4);
+    // Seams of windows of 20 frames: the whole body rises 2 cm on frames 20 and 40, object 0
+    // moves 3 cm on frame 40, and nothing moves between them.
+    let rest = skeleton.rest_positions();
+    let risen = Scene {
+        joints: joints_with(&skeleton, frames, |t, j| {
+            Some(rest[j] + Vec3::Y * (0.02 * (t / 20) as f32))
+        }),
+        ..Scene::new(
+            &skeleton,
+            frames,
+            |_, _| None,
+            |t| [start[0] + Vec3::X * if t >= 40 { 0.03 } else { 0.0 }, start[1]],
+        )
+    };
+    let seams = seam_course(&risen.sample(&skeleton, &query), 20).unwrap();
+    let near = |got: &[f64], want: &[f64]| {
+        got.len() == want.len() && got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5)
+    };
+    assert!(near(&seams.body_jumps_m, &[0.02, 0.02]), "{:?}", seams.body_jumps_m);
+    // Per seam, slot 0 then slot 1.
+    assert!(near(&seams.object_jumps_m, &[0.0, 0.0, 0.03, 0.0]), "{:?}", seams.object_jumps_m);
+    assert!((seams.floor_drift_m - 0.04).abs() < 1e-5, "{}", seams.floor_drift_m);
+    let counts = LongCounts::default().with_seams(&seams).with_seams(&seams);
+    let [.., body_seam, object_seam, floor] = long_medians(&counts);
+    assert!((body_seam.unwrap() - 0.02).abs() < 1e-5 && (floor.unwrap() - 0.04).abs() < 1e-5);
+    assert_eq!(object_seam, Some(0.0), "three of every four object jumps are 0");
+    // A motion that never moves: no jump at any seam, no drift; a window of the whole motion
+    // has no seam.
+    let still = seam_course(&raised, 20).unwrap();
+    assert!(near(&still.body_jumps_m, &[0.0, 0.0]) && still.floor_drift_m == 0.0);
+    assert!(seam_course(&raised, frames).unwrap().body_jumps_m.is_empty());
+    assert!(seam_course(&raised, 0).is_err());
     // Bad input.
     assert!(long_generation(&generated, &truth, start, [0.0, f32::NAN], 20.0).is_err());
     assert!(long_generation(&generated, &truth, start, support, 0.0).is_err());

@@ -113,6 +113,22 @@ pub struct LossConfig {
     /// `contact_turns_objects = false`: with it the objects sink more
     /// (`docs/results/shipped-model.md`, "Objects that turn").
     pub contact_moves_objects: bool,
+    /// Whether the terms that read the objects against the predicted body (`L_trans` through
+    /// the decoded positions, penetration, `L_dist`) reach the root's displacement (default
+    /// true, as the paper's objective). Through it the model can bring a hand to an object by
+    /// moving the whole body: the model of 73740 steps, trained on data whose root never
+    /// moves, raised or lowered it by up to 2 cm on the first frame of every window, so that
+    /// after ten seconds the person stood up to 7 cm above the floor. False makes the root a
+    /// constant to those terms (they still reach every joint rotation), so that it learns from
+    /// `L_diff`, `L_vel` and the foot term only.
+    pub object_terms_move_root: bool,
+    /// Whether `L_vel` (on features and on joints) also measures the step from the prefix's
+    /// last frame to the first predicted frame (beyond the paper, whose velocity terms stay
+    /// within the predicted frames; default false). The autoregressive sampler joins its
+    /// windows there: the model of 73740 steps moved the body a mean 2-3 cm per joint from a
+    /// window's last frame to the next one's first, against 0.05-0.35 cm between frames within
+    /// a window.
+    pub velocity_across_the_seam: bool,
     /// Geometric terms (through FK or the object decode) only for diffusion steps `t <=` this
     /// (default 700 of 1000, InterGen's); `None` applies them at every step.
     pub geometric_max_timestep: Option<usize>,
@@ -144,6 +160,8 @@ impl Default for LossConfig {
             approach_radius: 0.10,
             contact_turns_objects: true,
             contact_moves_objects: true,
+            object_terms_move_root: true,
+            velocity_across_the_seam: false,
             geometric_max_timestep: Some(700),
             mixture_supervision: true,
             distance_loss: true,

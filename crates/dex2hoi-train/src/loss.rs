@@ -340,17 +340,17 @@ impl LossContext {
             };
             terms.push((Term::Diffusion, mask.mean(&diff.sqr()?, 1.0)?));
         }
-        if self.active(Term::FeatureVelocity) && tf > 1 {
-            let pairs = window.frame_pairs(|_| 1.0);
-            let count: f32 = (0..b * (tf - 1)).map(|n| pairs[n] * channel_sum[n / (tf - 1)]).sum();
+        let seam = self.config.velocity_across_the_seam;
+        if self.active(Term::FeatureVelocity) && window.steps(seam) > 0 {
+            let steps = window.steps(seam);
+            let pairs = window.step_weights(seam, |_| 1.0);
+            let count: f32 = (0..b * steps).map(|n| pairs[n] * channel_sum[n / steps]).sum();
             let mask = Mask {
-                weight: channels.broadcast_mul(&window.constant(pairs, &[b, 1, tf - 1, 1])?)?,
+                weight: channels.broadcast_mul(&window.constant(pairs, &[b, 1, steps, 1])?)?,
                 count,
             };
-            terms.push((
-                Term::FeatureVelocity,
-                mask.mean(&frame_differences(&diff, 2)?.sqr()?, 1.0)?,
-            ));
+            let velocity = frame_differences(&from_the_seam(&diff, 2, seam)?, 2)?;
+            terms.push((Term::FeatureVelocity, mask.mean(&velocity.sqr()?, 1.0)?));
         }
         Ok(())
     }
@@ -369,12 +369,17 @@ impl LossContext {
         let raw = window.denormalise(prediction)?;
         let target_raw = window.denormalise(target)?;
         let body = self.body_kinematics(window, &raw)?;
-        if self.active(Term::JointVelocity) && tf > 1 {
+        if self.active(Term::JointVelocity)
+            && window.steps(self.config.velocity_across_the_seam) > 0
+        {
             terms.push((Term::JointVelocity, self.joint_velocity(window, &body)?));
         }
         if self.active(Term::FootContact) && tf > 1 {
             terms.push((Term::FootContact, self.foot_contact(window, &body)?));
         }
+        // The terms below read the objects against this body; without
+        // `object_terms_move_root` its root is a constant to them.
+        let body = if self.config.object_terms_move_root { body } else { body.with_root_fixed()? };
 
         // Objects: the prediction's 18 numbers per slot, decoded with the predicted wrists.
         let objects = window.layout.object_of(&raw)?; // [B, 2, T_f, 18]
@@ -457,17 +462,19 @@ impl LossContext {
             &rotations,
             &root,
         )?;
-        Ok(BodyKinematics { positions, world_rotations })
+        Ok(BodyKinematics { positions, world_rotations, root })
     }
 
-    /// `L_vel` on joint positions: MSE of the error's frame-to-frame change, in cm.
+    /// `L_vel` on joint positions: MSE of the error's frame-to-frame change, in cm (with
+    /// `velocity_across_the_seam`, from the prefix's last frame on).
     fn joint_velocity(&self, window: &Window<'_>, body: &BodyKinematics) -> Result<Tensor> {
-        let (b, tf) = (window.batch, window.tf);
-        let weights = window.frame_pairs(|i| window.gate[i]);
-        let mask = Mask::new(window, weights, &[b, tf - 1, 1, 1], window.joints * 3)?;
+        let seam = self.config.velocity_across_the_seam;
+        let b = window.batch;
+        let weights = window.step_weights(seam, |i| window.gate[i]);
+        let mask = Mask::new(window, weights, &[b, window.steps(seam), 1, 1], window.joints * 3)?;
         let error = (&body.positions - window.batch_data.joints.to_dtype(window.dtype)?)?
             .affine(CENTIMETRES, 0.0)?;
-        mask.mean(&frame_differences(&error, 1)?.sqr()?, 1.0)
+        mask.mean(&frame_differences(&from_the_seam(&error, 1, seam)?, 1)?.sqr()?, 1.0)
     }
 
     /// Foot skating: the squared velocity (cm per frame) of the ankle and toe joints on frames
@@ -595,6 +602,23 @@ struct BodyKinematics {
     positions: Tensor,
     /// `[B, T_f, J, 3, 3]` world rotations.
     world_rotations: Tensor,
+    /// `[B, T_f, 3]` the root's positions, from which every joint is placed.
+    root: Tensor,
+}
+
+impl BodyKinematics {
+    /// The same body with the root's positions constants: the joints keep their values, and a
+    /// gradient on them reaches the joint rotations but not the root (FK adds the root to
+    /// every joint alike, so moving them by `root.detach() - root`, zero in value, takes the
+    /// root's part of the gradient away).
+    fn with_root_fixed(self) -> Result<Self> {
+        let shift = (self.root.detach() - &self.root)?.unsqueeze(2)?;
+        Ok(Self {
+            positions: self.positions.broadcast_add(&shift)?,
+            world_rotations: self.world_rotations,
+            root: self.root.detach(),
+        })
+    }
 }
 
 /// A batch's predicted window with what every term needs: sizes, which frames are real, the
@@ -655,6 +679,32 @@ impl<'a> Window<'a> {
     fn frame_valid(&self, i: usize, k: usize) -> f32 {
         let t_all = self.tp + self.tf;
         self.batch_data.frame_mask_values[i * t_all + self.tp + k]
+    }
+
+    /// The frame-to-frame steps the velocity terms measure: between consecutive predicted
+    /// frames, and with `seam` also the one from the prefix's last frame to the first.
+    fn steps(&self, seam: bool) -> usize {
+        if seam && self.tp > 0 { self.tf } else { self.tf.saturating_sub(1) }
+    }
+
+    /// Per sample and step of [`Self::steps`] `[B, steps]`: both its frames real, times
+    /// `per_sample(i)`.
+    fn step_weights(&self, seam: bool, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
+        if self.steps(seam) != self.tf {
+            return self.frame_pairs(per_sample);
+        }
+        let t_all = self.tp + self.tf;
+        (0..self.batch * self.tf)
+            .map(|n| {
+                let (i, k) = (n / self.tf, n % self.tf);
+                let before = if k == 0 {
+                    self.batch_data.frame_mask_values[i * t_all + self.tp - 1]
+                } else {
+                    self.frame_valid(i, k - 1)
+                };
+                before * self.frame_valid(i, k) * per_sample(i)
+            })
+            .collect()
     }
 
     /// Per sample and pair of consecutive predicted frames `[B, T_f - 1]`: both real, times
@@ -728,6 +778,17 @@ impl Mask {
 }
 
 /// Frame-to-frame differences along `dim`.
+/// An error over the predicted frames with, when `seam`, the prefix's last frame before them
+/// along `dim`: its error is 0 (the prefix is the data), so that the first of the
+/// [`frame_differences`] is the step into the window.
+fn from_the_seam(error: &Tensor, dim: usize, seam: bool) -> Result<Tensor> {
+    if !seam {
+        return Ok(error.clone());
+    }
+    let before = error.narrow(dim, 0, 1)?.zeros_like()?;
+    Ok(Tensor::cat(&[&before, error], dim)?)
+}
+
 fn frame_differences(x: &Tensor, dim: usize) -> Result<Tensor> {
     let frames = x.dim(dim)?;
     Ok((x.narrow(dim, 1, frames - 1)? - x.narrow(dim, 0, frames - 1)?)?)

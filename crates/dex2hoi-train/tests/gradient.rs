@@ -65,10 +65,30 @@ impl Setup {
 fn every_term_has_the_gradient_of_its_finite_differences() {
     // The global branch's term is off by default; on here so that every term is checked. The
     // contact terms reach the object rotations too, so that their whole gradient is checked.
-    let Setup { config, trainer, batch, start, mut rng } = Setup::new(|config| {
-        config.loss.global = 0.01;
-        config.loss.contact_turns_objects = true;
-    });
+    check_finite_differences(
+        |config| {
+            config.loss.global = 0.01;
+            config.loss.contact_turns_objects = true;
+        },
+        |_| true,
+    );
+}
+
+#[test]
+fn the_velocity_terms_across_the_seam_have_the_gradient_of_their_finite_differences() {
+    check_finite_differences(
+        |config| {
+            config.loss.global = 0.01;
+            config.loss.velocity_across_the_seam = true;
+        },
+        |term| matches!(term, Term::FeatureVelocity | Term::JointVelocity),
+    );
+}
+
+/// Checks the gradient of every term `checked` picks, with the settings `adjust` makes, against
+/// central differences at 40 random entries of the prediction.
+fn check_finite_differences(adjust: impl Fn(&mut TrainConfig), checked: impl Fn(&Term) -> bool) {
+    let Setup { config, trainer, batch, start, mut rng } = Setup::new(adjust);
     let device = Device::Cpu;
     let tf = config.model.predicted_frames;
     let prediction = Var::from_tensor(&start).unwrap();
@@ -94,7 +114,7 @@ fn every_term_has_the_gradient_of_its_finite_differences() {
         };
         entries.push(((i * 2 + s) * tf + k) * width + channel);
     }
-    for (term, value) in &terms {
+    for (term, value) in terms.iter().filter(|(term, _)| checked(term)) {
         assert!(
             value.to_scalar::<f64>().unwrap() > 0.0,
             "{} is measured on this batch",
@@ -177,6 +197,89 @@ fn contact_terms_leave_the_object_channels_alone_when_told_to() {
     ] {
         for (term, reached) in gradients(turns, moves) {
             assert_eq!(reached, expected, "{} with turns {turns}, moves {moves}", term.name());
+        }
+    }
+}
+
+#[test]
+fn the_velocity_terms_see_a_window_that_does_not_continue_its_prefix_only_across_the_seam() {
+    // The target with every predicted frame's root 1 cm higher: within the window nothing
+    // moves differently from the data, across the seam the whole body jumps 1 cm.
+    let velocity = |seam: bool| -> [f64; 2] {
+        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
+            config.loss.velocity_across_the_seam = seam;
+        });
+        let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
+        let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
+        let root = 6 * config.model.joints + 1;
+        let std = f64::from(trainer.training_set().stats().std[root]);
+        let mut values: Vec<f64> = target.flatten_all().unwrap().to_vec1().unwrap();
+        let width = start.dims()[3];
+        for row in values.chunks_mut(width) {
+            row[root] += 0.01 / std;
+        }
+        let raised = Tensor::from_vec(values, target.dims(), target.device()).unwrap();
+        let terms = trainer
+            .loss_context()
+            .objective(&raised, &batch, &vec![100; batch.size])
+            .unwrap()
+            .terms;
+        let of = |term: Term| {
+            terms.iter().find(|(t, _)| *t == term).unwrap().1.to_scalar::<f64>().unwrap()
+        };
+        [of(Term::FeatureVelocity), of(Term::JointVelocity)]
+    };
+    let [features, joints] = velocity(false);
+    assert!(features.abs() < 1e-9 && joints.abs() < 1e-9, "{features} {joints}");
+    let [features, joints] = velocity(true);
+    assert!(features > 0.0, "{features}");
+    // 1 cm on every joint at the seam, one step in `T_f`: 1 cm^2 / T_f per joint coordinate
+    // that moves (y), a third of the mean over x, y and z.
+    let tf = TrainConfig::preset("tiny").unwrap().model.predicted_frames as f64;
+    assert!((joints - 1.0 / (3.0 * tf)).abs() < 1e-6, "{joints}");
+}
+
+#[test]
+fn object_terms_leave_the_root_alone_when_told_to() {
+    // The gradients of the terms that read the objects against the predicted body, on the
+    // root's displacement and on the joint rotations, for each setting of the option.
+    let reached = |moves_root: bool| -> Vec<(Term, [bool; 2])> {
+        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
+            config.loss.object_terms_move_root = moves_root;
+        });
+        let rotations = 6 * config.model.joints;
+        let width = start.dims()[3];
+        let prediction = Var::from_tensor(&start).unwrap();
+        let objective = trainer.loss_context().objective(
+            prediction.as_tensor(),
+            &batch,
+            &vec![100; batch.size],
+        );
+        let terms = objective.unwrap().terms;
+        [Term::Translation, Term::Penetration, Term::Distance]
+            .into_iter()
+            .map(|term| {
+                let (_, value) = terms.iter().find(|(t, _)| *t == term).unwrap();
+                assert!(value.to_scalar::<f64>().unwrap() > 0.0, "{} is measured", term.name());
+                let gradient = value.backward().unwrap();
+                let all: Vec<f64> = gradient
+                    .get(prediction.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap();
+                let any = |range: std::ops::Range<usize>| {
+                    all.chunks(width).any(|row| row[range.clone()].iter().any(|&g| g != 0.0))
+                };
+                (term, [any(rotations..rotations + 3), any(0..rotations)])
+            })
+            .collect()
+    };
+    // [the root, the joint rotations] reached.
+    for (moves_root, expected) in [(true, [true, true]), (false, [false, true])] {
+        for (term, got) in reached(moves_root) {
+            assert_eq!(got, expected, "{} with object_terms_move_root {moves_root}", term.name());
         }
     }
 }

@@ -88,12 +88,22 @@ pub struct LongScores {
     pub untouched_speed_cm_s: Option<f64>,
     /// Median start jump, cm.
     pub start_jump_cm: Option<f64>,
+    /// Median over the seams between windows of the body's jump (the mean over its joints), cm.
+    #[serde(default)]
+    pub body_seam_jump_cm: Option<f64>,
+    /// Median over the seams and objects of an object's jump, cm.
+    #[serde(default)]
+    pub object_seam_jump_cm: Option<f64>,
+    /// Median over generations of the lowest joint's change in height, first to last frame, cm.
+    #[serde(default)]
+    pub floor_drift_cm: Option<f64>,
 }
 
 impl LongScores {
     fn of(counts: &LongCounts) -> Self {
         let cm = |m: Option<f64>| m.map(|m| m * 100.0);
-        let [off, sink, float, speed, jump] = metrics::long_medians(counts);
+        let [off, sink, float, speed, jump, body_seam, object_seam, floor] =
+            metrics::long_medians(counts);
         Self {
             as_asked: counts.as_asked_share(),
             moved: counts.moved_share(),
@@ -105,6 +115,9 @@ impl LongScores {
             floating_cm: cm(float),
             untouched_speed_cm_s: cm(speed),
             start_jump_cm: cm(jump),
+            body_seam_jump_cm: cm(body_seam),
+            object_seam_jump_cm: cm(object_seam),
+            floor_drift_cm: cm(floor),
         }
     }
 }
@@ -136,6 +149,9 @@ pub struct LongSet {
 pub struct LongProtocol {
     /// Frames generated per motion.
     pub frames: usize,
+    /// Frames of each window the sampler generates: the seams are its multiples.
+    #[serde(default)]
+    pub window: usize,
     /// The sets that had sequences.
     pub sets: Vec<LongSet>,
 }
@@ -229,6 +245,8 @@ pub(super) fn evaluate_long(
     let start = run.manifest.start_pose()?;
     let fps = dataset.manifest.fps;
     let config = &run.config.model;
+    // The generations' windows; the ground truth is measured at the same seams.
+    let window = config.predicted_frames;
     // The ground truth of every sequence, judged once.
     let truths: Vec<MotionClip> = sequences
         .iter()
@@ -241,7 +259,8 @@ pub(super) fn evaluate_long(
         let placed = sequence.object_poses_at(0);
         let sample = clip_sample(truth, &run.skeleton, slots, None);
         let courses = metrics::object_courses(&sample, support_heights(&placed, slots), fps)?;
-        truth_counts.push(metrics::judge_courses(&courses, &courses, positions(&placed))?);
+        let counts = metrics::judge_courses(&courses, &courses, positions(&placed))?;
+        truth_counts.push(counts.with_seams(&metrics::seam_course(&sample, window)?));
         truth_courses.push(courses);
     }
     let all_cases: Vec<(usize, LongSetKind, Vec<LongCase<'_>>)> = LongSetKind::ALL
@@ -274,19 +293,17 @@ pub(super) fn evaluate_long(
                 .wrapping_add(set_index as u64 * SET_STRIDE + k as u64);
             let generated = generate_motion(run, &conditioning, options.frames, seed, sampler)?;
             let clip = MotionClip::from_decoded(&generated.motion)?;
-            let ours = metrics::object_courses(
-                &clip_sample(&clip, &run.skeleton, slots, None),
-                support_heights(&case.placed, slots),
-                fps,
-            )?;
+            let sample = clip_sample(&clip, &run.skeleton, slots, None);
+            let ours = metrics::object_courses(&sample, support_heights(&case.placed, slots), fps)?;
             let counts =
-                metrics::judge_courses(&ours, &truth_courses[case.index], positions(&case.placed))?;
+                metrics::judge_courses(&ours, &truth_courses[case.index], positions(&case.placed))?
+                    .with_seams(&metrics::seam_course(&sample, window)?);
             judged.push((sequence.action.as_deref(), counts, truth_counts[case.index].clone()));
             progress.clip_done();
         }
         sets.push(LongSet { kind, rows: rows(&judged) });
     }
-    Ok(LongProtocol { frames: options.frames.get(), sets })
+    Ok(LongProtocol { frames: options.frames.get(), window, sets })
 }
 
 /// All families pooled, then one row per family (in order of first appearance).
@@ -340,14 +357,18 @@ impl LongProtocol {
              than in the ground truth. Off support, sinking, floating: per object the worst \
              distance of its lowest point from where it stood, on frames where no hand is \
              within 15 cm (medians over objects). Start jump: from where an object was placed \
-             to the first generated frame.\n",
-            self.frames
+             to the first generated frame. Seam jumps: on the first frame of each window of \
+             {} frames after the first, how far the body (the mean over its joints) and each \
+             object move from the frame before; the ground truth at the same frames. Floor \
+             drift: the lowest joint's change in height from the first frame to the last \
+             (median over generations).\n",
+            self.frames, self.window
         );
         for set in &self.sets {
             out.push_str(&format!(
-                "\n### {}\n\n| Family | Generations | As asked ↑ | Moved ↑ | Hands ↑ | Side ↑ | Lifted again ↓ | Off support (cm) ↓ | Sinking (cm) ↓ | Floating (cm) ↓ | Untouched speed (cm/s) ↓ | Start jump (cm) ↓ |\n|{}\n",
+                "\n### {}\n\n| Family | Generations | As asked ↑ | Moved ↑ | Hands ↑ | Side ↑ | Lifted again ↓ | Off support (cm) ↓ | Sinking (cm) ↓ | Floating (cm) ↓ | Untouched speed (cm/s) ↓ | Start jump (cm) ↓ | Seam jump, body (cm) ↓ | Seam jump, objects (cm) ↓ | Floor drift (cm) ↓ |\n|{}\n",
                 set.kind.title(),
-                "---|".repeat(12)
+                "---|".repeat(15)
             ));
             for row in &set.rows {
                 let (m, t) = (&row.model, &row.truth);
@@ -356,7 +377,7 @@ impl LongProtocol {
                 let cm =
                     |a: Option<f64>, b: Option<f64>| format!("{} ({})", number(a, 2), number(b, 2));
                 out.push_str(&format!(
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
                     row.family,
                     row.generations,
                     share(m.as_asked, t.as_asked),
@@ -369,6 +390,9 @@ impl LongProtocol {
                     cm(m.floating_cm, t.floating_cm),
                     cm(m.untouched_speed_cm_s, t.untouched_speed_cm_s),
                     cm(m.start_jump_cm, t.start_jump_cm),
+                    cm(m.body_seam_jump_cm, t.body_seam_jump_cm),
+                    cm(m.object_seam_jump_cm, t.object_seam_jump_cm),
+                    cm(m.floor_drift_cm, t.floor_drift_cm),
                 ));
             }
         }

@@ -21,6 +21,14 @@
 //!   and the one before), how far its lowest point is below (sinking) or above (floating) its
 //!   support; the worst of each per object.
 //!
+//! Per motion, where the autoregressive sampler joins its windows ([`seam_course`]):
+//! - **Seam jumps**: on each window's first frame, how far the body (the mean over its joints)
+//!   and each object move from the frame before. Within a window the body moves a few
+//!   millimetres a frame; a seam where the new window does not continue its prefix shows as a
+//!   jump of centimetres.
+//! - **Floor drift**: how far the lowest joint ends above or below where it started (a person
+//!   who rises a little at every seam ends standing in the air).
+//!
 //! A generation does the task **as asked** when every object moves if and only if the ground
 //! truth's does and every moved object is held by the same hands and travels to the same side.
 //! An object is **lifted again unasked** when the generation lifts it more times than the ground
@@ -164,6 +172,46 @@ pub fn lift_count(heights: &[f32], shortest: usize, gap: usize) -> usize {
     runs.iter().filter(|(start, end)| end - start + 1 >= shortest).count()
 }
 
+/// What a motion does at the seams of its windows and to the floor (see the module docs).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SeamCourse {
+    /// Per seam, the mean over joints of how far each moves onto the seam's frame, metres.
+    pub body_jumps_m: Vec<f64>,
+    /// Per seam and present object, how far it moves onto the seam's frame, metres.
+    pub object_jumps_m: Vec<f64>,
+    /// How far the lowest joint is from the first frame's height on the last frame, metres.
+    pub floor_drift_m: f64,
+}
+
+/// The [`SeamCourse`] of a motion generated in windows of `window` frames: its seams are the
+/// frames `window`, `2 window`, ... before the last.
+///
+/// # Errors
+/// A sample that fails [`MotionSample::frames`], a window of 0 frames.
+pub fn seam_course(sample: &MotionSample<'_>, window: usize) -> Result<SeamCourse> {
+    let frames = sample.frames()?;
+    if window == 0 {
+        return Err(EvalError::invalid("window", "at least one frame", 0));
+    }
+    let joints = sample.skeleton.joint_count();
+    let lowest = |t: usize| (0..joints).map(|j| sample.joint(t, j).y).fold(f32::INFINITY, f32::min);
+    let mut course = SeamCourse {
+        floor_drift_m: f64::from((lowest(frames - 1) - lowest(0)).abs()),
+        ..SeamCourse::default()
+    };
+    for seam in (window..frames).step_by(window) {
+        let body: f32 =
+            (0..joints).map(|j| (sample.joint(seam, j) - sample.joint(seam - 1, j)).length()).sum();
+        course.body_jumps_m.push(f64::from(body / joints as f32));
+        for (slot, _) in sample.present_objects() {
+            let jump = sample.object_pose(seam, slot).position
+                - sample.object_pose(seam - 1, slot).position;
+            course.object_jumps_m.push(f64::from(jump.length()));
+        }
+    }
+    Ok(course)
+}
+
 /// The long-generation counts of one generation against its ground truth (or, merged, of
 /// many).
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -192,6 +240,12 @@ pub struct LongCounts {
     pub untouched_speeds: Vec<f64>,
     /// Per object, the distance between where it was placed and the first generated frame, m.
     pub start_jumps_m: Vec<f64>,
+    /// The body's jumps at every seam ([`SeamCourse::body_jumps_m`]), metres.
+    pub body_seam_jumps_m: Vec<f64>,
+    /// The objects' jumps at every seam ([`SeamCourse::object_jumps_m`]), metres.
+    pub object_seam_jumps_m: Vec<f64>,
+    /// Per generation, the floor drift ([`SeamCourse::floor_drift_m`]), metres.
+    pub floor_drifts_m: Vec<f64>,
 }
 
 impl LongCounts {
@@ -209,6 +263,17 @@ impl LongCounts {
         self.highest_float_m.extend_from_slice(&other.highest_float_m);
         self.untouched_speeds.extend_from_slice(&other.untouched_speeds);
         self.start_jumps_m.extend_from_slice(&other.start_jumps_m);
+        self.body_seam_jumps_m.extend_from_slice(&other.body_seam_jumps_m);
+        self.object_seam_jumps_m.extend_from_slice(&other.object_seam_jumps_m);
+        self.floor_drifts_m.extend_from_slice(&other.floor_drifts_m);
+        self
+    }
+
+    /// Adds a generation's [`SeamCourse`].
+    pub fn with_seams(mut self, seams: &SeamCourse) -> Self {
+        self.body_seam_jumps_m.extend_from_slice(&seams.body_jumps_m);
+        self.object_seam_jumps_m.extend_from_slice(&seams.object_jumps_m);
+        self.floor_drifts_m.push(seams.floor_drift_m);
         self
     }
 
@@ -243,15 +308,18 @@ impl LongCounts {
     }
 }
 
-/// Medians of [`LongCounts`]' per-object lists (`None` when empty): off support, sinking,
-/// floating, untouched speed, start jump.
-pub fn long_medians(counts: &LongCounts) -> [Option<f64>; 5] {
+/// Medians of [`LongCounts`]' lists (`None` when empty): off support, sinking, floating,
+/// untouched speed, start jump, the body's and the objects' seam jumps, floor drift.
+pub fn long_medians(counts: &LongCounts) -> [Option<f64>; 8] {
     [
         median(&counts.off_support_m()),
         median(&counts.deepest_sink_m),
         median(&counts.highest_float_m),
         median(&counts.untouched_speeds),
         median(&counts.start_jumps_m),
+        median(&counts.body_seam_jumps_m),
+        median(&counts.object_seam_jumps_m),
+        median(&counts.floor_drifts_m),
     ]
 }
 
