@@ -192,6 +192,8 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
         serde_json::from_slice(&std::fs::read(long.join("report.json")).unwrap()).unwrap();
     assert_eq!(json["format"], 3);
     assert_eq!(json["long"]["frames"], 30);
+    // The tiny run's windows of 8 frames: seams at frames 8, 16 and 24.
+    assert_eq!(json["long"]["window"], 8);
     let sets = json["long"]["sets"].as_array().unwrap();
     let kinds: Vec<&str> = sets.iter().map(|s| s["kind"].as_str().unwrap()).collect();
     assert_eq!(kinds, ["as-in-data", "moved", "held-out"], "{json}");
@@ -202,6 +204,8 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
         assert_eq!(all["truth"]["as_asked"].as_f64(), Some(1.0), "{set}");
         assert_eq!(all["truth"]["lifted_again"].as_f64(), Some(0.0), "{set}");
         assert!(all["truth"]["off_support_cm"].as_f64().unwrap() < 0.01, "{set}");
+        assert!(all["truth"]["floor_drift_cm"].as_f64().unwrap() < 0.01, "{set}");
+        assert!(all["model"]["body_seam_jump_cm"].as_f64().unwrap() >= 0.0, "{set}");
         let share = all["model"]["as_asked"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&share), "{set}");
     }
