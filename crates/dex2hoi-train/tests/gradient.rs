@@ -153,41 +153,7 @@ fn check_finite_differences(adjust: impl Fn(&mut TrainConfig), checked: impl Fn(
 #[test]
 fn contact_terms_leave_the_object_channels_alone_when_told_to() {
     // The penetration and `L_dist` gradients on the object channels: rotation (0..6) and the
-    // rest (6..18), and on the body's, for each setting of the two options.
-    let gradients = |turns: bool, moves: bool| -> Vec<(Term, [bool; 3])> {
-        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
-            config.loss.contact_turns_objects = turns;
-            config.loss.contact_moves_objects = moves;
-        });
-        let body = 6 * config.model.joints + 3;
-        let width = start.dims()[3];
-        let prediction = Var::from_tensor(&start).unwrap();
-        let objective = trainer.loss_context().objective(
-            prediction.as_tensor(),
-            &batch,
-            &vec![100; batch.size],
-        );
-        let terms = objective.unwrap().terms;
-        [Term::Penetration, Term::Distance]
-            .into_iter()
-            .map(|term| {
-                let (_, value) = terms.iter().find(|(t, _)| *t == term).unwrap();
-                assert!(value.to_scalar::<f64>().unwrap() > 0.0, "{} is measured", term.name());
-                let gradient = value.backward().unwrap();
-                let all: Vec<f64> = gradient
-                    .get(prediction.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap();
-                let reached = |range: std::ops::Range<usize>| {
-                    all.chunks(width).any(|row| row[range.clone()].iter().any(|&g| g != 0.0))
-                };
-                (term, [reached(body..body + 6), reached(body + 6..width), reached(0..body)])
-            })
-            .collect()
-    };
+    // rest (6..18), and on the body's, for each setting of the two options:
     // [rotation, the other object channels, the body] reached.
     for (turns, moves, expected) in [
         (true, true, [true, true, true]),
@@ -195,8 +161,16 @@ fn contact_terms_leave_the_object_channels_alone_when_told_to() {
         (true, false, [false, false, true]),
         (false, false, [false, false, true]),
     ] {
-        for (term, reached) in gradients(turns, moves) {
-            assert_eq!(reached, expected, "{} with turns {turns}, moves {moves}", term.name());
+        let reached = channels_reached(
+            |config| {
+                config.loss.contact_turns_objects = turns;
+                config.loss.contact_moves_objects = moves;
+            },
+            &[Term::Penetration, Term::Distance],
+            |body, width| vec![body..body + 6, body + 6..width, 0..body],
+        );
+        for (term, got) in reached {
+            assert_eq!(got, expected, "{} with turns {turns}, moves {moves}", term.name());
         }
     }
 }
@@ -242,46 +216,56 @@ fn the_velocity_terms_see_a_window_that_does_not_continue_its_prefix_only_across
 #[test]
 fn object_terms_leave_the_root_alone_when_told_to() {
     // The gradients of the terms that read the objects against the predicted body, on the
-    // root's displacement and on the joint rotations, for each setting of the option.
-    let reached = |moves_root: bool| -> Vec<(Term, [bool; 2])> {
-        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
-            config.loss.object_terms_move_root = moves_root;
-        });
-        let rotations = 6 * config.model.joints;
-        let width = start.dims()[3];
-        let prediction = Var::from_tensor(&start).unwrap();
-        let objective = trainer.loss_context().objective(
-            prediction.as_tensor(),
-            &batch,
-            &vec![100; batch.size],
-        );
-        let terms = objective.unwrap().terms;
-        [Term::Translation, Term::Penetration, Term::Distance]
-            .into_iter()
-            .map(|term| {
-                let (_, value) = terms.iter().find(|(t, _)| *t == term).unwrap();
-                assert!(value.to_scalar::<f64>().unwrap() > 0.0, "{} is measured", term.name());
-                let gradient = value.backward().unwrap();
-                let all: Vec<f64> = gradient
-                    .get(prediction.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap();
-                let any = |range: std::ops::Range<usize>| {
-                    all.chunks(width).any(|row| row[range.clone()].iter().any(|&g| g != 0.0))
-                };
-                (term, [any(rotations..rotations + 3), any(0..rotations)])
-            })
-            .collect()
-    };
+    // root's displacement and on the joint rotations, for each setting of the option:
     // [the root, the joint rotations] reached.
     for (moves_root, expected) in [(true, [true, true]), (false, [false, true])] {
-        for (term, got) in reached(moves_root) {
+        let reached = channels_reached(
+            |config| config.loss.object_terms_move_root = moves_root,
+            &[Term::Translation, Term::Penetration, Term::Distance],
+            |body, _| vec![body - 3..body, 0..body - 3],
+        );
+        for (term, got) in reached {
             assert_eq!(got, expected, "{} with object_terms_move_root {moves_root}", term.name());
         }
     }
+}
+
+/// Per term of `terms`, with the settings `adjust` makes, whether its gradient reaches any
+/// prediction channel of each range `ranges(body, width)` gives (`body`: the body's width,
+/// `6J + 3`; `width`: a stream row's).
+fn channels_reached(
+    adjust: impl Fn(&mut TrainConfig),
+    terms: &[Term],
+    ranges: impl Fn(usize, usize) -> Vec<std::ops::Range<usize>>,
+) -> Vec<(Term, Vec<bool>)> {
+    let Setup { config, trainer, batch, start, .. } = Setup::new(adjust);
+    let (body, width) = (6 * config.model.joints + 3, start.dims()[3]);
+    let prediction = Var::from_tensor(&start).unwrap();
+    let objective =
+        trainer.loss_context().objective(prediction.as_tensor(), &batch, &vec![100; batch.size]);
+    let values = objective.unwrap().terms;
+    terms
+        .iter()
+        .map(|&term| {
+            let (_, value) = values.iter().find(|(t, _)| *t == term).unwrap();
+            assert!(value.to_scalar::<f64>().unwrap() > 0.0, "{} is measured", term.name());
+            let gradient = value.backward().unwrap();
+            let all: Vec<f64> = gradient
+                .get(prediction.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let reached = ranges(body, width)
+                .into_iter()
+                .map(|range| {
+                    all.chunks(width).any(|row| row[range.clone()].iter().any(|&g| g != 0.0))
+                })
+                .collect();
+            (term, reached)
+        })
+        .collect()
 }
 
 /// The text term's loss against the cross-entropy written out in f64
