@@ -340,7 +340,7 @@ impl LossContext {
             };
             terms.push((Term::Diffusion, mask.mean(&diff.sqr()?, 1.0)?));
         }
-        let seam = self.config.velocity_across_the_seam;
+        let seam = window.seam(self.config.velocity_across_the_seam);
         if self.active(Term::FeatureVelocity) && window.steps(seam) > 0 {
             let steps = window.steps(seam);
             let pairs = window.step_weights(seam, |_| 1.0);
@@ -369,9 +369,8 @@ impl LossContext {
         let raw = window.denormalise(prediction)?;
         let target_raw = window.denormalise(target)?;
         let body = self.body_kinematics(window, &raw)?;
-        if self.active(Term::JointVelocity)
-            && window.steps(self.config.velocity_across_the_seam) > 0
-        {
+        let seam = window.seam(self.config.velocity_across_the_seam);
+        if self.active(Term::JointVelocity) && window.steps(seam) > 0 {
             terms.push((Term::JointVelocity, self.joint_velocity(window, &body)?));
         }
         if self.active(Term::FootContact) && tf > 1 {
@@ -468,7 +467,7 @@ impl LossContext {
     /// `L_vel` on joint positions: MSE of the error's frame-to-frame change, in cm (with
     /// `velocity_across_the_seam`, from the prefix's last frame on).
     fn joint_velocity(&self, window: &Window<'_>, body: &BodyKinematics) -> Result<Tensor> {
-        let seam = self.config.velocity_across_the_seam;
+        let seam = window.seam(self.config.velocity_across_the_seam);
         let b = window.batch;
         let weights = window.step_weights(seam, |i| window.gate[i]);
         let mask = Mask::new(window, weights, &[b, window.steps(seam), 1, 1], window.joints * 3)?;
@@ -681,16 +680,23 @@ impl<'a> Window<'a> {
         self.batch_data.frame_mask_values[i * t_all + self.tp + k]
     }
 
+    /// Whether the velocity terms measure the step into the window: when `asked`
+    /// (`velocity_across_the_seam`) and there is a prefix.
+    fn seam(&self, asked: bool) -> bool {
+        asked && self.tp > 0
+    }
+
     /// The frame-to-frame steps the velocity terms measure: between consecutive predicted
-    /// frames, and with `seam` also the one from the prefix's last frame to the first.
+    /// frames, and with `seam` (see [`Self::seam`]) also the one from the prefix's last frame
+    /// to the first.
     fn steps(&self, seam: bool) -> usize {
-        if seam && self.tp > 0 { self.tf } else { self.tf.saturating_sub(1) }
+        if seam { self.tf } else { self.tf.saturating_sub(1) }
     }
 
     /// Per sample and step of [`Self::steps`] `[B, steps]`: both its frames real, times
     /// `per_sample(i)`.
     fn step_weights(&self, seam: bool, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
-        if self.steps(seam) != self.tf {
+        if !seam {
             return self.frame_pairs(per_sample);
         }
         let t_all = self.tp + self.tf;
@@ -777,7 +783,6 @@ impl Mask {
     }
 }
 
-/// Frame-to-frame differences along `dim`.
 /// An error over the predicted frames with, when `seam`, the prefix's last frame before them
 /// along `dim`: its error is 0 (the prefix is the data), so that the first of the
 /// [`frame_differences`] is the step into the window.
@@ -789,6 +794,7 @@ fn from_the_seam(error: &Tensor, dim: usize, seam: bool) -> Result<Tensor> {
     Ok(Tensor::cat(&[&before, error], dim)?)
 }
 
+/// Frame-to-frame differences along `dim`.
 fn frame_differences(x: &Tensor, dim: usize) -> Result<Tensor> {
     let frames = x.dim(dim)?;
     Ok((x.narrow(dim, 1, frames - 1)? - x.narrow(dim, 0, frames - 1)?)?)
