@@ -340,16 +340,15 @@ impl LossContext {
             };
             terms.push((Term::Diffusion, mask.mean(&diff.sqr()?, 1.0)?));
         }
-        let seam = window.seam(self.config.velocity_across_the_seam);
-        if self.active(Term::FeatureVelocity) && window.steps(seam) > 0 {
-            let steps = window.steps(seam);
-            let pairs = window.step_weights(seam, |_| 1.0);
+        let steps = window.steps();
+        if self.active(Term::FeatureVelocity) && steps > 0 {
+            let pairs = window.step_weights(|_| 1.0);
             let count: f32 = (0..b * steps).map(|n| pairs[n] * channel_sum[n / steps]).sum();
             let mask = Mask {
                 weight: channels.broadcast_mul(&window.constant(pairs, &[b, 1, steps, 1])?)?,
                 count,
             };
-            let velocity = frame_differences(&from_the_seam(&diff, 2, seam)?, 2)?;
+            let velocity = window.step_differences(&diff, 2)?;
             terms.push((Term::FeatureVelocity, mask.mean(&velocity.sqr()?, 1.0)?));
         }
         Ok(())
@@ -369,8 +368,7 @@ impl LossContext {
         let raw = window.denormalise(prediction)?;
         let target_raw = window.denormalise(target)?;
         let body = self.body_kinematics(window, &raw)?;
-        let seam = window.seam(self.config.velocity_across_the_seam);
-        if self.active(Term::JointVelocity) && window.steps(seam) > 0 {
+        if self.active(Term::JointVelocity) && window.steps() > 0 {
             terms.push((Term::JointVelocity, self.joint_velocity(window, &body)?));
         }
         if self.active(Term::FootContact) && tf > 1 {
@@ -467,13 +465,12 @@ impl LossContext {
     /// `L_vel` on joint positions: MSE of the error's frame-to-frame change, in cm (with
     /// `velocity_across_the_seam`, from the prefix's last frame on).
     fn joint_velocity(&self, window: &Window<'_>, body: &BodyKinematics) -> Result<Tensor> {
-        let seam = window.seam(self.config.velocity_across_the_seam);
-        let b = window.batch;
-        let weights = window.step_weights(seam, |i| window.gate[i]);
-        let mask = Mask::new(window, weights, &[b, window.steps(seam), 1, 1], window.joints * 3)?;
+        let weights = window.step_weights(|i| window.gate[i]);
+        let shape = [window.batch, window.steps(), 1, 1];
+        let mask = Mask::new(window, weights, &shape, window.joints * 3)?;
         let error = (&body.positions - window.batch_data.joints.to_dtype(window.dtype)?)?
             .affine(CENTIMETRES, 0.0)?;
-        mask.mean(&frame_differences(&from_the_seam(&error, 1, seam)?, 1)?.sqr()?, 1.0)
+        mask.mean(&window.step_differences(&error, 1)?.sqr()?, 1.0)
     }
 
     /// Foot skating: the squared velocity (cm per frame) of the ankle and toe joints on frames
@@ -634,6 +631,9 @@ struct Window<'a> {
     device: candle_core::Device,
     /// Per sample, 1 when its diffusion step is at most `geometric_max_timestep`.
     gate: Vec<f32>,
+    /// Whether the velocity terms measure the step into the window:
+    /// `velocity_across_the_seam`, and a prefix to step from.
+    seam: bool,
     normaliser: Normaliser,
 }
 
@@ -664,6 +664,7 @@ impl<'a> Window<'a> {
             joints,
             dtype,
             gate,
+            seam: context.config.velocity_across_the_seam && context.prefix_frames > 0,
             normaliser: Normaliser::new(&context.mean, &context.std, dtype, &device)?,
             device,
         })
@@ -680,49 +681,40 @@ impl<'a> Window<'a> {
         self.batch_data.frame_mask_values[i * t_all + self.tp + k]
     }
 
-    /// Whether the velocity terms measure the step into the window: when `asked`
-    /// (`velocity_across_the_seam`) and there is a prefix.
-    fn seam(&self, asked: bool) -> bool {
-        asked && self.tp > 0
-    }
-
     /// The frame-to-frame steps the velocity terms measure: between consecutive predicted
-    /// frames, and with `seam` (see [`Self::seam`]) also the one from the prefix's last frame
-    /// to the first.
-    fn steps(&self, seam: bool) -> usize {
-        if seam { self.tf } else { self.tf.saturating_sub(1) }
+    /// frames, and with [`Self::seam`] also the one from the prefix's last frame to the first.
+    fn steps(&self) -> usize {
+        if self.seam { self.tf } else { self.tf.saturating_sub(1) }
     }
 
     /// Per sample and step of [`Self::steps`] `[B, steps]`: both its frames real, times
     /// `per_sample(i)`.
-    fn step_weights(&self, seam: bool, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
-        if !seam {
-            return self.frame_pairs(per_sample);
+    fn step_weights(&self, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
+        let (steps, t_all) = (self.steps(), self.tp + self.tf);
+        if steps == 0 {
+            return Vec::new();
         }
-        let t_all = self.tp + self.tf;
-        (0..self.batch * self.tf)
+        // The first step's first frame, counted over the prefix and the predicted frames.
+        let first = t_all - 1 - steps;
+        (0..self.batch * steps)
             .map(|n| {
-                let (i, k) = (n / self.tf, n % self.tf);
-                let before = if k == 0 {
-                    self.batch_data.frame_mask_values[i * t_all + self.tp - 1]
-                } else {
-                    self.frame_valid(i, k - 1)
-                };
-                before * self.frame_valid(i, k) * per_sample(i)
+                let (i, k) = (n / steps, n % steps);
+                let real = |frame: usize| self.batch_data.frame_mask_values[i * t_all + frame];
+                real(first + k) * real(first + k + 1) * per_sample(i)
             })
             .collect()
     }
 
-    /// Per sample and pair of consecutive predicted frames `[B, T_f - 1]`: both real, times
-    /// `per_sample(i)`.
-    fn frame_pairs(&self, per_sample: impl Fn(usize) -> f32) -> Vec<f32> {
-        let pairs = self.tf - 1;
-        (0..self.batch * pairs)
-            .map(|n| {
-                let (i, k) = (n / pairs, n % pairs);
-                self.frame_valid(i, k) * self.frame_valid(i, k + 1) * per_sample(i)
-            })
-            .collect()
+    /// The frame-to-frame differences of `error` over the predicted frames along `dim`, one per
+    /// step of [`Self::steps`]: with [`Self::seam`], the prefix's last frame comes first, with
+    /// an error of 0 (the prefix is the data), so that the first difference is the step into
+    /// the window.
+    fn step_differences(&self, error: &Tensor, dim: usize) -> Result<Tensor> {
+        if !self.seam {
+            return frame_differences(error, dim);
+        }
+        let before = error.narrow(dim, 0, 1)?.zeros_like()?;
+        frame_differences(&Tensor::cat(&[&before, error], dim)?, dim)
     }
 
     /// `[B, 2, T_f]`: real frames of slots that hold an object (and, `gated`, of samples whose
@@ -781,17 +773,6 @@ impl Mask {
             .sum_all()?
             .affine(scale / f64::from(self.count.max(1.0)), 0.0)?)
     }
-}
-
-/// An error over the predicted frames with, when `seam`, the prefix's last frame before them
-/// along `dim`: its error is 0 (the prefix is the data), so that the first of the
-/// [`frame_differences`] is the step into the window.
-fn from_the_seam(error: &Tensor, dim: usize, seam: bool) -> Result<Tensor> {
-    if !seam {
-        return Ok(error.clone());
-    }
-    let before = error.narrow(dim, 0, 1)?.zeros_like()?;
-    Ok(Tensor::cat(&[&before, error], dim)?)
 }
 
 /// Frame-to-frame differences along `dim`.
