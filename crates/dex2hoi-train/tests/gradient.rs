@@ -11,11 +11,13 @@ use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
 
 /// A `tiny` trainer on a small procedural set with the loss settings `adjust` makes, a batch of
-/// three windows and a prediction near its target (in f64), with a random stream for more.
+/// three windows, its target (the predicted frames' features, in f64) and a prediction near
+/// it, with a random stream for more.
 struct Setup {
     config: TrainConfig,
     trainer: Trainer,
     batch: dex2hoi_train::batch::Batch,
+    target: Tensor,
     start: Tensor,
     rng: ChaCha8Rng,
 }
@@ -44,7 +46,7 @@ impl Setup {
             let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
             let noise =
                 dex2hoi_diffusion::gaussian(target.dims(), &mut rng, DType::F64, &device).unwrap();
-            let start = (target + noise.affine(0.2, 0.0).unwrap()).unwrap();
+            let start = (&target + noise.affine(0.2, 0.0).unwrap()).unwrap();
             let terms = trainer
                 .loss_context()
                 .objective(&start, &batch, &vec![100; batch.size])
@@ -54,7 +56,7 @@ impl Setup {
                 terms.iter().any(|(t, v)| *t == term && v.to_scalar::<f64>().unwrap() > 0.0)
             };
             if measured(Term::Penetration) && measured(Term::Distance) {
-                return Self { config, trainer, batch, start, rng };
+                return Self { config, trainer, batch, target, start, rng };
             }
         }
         panic!("no batch of seeds 3..64 has a window with contact");
@@ -88,7 +90,7 @@ fn the_velocity_terms_across_the_seam_have_the_gradient_of_their_finite_differen
 /// Checks the gradient of every term `checked` picks, with the settings `adjust` makes, against
 /// central differences at 40 random entries of the prediction.
 fn check_finite_differences(adjust: impl Fn(&mut TrainConfig), checked: impl Fn(&Term) -> bool) {
-    let Setup { config, trainer, batch, start, mut rng } = Setup::new(adjust);
+    let Setup { config, trainer, batch, start, mut rng, .. } = Setup::new(adjust);
     let device = Device::Cpu;
     let tf = config.model.predicted_frames;
     let prediction = Var::from_tensor(&start).unwrap();
@@ -180,16 +182,13 @@ fn the_velocity_terms_see_a_window_that_does_not_continue_its_prefix_only_across
     // The target with every predicted frame's root 1 cm higher: within the window nothing
     // moves differently from the data, across the seam the whole body jumps 1 cm.
     let velocity = |seam: bool| -> [f64; 2] {
-        let Setup { config, trainer, batch, start, .. } = Setup::new(|config| {
+        let Setup { config, trainer, batch, target, .. } = Setup::new(|config| {
             config.loss.velocity_across_the_seam = seam;
         });
-        let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
-        let target = batch.features.narrow(2, tp, tf).unwrap().to_dtype(DType::F64).unwrap();
         let root = 6 * config.model.joints + 1;
         let std = f64::from(trainer.training_set().stats().std[root]);
         let mut values: Vec<f64> = target.flatten_all().unwrap().to_vec1().unwrap();
-        let width = start.dims()[3];
-        for row in values.chunks_mut(width) {
+        for row in values.chunks_mut(target.dims()[3]) {
             row[root] += 0.01 / std;
         }
         let raised = Tensor::from_vec(values, target.dims(), target.device()).unwrap();
