@@ -657,3 +657,31 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     assert!(on_one == on_two, "the thread count changed the bits");
     assert!(on_one.0 != grouped, "dropout changed nothing");
 }
+
+/// The configurations of the runs in docs/results/ are what `train --config` reads: every one
+/// parses and validates, and those of the seam runs set the seam options.
+#[test]
+fn the_documented_run_configurations_parse() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/results/configs");
+    let mut read = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let name = path.display().to_string();
+        let config = TrainConfig::from_toml(&text, &name).unwrap_or_else(|e| panic!("{e}"));
+        config.validate(&name).unwrap();
+        let stem = path.file_stem().unwrap().to_str().unwrap();
+        let expected = match stem {
+            "ft-root" => Some((false, false)),
+            "ft-seam" => Some((false, true)),
+            "ft-root-control" => Some((true, false)),
+            _ => None,
+        };
+        if let Some(expected) = expected {
+            let got = (config.loss.object_terms_move_root, config.loss.velocity_across_the_seam);
+            assert_eq!(got, expected, "{name}");
+        }
+        read += 1;
+    }
+    assert!(read >= 3, "{read} configurations in {}", dir.display());
+}
