@@ -12,10 +12,10 @@ use dex2hoi_data::files::write_atomically;
 use dex2hoi_eval::evaluate::{DEFAULT_LONG_FRAMES, EvaluateOptions, LongOptions, evaluate};
 use dex2hoi_eval::evaluator::Evaluator;
 use dex2hoi_eval::metrics::MultimodalityProtocol;
-use dex2hoi_sample::{TrainedRun, Weights, rest::FreeObjects};
+use dex2hoi_sample::{TrainedRun, Weights, rest::FreeObjects, seams::Seams};
 
 use crate::device::DeviceArgs;
-use crate::sampling::{FreeObjectsArg, SamplingArgs};
+use crate::sampling::{FreeObjectsArg, SamplingArgs, SeamsArg};
 
 /// Arguments of `dex2hoi evaluate`.
 #[derive(Debug, Args)]
@@ -57,6 +57,10 @@ pub struct EvaluateArgs {
     /// paper's sampler), or at rest where they were put down, standing on their support.
     #[arg(long, value_enum, default_value_t = FreeObjects::default().into())]
     free_objects: FreeObjectsArg,
+    /// How each window joins the frames before it: as the model generates them (the paper's
+    /// sampler), or continuous (each window's body carries on from the motion before it).
+    #[arg(long, value_enum, default_value_t = Seams::default().into())]
+    seams: SeamsArg,
     /// Seed of the noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -114,6 +118,7 @@ pub fn run(args: EvaluateArgs) -> Result<()> {
         multimodality,
         long: args.long.then_some(LongOptions { frames: args.long_frames }),
         free_objects: args.free_objects.into(),
+        seams: args.seams.into(),
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(

@@ -13,14 +13,14 @@ use clap::Args;
 use crate::body::{BodyArgs, LoadedBody};
 use crate::device::DeviceArgs;
 use crate::model::ModelSource;
-use crate::sampling::{FreeObjectsArg, SamplingArgs};
+use crate::sampling::{FreeObjectsArg, SamplingArgs, SeamsArg};
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_export::{
     ExportMotion, ExportObject, ExportOptions, PreviewOptions, TableBox, export_all,
 };
 use dex2hoi_sample::{
     DEFAULT_TABLE_HEIGHT, Prompt, SampleError, SampleRequest, SceneObject, SceneTable,
-    SequenceScene, parse_timeline, rest::FreeObjects, sample, unknown_words_warning,
+    SequenceScene, parse_timeline, rest::FreeObjects, sample, seams::Seams, unknown_words_warning,
 };
 
 use long_generation::{
@@ -79,6 +79,11 @@ pub struct SampleArgs {
     /// back down on the surface it started on; as generated with one trained on captured data.
     #[arg(long, value_enum)]
     free_objects: Option<FreeObjectsArg>,
+    /// How each window of the generation (two seconds at 20 fps) joins the frames before it:
+    /// continuous (each window's body carries on from the motion before it, with no jump) or
+    /// as the model generates them (the paper's sampler).
+    #[arg(long, value_enum, default_value_t = Seams::sample_default().into())]
+    seams: SeamsArg,
     /// Height of the table the objects stand on (metres).
     #[arg(long, default_value_t = DEFAULT_TABLE_HEIGHT)]
     table_height: f32,
@@ -192,6 +197,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
         free_objects: args
             .free_objects
             .map_or_else(|| FreeObjects::sample_default(&run.manifest.source), Into::into),
+        seams: args.seams.into(),
         progress: Some(watch.hook()),
     };
     if let Some(mesh) = &body {

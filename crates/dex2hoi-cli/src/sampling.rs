@@ -1,12 +1,14 @@
 //! The sampler options that `sample` and `evaluate` share; their defaults are
-//! `SamplerConfig::default()`'s. What happens to the objects no hand holds is an option of each
-//! (`FreeObjectsArg`), with defaults of their own.
+//! `SamplerConfig::default()`'s. The sampler's rules beyond the paper, what happens to the
+//! objects no hand holds (`FreeObjectsArg`) and how windows join (`SeamsArg`), are options of
+//! each, with defaults of their own.
 
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
 use dex2hoi_sample::rest::FreeObjects;
+use dex2hoi_sample::seams::Seams;
 
 /// The reverse process (docs/CONVENTIONS.md, "Diffusion schedule").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -58,6 +60,34 @@ impl From<FreeObjectsArg> for FreeObjects {
         match free {
             FreeObjectsArg::AsGenerated => Self::AsGenerated,
             FreeObjectsArg::AtRest => Self::AtRest,
+        }
+    }
+}
+
+/// How each window of a generation joins the frames before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SeamsArg {
+    /// As the model generates them (the paper's sampler).
+    AsGenerated,
+    /// Each window's body carries on from its prefix: its root from where the prefix leads, its
+    /// pose offset fading over a quarter of the window (beyond the paper).
+    Continuous,
+}
+
+impl From<Seams> for SeamsArg {
+    fn from(seams: Seams) -> Self {
+        match seams {
+            Seams::AsGenerated => Self::AsGenerated,
+            Seams::Continuous => Self::Continuous,
+        }
+    }
+}
+
+impl From<SeamsArg> for Seams {
+    fn from(seams: SeamsArg) -> Self {
+        match seams {
+            SeamsArg::AsGenerated => Self::AsGenerated,
+            SeamsArg::Continuous => Self::Continuous,
         }
     }
 }

@@ -163,8 +163,11 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
         serde_json::from_slice(&std::fs::read(ddpm.join("report.json")).unwrap()).unwrap();
     assert_eq!(json["setup"]["sampler"], "ddpm");
     assert!(json["setup"]["eta"].is_null() && json["setup"]["guidance"].is_null(), "{json}");
+    // `evaluate` samples as the paper does unless told otherwise.
+    assert_eq!(json["setup"]["objects_at_rest"], false);
+    assert_eq!(json["setup"]["continuous_seams"], false);
 
-    // The long-generation protocol beside the paper's, with the objects-at-rest rule: a table
+    // The long-generation protocol beside the paper's, with the sampler's rules: a table
     // per set in report.md, the numbers in report.json; the ground truth does its own task as
     // asked, once, with nothing off its support.
     let long = dir.join("long");
@@ -184,13 +187,19 @@ fn evaluate_writes_the_report_and_refuses_bad_input() {
             "30",
             "--free-objects",
             "at-rest",
+            "--seams",
+            "continuous",
         ],
     ));
     let report = std::fs::read_to_string(long.join("report.md")).unwrap();
     assert!(report.contains("\n## Long generations\n"), "{report}");
+    // The sampler's rules beyond the paper are in the report.
+    assert!(report.contains("seed 0, objects at rest, continuous seams"), "{report}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(long.join("report.json")).unwrap()).unwrap();
     assert_eq!(json["format"], 3);
+    assert_eq!(json["setup"]["objects_at_rest"], true);
+    assert_eq!(json["setup"]["continuous_seams"], true);
     assert_eq!(json["long"]["frames"], 30);
     // The tiny run's windows of 8 frames: seams at frames 8, 16 and 24.
     assert_eq!(json["long"]["window"], 8);

@@ -81,6 +81,20 @@ fn sample_exports_four_files_and_refuses_bad_input() {
         std::fs::read(one.join("motion.npz")).unwrap(),
         std::fs::read(generated.join("motion.npz")).unwrap()
     );
+    // Continuous seams are `sample`'s default; the paper's sampler gives another motion.
+    let continuous = dir.join("continuous");
+    sample_mug(&continuous, &["--seams", "continuous"]);
+    assert_eq!(
+        std::fs::read(one.join("motion.npz")).unwrap(),
+        std::fs::read(continuous.join("motion.npz")).unwrap()
+    );
+    let jumping = dir.join("jumping");
+    sample_mug(&jumping, &["--seams", "as-generated"]);
+    assert_ne!(
+        std::fs::read(one.join("motion.npz")).unwrap(),
+        std::fs::read(jumping.join("motion.npz")).unwrap()
+    );
+    fails(&dex2hoi(&["sample", "--run", run, "--text", "x", "--seams", "smooth"]), "--seams");
 
     // Two objects, one from the user's OBJ file, placed explicitly; a timeline.
     let obj = dir.join("cube.obj");

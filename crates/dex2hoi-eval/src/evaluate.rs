@@ -33,6 +33,7 @@ use dex2hoi_data::features::ProcessedSequence;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_sample::TrainedRun;
 use dex2hoi_sample::rest::FreeObjects;
+use dex2hoi_sample::seams::Seams;
 
 use crate::error::{EvalError, Result};
 use crate::evaluator::{Evaluator, MotionClip};
@@ -70,6 +71,9 @@ pub struct EvaluateOptions {
     /// What happens to the objects no hand holds, in both protocols
     /// (`dex2hoi_sample::rest`).
     pub free_objects: FreeObjects,
+    /// How each window joins the frames before it, in both protocols
+    /// (`dex2hoi_sample::seams`).
+    pub seams: Seams,
 }
 
 impl Default for EvaluateOptions {
@@ -82,6 +86,7 @@ impl Default for EvaluateOptions {
             multimodality: metrics::MultimodalityProtocol::default(),
             long: None,
             free_objects: FreeObjects::default(),
+            seams: Seams::default(),
         }
     }
 }
@@ -200,7 +205,7 @@ pub fn evaluate(
         dataset,
         &meshes,
         clip_frames,
-        (options.sampler, options.free_objects),
+        (options.sampler, options.free_objects, options.seams),
         options.seed,
     );
     let fps = dataset.manifest.fps;
@@ -258,8 +263,7 @@ pub fn evaluate(
             &chosen,
             &meshes,
             long_options,
-            options.sampler,
-            options.free_objects,
+            (options.sampler, options.free_objects, options.seams),
             options.seed,
             progress_callback,
         )?),
@@ -267,7 +271,8 @@ pub fn evaluate(
     };
     let report = Report {
         format: REPORT_FORMAT,
-        setup: EvaluationSetup::new(run.step, &options.sampler, options.seed),
+        setup: EvaluationSetup::new(run.step, &options.sampler, options.seed)
+            .with_rules(options.free_objects, options.seams),
         rows: vec![
             ReportRow::from_replications(
                 "Ground truth",

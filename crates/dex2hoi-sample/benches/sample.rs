@@ -137,6 +137,7 @@ fn main() {
                 present: [true, true],
             }),
             free_objects: None,
+            seams: Default::default(),
             progress: None,
         };
         let realtime_at = |steps: usize, rng: &mut ChaCha8Rng| {

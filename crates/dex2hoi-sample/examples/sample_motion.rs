@@ -35,8 +35,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         seed: 0,
         sampler: SamplerConfig::default(),
         table_height: DEFAULT_TABLE_HEIGHT,
-        // As `dex2hoi sample` does: released objects at rest for a model of the procedural data.
+        // As `dex2hoi sample` does: released objects at rest for a model of the procedural data,
+        // and windows that carry on from the motion before them.
         free_objects: dex2hoi_sample::rest::FreeObjects::sample_default(&run.manifest.source),
+        seams: dex2hoi_sample::seams::Seams::sample_default(),
         progress: None,
     };
     let sampled = sample(&run, &request)?;

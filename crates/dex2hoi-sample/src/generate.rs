@@ -32,6 +32,7 @@ use crate::error::{Result, SampleError};
 use crate::prefix::PrefixEncoding;
 use crate::rest::ObjectsAtRest;
 use crate::run::TrainedRun;
+use crate::seams::{self, Seams};
 
 /// A prompt that applies from a frame on (frames counted from the first generated frame).
 #[derive(Debug, Clone)]
@@ -103,6 +104,8 @@ pub struct Generation<'a> {
     /// Keep the objects no hand holds at rest ([`crate::rest`]; needs `prefix_encoding`);
     /// `None` leaves them as generated.
     pub free_objects: Option<ObjectsAtRest<'a>>,
+    /// How each window joins the frames before it ([`crate::seams`]).
+    pub seams: Seams,
     /// Called after each window; `None`: the generation runs to its end unobserved.
     pub progress: Option<ProgressHook>,
 }
@@ -188,6 +191,10 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;
         let keep = tf.min(frames - produced);
         let mut window = window.narrow(2, 0, keep)?;
+        if request.seams == Seams::Continuous {
+            window =
+                seams::carry_on(&condition.prefix, &window, c.layout(), seams::fade_frames(tf))?;
+        }
         if let Some((encoding, rule, states)) = &mut at_rest {
             let settled = rule.settle(
                 encoding,
@@ -239,6 +246,8 @@ pub struct Conditioning<'a> {
     pub skeleton: &'a Skeleton,
     /// Keep the objects no hand holds at rest (see [`Generation::free_objects`]).
     pub free_objects: Option<ObjectsAtRest<'a>>,
+    /// How each window joins the frames before it (see [`Generation::seams`]).
+    pub seams: Seams,
     /// Called after each window of the generation (see [`Generation::progress`]).
     pub progress: Option<ProgressHook>,
 }
@@ -316,6 +325,7 @@ pub fn generate_motion(
             present: conditioning.present,
         }),
         free_objects: conditioning.free_objects,
+        seams: conditioning.seams,
         progress: conditioning.progress.clone(),
     };
     if generation.free_objects.is_some() && generation.prefix_encoding.is_none() {

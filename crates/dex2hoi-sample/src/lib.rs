@@ -8,6 +8,8 @@
 //! - [`denoiser`]: the model as a `dex2hoi_diffusion::Denoiser` for one window;
 //! - [`generate`]: autoregressive generation over prefix-conditioned windows (paper Sec. 3.2)
 //!   with a prompt timeline, and decoding to rotations, joints and object poses;
+//! - [`rest`], [`seams`]: the sampler's rules beyond the paper, objects at rest and windows
+//!   that carry on from their prefix;
 //! - [`scene`], [`timeline`], [`request`]: objects and their places, prompts by time, and
 //!   [`sample`], which turns a request into a motion.
 //!
@@ -25,6 +27,7 @@
 //!     sampler: SamplerConfig::default(),
 //!     table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
 //!     free_objects: Default::default(),
+//!     seams: Default::default(),
 //!     progress: None,
 //! };
 //! let motion = sample(&run, &request)?;
@@ -43,6 +46,7 @@ pub mod request;
 pub mod rest;
 pub mod run;
 pub mod scene;
+pub mod seams;
 pub mod text;
 pub mod timeline;
 

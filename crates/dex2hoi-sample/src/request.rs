@@ -19,6 +19,7 @@ use crate::run::TrainedRun;
 use crate::scene::{
     DEFAULT_OBJECT_DEPTH, SceneObject, default_lone_object_side, default_pair_sides,
 };
+use crate::seams::Seams;
 use crate::timeline::Prompt;
 
 /// What to generate.
@@ -38,6 +39,8 @@ pub struct SampleRequest {
     pub table_height: f32,
     /// What happens to the objects no hand holds ([`crate::rest`]).
     pub free_objects: FreeObjects,
+    /// How each window joins the frames before it ([`crate::seams`]).
+    pub seams: Seams,
     /// Called after each generated window: progress, and a way to stop early
     /// ([`SampleError::Interrupted`]); `None` runs the generation to its end.
     pub progress: Option<ProgressHook>,
@@ -132,6 +135,7 @@ pub fn sample(run: &TrainedRun, request: &SampleRequest) -> Result<SampledMotion
             skeleton: &run.skeleton,
             free_objects: (request.free_objects == FreeObjects::AtRest)
                 .then(|| ObjectsAtRest { meshes: queries.each_ref().map(Option::as_ref) }),
+            seams: request.seams,
             progress: request.progress.clone(),
         },
         request.frames,

@@ -12,6 +12,7 @@ use dex2hoi_data::start::StartPose;
 use dex2hoi_diffusion::{CosineSchedule, SamplerConfig, SamplerKind};
 use dex2hoi_model::{InferenceModel, Model, ModelConfig, ObjectStart, SeededVarMap};
 use dex2hoi_repr::{HandRelativeObject, ObjectPose, Skeleton, SkeletonKind};
+use dex2hoi_sample::seams::Seams;
 use dex2hoi_sample::{
     Generation, Normaliser, PrefixEncoding, ProgressHook, SampleError, TimedText, WindowProgress,
     generate,
@@ -88,6 +89,7 @@ fn runs_window_by_window_with_a_timeline(model: &InferenceModel) {
         },
         prefix_encoding: None,
         free_objects: None,
+        seams: Default::default(),
         progress: None,
     };
     let run = |request: &Generation<'_>, seed| {
@@ -173,6 +175,7 @@ fn a_progress_hook_sees_every_window_and_can_stop_the_generation() {
         sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: 2, guidance: None },
         prefix_encoding: None,
         free_objects: None,
+        seams: Default::default(),
         progress: Some(record(usize::MAX)),
     };
     // Windows of 8 frames: 25 frames take 4, the last cut to one frame.
@@ -199,6 +202,68 @@ fn a_progress_hook_sees_every_window_and_can_stop_the_generation() {
         other => panic!("expected an interruption after 8 of 25 frames, got {other:?}"),
     }
     assert_eq!(*seen.lock().unwrap(), [window(1, 8)]);
+}
+
+/// With continuous seams every window's first body frame is where the frames before it lead
+/// (the last plus its step), in the unnormalised features the motion decodes from; the paper's
+/// sampler jumps there. The first window's objects are the model's own either way.
+#[test]
+fn continuous_seams_carry_each_window_on_from_the_frames_before_it() {
+    let model = tiny_model();
+    let cfg = model.config().clone();
+    let (d, tp, tf) = (cfg.stream_features(), cfg.prefix_frames, cfg.predicted_frames);
+    let body = cfg.layout().body_width();
+    let schedule = CosineSchedule::new(1000).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let normaliser = Normaliser {
+        mean: random(&[d], &mut rng),
+        std: random(&[d], &mut rng).abs().unwrap().affine(1.0, 0.5).unwrap(),
+    };
+    let request = Generation {
+        model: &model,
+        schedule: &schedule,
+        normaliser: &normaliser,
+        initial_prefix: random(&[1, 2, tp, d], &mut rng),
+        timeline: vec![TimedText {
+            start_frame: 0,
+            embedding: random(&[1, cfg.text_embedding], &mut rng),
+        }],
+        bps: random(&[1, 2, cfg.bps_points * 3], &mut rng),
+        presence: Tensor::new(&[[1.0f32, 1.0]], &Device::Cpu).unwrap(),
+        frames: std::num::NonZeroUsize::new(3 * tf).unwrap(),
+        sampler: SamplerConfig { kind: SamplerKind::Ddim { eta: 0.0 }, steps: 3, guidance: None },
+        prefix_encoding: None,
+        free_objects: None,
+        seams: Seams::Continuous,
+        progress: None,
+    };
+    let with_prefix = |request: &Generation<'_>| {
+        let generated = generate(request, &mut ChaCha8Rng::seed_from_u64(6)).unwrap();
+        let all = Tensor::cat(&[&request.initial_prefix, &generated], 2).unwrap();
+        all.squeeze(0).unwrap().to_vec3::<f32>().unwrap()
+    };
+    // The worst distance of a window's first body frame from where the two frames before lead.
+    let worst_seam = |all: &Vec<Vec<Vec<f32>>>| {
+        let mut worst = 0.0f32;
+        for stream in all {
+            for first in (tp..tp + 3 * tf).step_by(tf) {
+                for k in 0..body {
+                    let leads_to = 2.0 * stream[first - 1][k] - stream[first - 2][k];
+                    worst = worst.max((stream[first][k] - leads_to).abs());
+                }
+            }
+        }
+        worst
+    };
+    let continuous = with_prefix(&request);
+    let paper = with_prefix(&Generation { seams: Seams::AsGenerated, ..request.clone() });
+    assert!(worst_seam(&continuous) < 1e-4, "{}", worst_seam(&continuous));
+    assert!(worst_seam(&paper) > 0.1, "{}", worst_seam(&paper));
+    for (a, b) in continuous.iter().zip(&paper) {
+        for t in tp..tp + tf {
+            assert_eq!(a[t][body..], b[t][body..], "the first window's objects, frame {t}");
+        }
+    }
 }
 
 /// Frames of the standing start with a mug on the table, `[1, 2, frames, D]`, and the layout.

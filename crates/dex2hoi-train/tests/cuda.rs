@@ -188,6 +188,7 @@ fn a_checkpoint_written_on_the_gpu_samples_the_same_motion_on_the_cpu() {
         sampler: SamplerConfig { steps: 10, ..SamplerConfig::default() },
         table_height: dex2hoi_sample::DEFAULT_TABLE_HEIGHT,
         free_objects: Default::default(),
+        seams: Default::default(),
         progress: None,
     };
     let motions: Vec<_> = [Device::Cpu, gpu]

@@ -38,6 +38,7 @@ use dex2hoi_data::catalogue::CATALOGUE;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_export::{ExportMotion, ExportObject, JointState, encode_bvh, encode_glb, encode_npz};
 use dex2hoi_sample::rest::FreeObjects;
+use dex2hoi_sample::seams::Seams;
 use dex2hoi_sample::{
     DEFAULT_TABLE_HEIGHT, ProgressHook, Prompt, SampleRequest, SceneObject, SceneTable, TrainedRun,
     Weights, sample, unknown_words_warning,
@@ -191,6 +192,7 @@ impl WebGenerator {
                 sampler: SamplerConfig::default(),
                 table_height: DEFAULT_TABLE_HEIGHT,
                 free_objects: FreeObjects::sample_default(&self.run.manifest.source),
+                seams: Seams::sample_default(),
                 progress,
             },
         )?;

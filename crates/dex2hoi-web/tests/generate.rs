@@ -67,6 +67,7 @@ fn a_generation_is_the_sample_commands_with_its_exports_and_contacts() {
             sampler: SamplerConfig::default(),
             table_height: DEFAULT_TABLE_HEIGHT,
             free_objects: dex2hoi_sample::rest::FreeObjects::AtRest,
+            seams: dex2hoi_sample::seams::Seams::sample_default(),
             progress: None,
         },
     )

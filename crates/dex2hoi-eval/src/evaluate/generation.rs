@@ -10,6 +10,7 @@ use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::Skeleton;
 use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
+use dex2hoi_sample::seams::Seams;
 use dex2hoi_sample::{Conditioning, GeneratedMotion, TrainedRun, generate_motion};
 
 use super::physical::ObjectMeshes;
@@ -64,21 +65,22 @@ pub(super) struct Generator<'a> {
     frames: NonZeroUsize,
     sampler: SamplerConfig,
     free_objects: FreeObjects,
+    seams: Seams,
     seed: u64,
 }
 
 impl<'a> Generator<'a> {
-    /// A generator of `frames`-frame clips with `sampler` and its rule for free objects; `seed`
-    /// is the first replication's.
+    /// A generator of `frames`-frame clips with `sampler` and its rules for free objects and
+    /// seams; `seed` is the first replication's.
     pub(super) fn new(
         run: &'a TrainedRun,
         dataset: &'a Dataset,
         meshes: &'a ObjectMeshes<'a>,
         frames: NonZeroUsize,
-        (sampler, free_objects): (SamplerConfig, FreeObjects),
+        (sampler, free_objects, seams): (SamplerConfig, FreeObjects, Seams),
         seed: u64,
     ) -> Self {
-        Self { run, dataset, meshes, frames, sampler, free_objects, seed }
+        Self { run, dataset, meshes, frames, sampler, free_objects, seams, seed }
     }
 
     /// One clip for a test sequence after its own prefix, prompted with `prompt`.
@@ -94,6 +96,7 @@ impl<'a> Generator<'a> {
         if self.free_objects == FreeObjects::AtRest {
             conditioning.free_objects = Some(ObjectsAtRest { meshes: self.meshes.of(sequence)? });
         }
+        conditioning.seams = self.seams;
         Ok(generate_motion(self.run, &conditioning, self.frames, seed, self.sampler)?)
     }
 
@@ -183,6 +186,7 @@ fn conditioning<'a>(
         root_start: sequence.root_start,
         skeleton,
         free_objects: None,
+        seams: Seams::default(),
         progress: None,
     })
 }

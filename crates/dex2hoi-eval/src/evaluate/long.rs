@@ -21,6 +21,7 @@ use dex2hoi_data::layout::slot_bps;
 use dex2hoi_diffusion::SamplerConfig;
 use dex2hoi_repr::{MeshQuery, ObjectPose};
 use dex2hoi_sample::rest::{FreeObjects, ObjectsAtRest};
+use dex2hoi_sample::seams::Seams;
 use dex2hoi_sample::{Conditioning, TrainedRun, generate_motion, standing_prefix};
 
 use crate::error::Result;
@@ -237,8 +238,7 @@ pub(super) fn evaluate_long(
     sequences: &[&ProcessedSequence],
     meshes: &ObjectMeshes<'_>,
     options: LongOptions,
-    sampler: SamplerConfig,
-    free_objects: FreeObjects,
+    (sampler, free_objects, seams): (SamplerConfig, FreeObjects, Seams),
     seed: u64,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<LongProtocol> {
@@ -286,6 +286,7 @@ pub(super) fn evaluate_long(
                 skeleton: &run.skeleton,
                 free_objects: (free_objects == FreeObjects::AtRest)
                     .then_some(ObjectsAtRest { meshes: slots }),
+                seams,
                 progress: None,
             };
             let seed = seed

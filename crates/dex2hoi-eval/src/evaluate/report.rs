@@ -7,6 +7,8 @@ use serde::{Deserialize, Deserializer, Serialize};
 
 use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_diffusion::{SamplerConfig, SamplerKind};
+use dex2hoi_sample::rest::FreeObjects;
+use dex2hoi_sample::seams::Seams;
 
 use crate::error::{EvalError, Result};
 use crate::evaluator::MotionClip;
@@ -65,6 +67,14 @@ pub struct EvaluationSetup {
     pub guidance: Option<f64>,
     /// Seed of the first replication's noise.
     pub seed: u64,
+    /// Whether the sampler kept the objects no hand holds at rest (`dex2hoi_sample::rest`;
+    /// beyond the paper). Reports without it were made without the rule.
+    #[serde(default)]
+    pub objects_at_rest: bool,
+    /// Whether each window carried on from its prefix (`dex2hoi_sample::seams`; beyond the
+    /// paper). Reports without it were made without the rule.
+    #[serde(default)]
+    pub continuous_seams: bool,
 }
 
 impl EvaluationSetup {
@@ -81,6 +91,17 @@ impl EvaluationSetup {
             denoising_steps: sampler.steps,
             guidance: sampler.guidance,
             seed,
+            objects_at_rest: false,
+            continuous_seams: false,
+        }
+    }
+
+    /// The same setup with the sampler's rules beyond the paper as they were used.
+    pub fn with_rules(self, free_objects: FreeObjects, seams: Seams) -> Self {
+        Self {
+            objects_at_rest: free_objects == FreeObjects::AtRest,
+            continuous_seams: seams == Seams::Continuous,
+            ..self
         }
     }
 
@@ -95,7 +116,14 @@ impl EvaluationSetup {
             None => name.to_string(),
         };
         let guidance = self.guidance.map_or("no guidance".into(), |g| format!("guidance {g}"));
-        format!("{sampler}, {} steps, {guidance}, seed {}", self.denoising_steps, self.seed)
+        let rules: String = [
+            (self.objects_at_rest, ", objects at rest"),
+            (self.continuous_seams, ", continuous seams"),
+        ]
+        .into_iter()
+        .filter_map(|(on, rule)| on.then_some(rule))
+        .collect();
+        format!("{sampler}, {} steps, {guidance}, seed {}{rules}", self.denoising_steps, self.seed)
     }
 }
 
