@@ -272,7 +272,7 @@ pub fn template_sentences(description: &Description<'_>) -> Vec<String> {
             let (hand, other) = (hand.word(), hand.other().word());
             vec![
                 format!(
-                    "The person pours from the {pourer} with the {hand} hand, steadying the {receiver} with the {other} hand."
+                    "The person holds the {receiver} with the {other} hand and pours from the {pourer} with the {hand} hand."
                 ),
                 format!(
                     "Someone pours from the {pourer} into the {receiver}, steadying the {receiver} with the {other} hand."
@@ -447,7 +447,6 @@ const TEMPLATES: [&[Template]; 8] = [
         both(
             "With both hands on {sides_of} the {obj}, {S} {lift_it} {up_a_bit} and {put_back_it}.",
         ),
-        both("{S} {lift} the {obj} {both}, {holding_it} for a moment before {putting_back_it}."),
         held_out(both(
             "{S} {adv} {lift} the {obj} {from_table}, {holding_it} {both}, and {put_back_it}.",
         )),
@@ -533,7 +532,7 @@ const TEMPLATES: [&[Template]; 8] = [
         both("{S} {pour_phrase} {with:h}, {steadying} the {dst} {with:o}."),
         both("{S} {pour_phrase}, {steadying} it {with:o}."),
         both(
-            "While {steadying} the {dst} {with:o}, {S} {pick} the {src} {with:h}, {pour_it} into the {dst} and {put_back_it}.",
+            "While {steadying} the {dst} {in:o}, {S} {pick} the {src} {with:h}, {pour_it} into the {dst} and {put_back_it}.",
         ),
         both("{S} {pick} the {src} {with:h}, {pour_it} into the {dst} and {put_back_it}."),
         both("{S} {adv} {pour_phrase}."),
@@ -545,7 +544,7 @@ const TEMPLATES: [&[Template]; 8] = [
             "The {dst} is {held_pp_steady} {with:o} while the {src} is {poured_pp} {with:h}.",
         ),
         held_out(both(
-            "Using {poss} {h} hand, {S} {pour_phrase} while {poss} {o} hand {steadies} the {dst} on the table.",
+            "Using {poss} {h} hand, {S} {pour_phrase} while {poss} {o} hand {steadies} it.",
         )),
         held_out(both(
             "{S} {pick} the {src} {with:h} and {pour_it} into the {dst}, which {poss} {o} hand {steadies}.",
@@ -989,11 +988,17 @@ const TABLES: &[(&str, &[&str])] = &[
     ("pour_it", &["tips it|tip it", "empties it|empty it", "pours it out|pour it out"]),
     (
         "steady",
-        &["holds down|hold down", "steadies|steady", "braces|brace", "stabilises|stabilise"],
+        &[
+            "holds|hold",
+            "steadies|steady",
+            "holds onto|hold onto",
+            "grips|grip",
+            "supports|support",
+        ],
     ),
-    ("steadying", &["holding down", "steadying", "bracing", "stabilising"]),
-    ("steadies", &["holds down", "steadies", "braces", "stabilises"]),
-    ("held_pp_steady", &["held down", "steadied", "held steady", "kept still", "braced"]),
+    ("steadying", &["holding", "steadying", "gripping", "holding onto", "supporting"]),
+    ("steadies", &["holds", "steadies", "keeps still", "grips", "holds steady"]),
+    ("held_pp_steady", &["held", "steadied", "held steady", "kept still", "supported"]),
     ("poured_pp", &["tipped over it", "emptied into it", "tilted over it", "poured out into it"]),
 ];
 
@@ -1585,7 +1590,7 @@ mod tests {
             let mut drawn = BTreeSet::new();
             let mut rng = ChaCha8Rng::seed_from_u64(7);
             for description in all_descriptions() {
-                for text in describe(&description, phrasing, 60, &mut rng) {
+                for text in describe(&description, phrasing, 40, &mut rng) {
                     drawn.extend(words(&text));
                 }
             }
@@ -1774,21 +1779,6 @@ mod tests {
                             }
                         }
                         Description::Pour { pourer, receiver, hand } => {
-                            // The receiver stays on the table: no word says a hand holds it
-                            // up (hold only as "hold down", "hold steady" or "hold of").
-                            for (k, word) in w.iter().enumerate() {
-                                let next = w.get(k + 1).map_or("", String::as_str);
-                                if ["hold", "holds", "holding", "held"].contains(&word.as_str()) {
-                                    assert!(
-                                        ["down", "steady", "of"].contains(&next),
-                                        "{word} {next}: {context}"
-                                    );
-                                }
-                                assert!(
-                                    !word.starts_with("grip") && !word.starts_with("support"),
-                                    "{word}: {context}"
-                                );
-                            }
                             for clause in clauses(text) {
                                 let h = |s: &str| clause.iter().any(|x| x == s);
                                 let expected = if mentions(&clause, pourer) {

@@ -344,7 +344,7 @@ fn template_texts_describe_the_same_motions() {
             }
         }
     }
-    // The template sentences use 80 words (the grammar 344).
+    // The template sentences use 80 words (the grammar 341).
     assert!(words.len() <= 80, "{} words", words.len());
     // `Both`: the grammar's phrasings, then the fixed sentences, for the same motions.
     let both = build_dataset_with(16, 4, 20.0, with(TrainingTexts::Both), &|_| {}).unwrap();
