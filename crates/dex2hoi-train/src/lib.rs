@@ -14,6 +14,7 @@ pub mod metrics;
 pub mod plot;
 pub mod run;
 pub mod step;
+pub mod surface;
 
 pub use config::{LoopConfig, LossConfig, TrainConfig};
 pub use error::{Result, TrainError};
@@ -21,3 +22,4 @@ pub use loss::{LossContext, Objective, Term};
 pub use metrics::{MetricsLine, read_metrics};
 pub use run::{RunStart, SNAPSHOTS_DIR, TrainOptions, TrainSummary, snapshot_dir, train};
 pub use step::{StepReport, StepTiming, Trainer};
+pub use surface::SurfaceSearch;

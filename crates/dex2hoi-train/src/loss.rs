@@ -20,10 +20,10 @@
 //! constant); `d` is, in the joint, the object's rotation and its decoded position (unless
 //! `contact_turns_objects` or `contact_moves_objects` makes those constants). Within the
 //! 10 cm of `L_dist` the samples (512 per object, about 1 cm apart on a mug) make this a close
-//! stand-in for the mesh's signed distance, and it needs no mesh queries in the loop.
+//! stand-in for the mesh's signed distance, and it needs no mesh queries in the loop. The search
+//! runs on the host on the CPU and with tensor operations on a GPU ([`crate::surface`]).
 
 use candle_core::{D, DType, Tensor};
-use rayon::prelude::*;
 
 use dex2hoi_data::FeatureLayout;
 use dex2hoi_data::MAX_OBJECTS;
@@ -41,6 +41,7 @@ use dex2hoi_repr::tensor_forward_kinematics_per_sample;
 use crate::batch::{Batch, SurfaceCloud};
 use crate::config::LossConfig;
 use crate::error::Result;
+use crate::surface::{DeviceClouds, SurfaceSearch, nearest_on_host};
 
 /// The text terms' logits are their two channels times this, so that the channels stay near
 /// the size of the embedding's others (a few tenths) while the logits reach a few units.
@@ -203,6 +204,11 @@ pub struct LossContext {
     mean: Vec<f32>,
     std: Vec<f32>,
     clouds: Vec<SurfaceCloud>,
+    /// Where the nearest surface samples are searched; `None`: the faster for the device
+    /// ([`SurfaceSearch::for_device`]).
+    surface_search: Option<SurfaceSearch>,
+    /// The clouds on the device of the last tensor search.
+    device_clouds: std::sync::OnceLock<DeviceClouds>,
 }
 
 impl LossContext {
@@ -216,7 +222,35 @@ impl LossContext {
         std: Vec<f32>,
         clouds: Vec<SurfaceCloud>,
     ) -> Self {
-        Self { config, representation, skeleton, prefix_frames, mean, std, clouds }
+        Self {
+            config,
+            representation,
+            skeleton,
+            prefix_frames,
+            mean,
+            std,
+            clouds,
+            surface_search: None,
+            device_clouds: std::sync::OnceLock::new(),
+        }
+    }
+
+    /// The same context with the nearest surface samples searched as `search` says, whatever
+    /// the device (both searches pick the same samples; `dex2hoi_train::surface`).
+    pub fn with_surface_search(mut self, search: SurfaceSearch) -> Self {
+        self.surface_search = Some(search);
+        self
+    }
+
+    /// The surface clouds as tensors on `device`, made once per device.
+    fn device_clouds(&self, device: &candle_core::Device) -> Result<DeviceClouds> {
+        if let Some(clouds) = self.device_clouds.get().filter(|c| c.is_on(device)) {
+            return Ok(clouds.clone());
+        }
+        let clouds = DeviceClouds::new(&self.clouds, device)?;
+        // A context used on a second device keeps the first one's clouds.
+        let _ = self.device_clouds.set(clouds.clone());
+        Ok(clouds)
     }
 
     /// The configuration.
@@ -557,14 +591,28 @@ impl LossContext {
         let relative =
             body.positions.unsqueeze(1)?.broadcast_sub(&object_positions.unsqueeze(3)?)?; // [B, 2, T_f, J, 3]
         let local = rotate_inverse(&object_rotations.unsqueeze(3)?, &relative)?;
-        let local_values: Vec<f32> =
-            local.detach().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
-        let (nearest, normals) =
-            nearest_samples(&local_values, &window.batch_data.clouds, &self.clouds, b, tf * joints);
-        Ok(((local - window.constant(nearest, &[b, 2, tf, joints, 3])?)?
-            * window.constant(normals, &[b, 2, tf, joints, 3])?)?
-        .sum(D::Minus1)?
-        .affine(CENTIMETRES, 0.0)?)
+        let slots = &window.batch_data.clouds;
+        let search = self.surface_search.unwrap_or(SurfaceSearch::for_device(&window.device));
+        let (nearest, normals) = match search {
+            SurfaceSearch::Host => {
+                let values: Vec<f32> =
+                    local.detach().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+                let (nearest, normals) = nearest_on_host(&values, slots, &self.clouds, tf * joints);
+                let shape = [b, 2, tf, joints, 3];
+                (window.constant(nearest, &shape)?, window.constant(normals, &shape)?)
+            }
+            SurfaceSearch::Tensor => {
+                let queries = local.reshape((b, 2, tf * joints, 3))?;
+                let (nearest, normals) =
+                    self.device_clouds(&window.device)?.nearest(&queries, slots)?;
+                let shape = (b, 2, tf, joints, 3);
+                (
+                    nearest.reshape(shape)?.to_dtype(window.dtype)?,
+                    normals.reshape(shape)?.to_dtype(window.dtype)?,
+                )
+            }
+        };
+        Ok(((local - nearest)? * normals)?.sum(D::Minus1)?.affine(CENTIMETRES, 0.0)?)
     }
 
     /// `L_dist` (Eq. 11): Huber on the hand joints' signed distances where the ground truth has
@@ -788,45 +836,4 @@ pub fn huber(error: &Tensor, delta: f64) -> Result<Tensor> {
     let quadratic = magnitude.minimum(delta)?;
     let linear = (&magnitude - &quadratic)?;
     Ok((quadratic.sqr()?.affine(0.5, 0.0)? + linear.affine(delta, 0.0)?)?)
-}
-
-/// For every query point (object frame) of every window and slot, the nearest surface sample of
-/// the slot's object and its normal (zeros for an empty slot).
-///
-/// # Shapes
-/// - `local`: `[B, 2, Q, 3]` flattened; returns two such arrays
-fn nearest_samples(
-    local: &[f32],
-    slots: &[[Option<usize>; MAX_OBJECTS]],
-    clouds: &[SurfaceCloud],
-    batch: usize,
-    queries: usize,
-) -> (Vec<f32>, Vec<f32>) {
-    let mut nearest = vec![0.0f32; local.len()];
-    let mut normals = vec![0.0f32; local.len()];
-    nearest
-        .par_chunks_mut(queries * 3)
-        .zip(normals.par_chunks_mut(queries * 3))
-        .enumerate()
-        .for_each(|(row, (nearest, normals))| {
-            let (i, s) = (row / 2, row % 2);
-            let Some(cloud) = slots.get(i).and_then(|slots| slots[s]).map(|c| &clouds[c]) else {
-                return;
-            };
-            let points = &local[row * queries * 3..(row + 1) * queries * 3];
-            for q in 0..queries {
-                let x = glam::Vec3::from_slice(&points[q * 3..q * 3 + 3]);
-                let mut best = (f32::INFINITY, 0);
-                for (k, p) in cloud.points.iter().enumerate() {
-                    let distance = x.distance_squared(*p);
-                    if distance < best.0 {
-                        best = (distance, k);
-                    }
-                }
-                nearest[q * 3..q * 3 + 3].copy_from_slice(&cloud.points[best.1].to_array());
-                normals[q * 3..q * 3 + 3].copy_from_slice(&cloud.normals[best.1].to_array());
-            }
-        });
-    debug_assert_eq!(local.len(), batch * 2 * queries * 3);
-    (nearest, normals)
 }

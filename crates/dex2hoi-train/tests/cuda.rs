@@ -19,6 +19,8 @@ use dex2hoi_model::{
     SeededVarMap, StreamLayout,
 };
 use dex2hoi_sample::{Prompt, SampleRequest, SceneObject, TrainedRun, Weights, sample};
+use dex2hoi_train::batch::SurfaceCloud;
+use dex2hoi_train::surface::{DeviceClouds, nearest_on_host};
 use dex2hoi_train::{RunStart, TrainConfig, TrainOptions, Trainer, train};
 
 const TOLERANCE: f32 = 1e-4;
@@ -163,6 +165,47 @@ fn a_training_step_on_the_gpu_gives_the_loss_and_gradients_of_the_cpu() {
             _ => panic!("{}: a gradient on one device only", p_cpu.name),
         }
     }
+}
+
+#[test]
+fn the_surface_search_on_the_gpu_picks_the_samples_of_the_host_search() {
+    // The dataset's own clouds (512 samples each) and joints around them, at odd sizes: every
+    // query's sample on the GPU as near as the host's within f32 rounding, the same one almost
+    // always.
+    let data = dataset();
+    let clouds: Vec<SurfaceCloud> = data
+        .objects
+        .iter()
+        .map(|a| SurfaceCloud {
+            points: a.samples.points.clone(),
+            normals: a.samples.normals.clone(),
+        })
+        .collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let count = clouds.len();
+    let slots: Vec<[Option<usize>; 2]> =
+        (0..7).map(|i| [Some(i % count), (i % 3 != 0).then_some((i + 1) % count)]).collect();
+    let queries = 2 * 52 + 3;
+    let local = random(&[slots.len(), 2, queries, 3], &mut rng).affine(0.3, 0.0).unwrap();
+    let values: Vec<f32> = local.flatten_all().unwrap().to_vec1().unwrap();
+    let (host, _) = nearest_on_host(&values, &slots, &clouds, queries);
+    let on_gpu = DeviceClouds::new(&clouds, &gpu())
+        .unwrap()
+        .nearest(&local.to_device(&gpu()).unwrap(), &slots)
+        .unwrap()
+        .0;
+    let on_gpu: Vec<f32> =
+        on_gpu.to_device(&Device::Cpu).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+    let mut same = 0;
+    for (q, x) in values.chunks(3).enumerate() {
+        let at = q * 3..q * 3 + 3;
+        let squared = |s: &[f32]| x.iter().zip(s).map(|(a, b)| (a - b) * (a - b)).sum::<f32>();
+        let (gpu_distance, host_distance) =
+            (squared(&on_gpu[at.clone()]), squared(&host[at.clone()]));
+        assert!((gpu_distance - host_distance).abs() <= 1e-6, "query {q}");
+        same += usize::from(on_gpu[at.clone()] == host[at]);
+    }
+    assert!(same * 100 >= values.len() / 3 * 99, "the same sample for {same} queries");
 }
 
 #[test]

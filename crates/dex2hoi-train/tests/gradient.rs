@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_train::batch::BatchOptions;
-use dex2hoi_train::{Term, TrainConfig, Trainer};
+use dex2hoi_train::{SurfaceSearch, Term, TrainConfig, Trainer};
 
 /// A `tiny` trainer on a small procedural set with the loss settings `adjust` makes, a batch of
 /// three windows, its target (the predicted frames' features, in f64) and a prediction near
@@ -364,4 +364,37 @@ fn the_text_terms_are_least_at_finite_channels() {
         let largest = gradient.abs().unwrap().max_all().unwrap().to_scalar::<f64>().unwrap();
         assert!(largest < 1e-9, "gradient {largest} at the best channels");
     }
+}
+
+#[test]
+fn the_host_and_tensor_surface_searches_give_the_same_objective() {
+    // The tensor search is what a GPU runs; on the CPU both can be asked for. The contact terms,
+    // their total and its gradient must not tell them apart.
+    let setup = Setup::new(|_| {});
+    let prediction = Var::from_tensor(&setup.start).unwrap();
+    let timesteps = vec![100; setup.batch.size];
+    let run = |search: SurfaceSearch| {
+        let context = setup.trainer.loss_context().clone().with_surface_search(search);
+        let objective =
+            context.objective(prediction.as_tensor(), &setup.batch, &timesteps).unwrap();
+        let gradient = objective.total.backward().unwrap().get(&prediction).unwrap().clone();
+        let terms: Vec<(Term, f64)> =
+            objective.terms.iter().map(|(t, v)| (*t, v.to_scalar::<f64>().unwrap())).collect();
+        (terms, gradient)
+    };
+    let (host_terms, host_gradient) = run(SurfaceSearch::Host);
+    let (tensor_terms, tensor_gradient) = run(SurfaceSearch::Tensor);
+    assert_eq!(host_terms.len(), tensor_terms.len());
+    for ((term, host), (_, tensor)) in host_terms.iter().zip(&tensor_terms) {
+        assert!(
+            (host - tensor).abs() <= 1e-9 * host.abs().max(1.0),
+            "{}: host {host}, tensor {tensor}",
+            term.name()
+        );
+    }
+    let difference = (host_gradient - tensor_gradient).unwrap().abs().unwrap();
+    let largest = difference.max_all().unwrap().to_scalar::<f64>().unwrap();
+    assert!(largest <= 1e-9, "the gradients differ by up to {largest}");
+    // Contact was measured: the comparison is not between two zeros.
+    assert!(host_terms.iter().any(|(t, v)| *t == Term::Distance && *v > 0.0));
 }
