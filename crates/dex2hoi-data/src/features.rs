@@ -15,7 +15,8 @@ use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
 use dex2hoi_repr::object_repr::{
-    HandRelativeObject, MixtureTargetConfig, ObjectPose, Wrists, hand_distances, mixture_targets,
+    HandRelativeObject, MixtureTargetConfig, ObjectPose, Wrists, hand_distances,
+    mixture_targets_at_rest, resting_frames,
 };
 use dex2hoi_repr::rotation::{axis_angle_to_matrix, matrix_to_sixd};
 use dex2hoi_repr::{MeshQuery, Skeleton, forward_kinematics};
@@ -187,7 +188,12 @@ pub fn process_sequence(
             .collect();
         let left: Vec<f32> = per_frame.iter().map(|(_, (l, _))| *l).collect();
         let right: Vec<f32> = per_frame.iter().map(|(_, (_, r))| *r).collect();
-        let logits = mixture_targets(&left, &right, &config.mixture)?;
+        let poses: Vec<ObjectPose> = (0..frames)
+            .map(|t| ObjectPose { rotation: object.rotations[t], position: object.translations[t] })
+            .collect();
+        let resting =
+            if config.mixture.free_at_rest { resting_frames(query, &poses) } else { Vec::new() };
+        let logits = mixture_targets_at_rest(&left, &right, &resting, &config.mixture)?;
         for (t, (distances, (l, r))) in per_frame.into_iter().enumerate() {
             let pose =
                 ObjectPose { rotation: object.rotations[t], position: object.translations[t] };

@@ -167,7 +167,10 @@ impl HandRelativeObject {
 /// every finger joint) is within [`contact_distance`](Self::contact_distance) of the object's
 /// surface (signed distance, so penetration counts as contact). Left only gives `(1, 0, 0)`,
 /// right only `(0, 1, 0)`, both `(0.5, 0.5, 0)`, neither `(0, 0, 1)`. The one-hot targets are
-/// then averaged over a centred window of `2 * smoothing_radius + 1` frames (shrunk at the ends),
+/// With [`free_at_rest`](Self::free_at_rest), a frame on which the object stands still on its
+/// support ([`resting_frames`]) counts as neither hand holding it, touched or not. The one-hot
+/// targets are then averaged over a centred window of `2 * smoothing_radius + 1` frames (shrunk
+/// at the ends),
 /// so that a hand-over becomes a ramp of a few frames instead of a jump the model cannot fit.
 /// Finally each weight is lifted to at least `probability_floor` (and the three renormalised)
 /// and stored as centred logarithms: `softmax` of the stored logits gives the weights back
@@ -182,12 +185,58 @@ pub struct MixtureTargetConfig {
     pub smoothing_radius: usize,
     /// The least weight a branch gets before the logarithm. Default 1e-3.
     pub probability_floor: f32,
+    /// Whether an object standing still on its support is held by no hand, even with a hand
+    /// on it (steadied, about to be lifted, just put down). Beyond the paper, which decides by
+    /// proximity alone. Default true: the global branch places a still object exactly, and a
+    /// hand that moves while touching it (the generated motion's steadying hand) then does not
+    /// carry it off the table through the hand-relative decoding.
+    pub free_at_rest: bool,
 }
 
 impl Default for MixtureTargetConfig {
     fn default() -> Self {
-        Self { contact_distance: 0.03, smoothing_radius: 2, probability_floor: 1e-3 }
+        Self {
+            contact_distance: 0.03,
+            smoothing_radius: 2,
+            probability_floor: 1e-3,
+            free_at_rest: true,
+        }
     }
+}
+
+/// How far (metres) an object's lowest point may be from its support's height and still stand
+/// on it ([`resting_frames`]).
+pub const REST_HEIGHT_M: f32 = 0.01;
+/// How far (metres) an object may move to a neighbouring frame and still stand still.
+pub const REST_STEP_M: f32 = 0.002;
+/// How much an object may turn to a neighbouring frame and still stand still: the Frobenius
+/// norm of the difference of the rotation matrices (0.01, about 0.4 degrees).
+pub const REST_TURN: f32 = 0.01;
+
+/// Per frame, whether the object stands still on its support: its lowest point within
+/// [`REST_HEIGHT_M`] of the height it had on the first frame (where it stood at the start),
+/// and neither its position nor its rotation changing to the frames before and after by more
+/// than [`REST_STEP_M`] and [`REST_TURN`].
+pub fn resting_frames(mesh: &MeshQuery, poses: &[ObjectPose]) -> Vec<bool> {
+    let Some(first) = poses.first() else {
+        return Vec::new();
+    };
+    let support = mesh.lowest_height(first.rotation, first.position);
+    let still = |a: &ObjectPose, b: &ObjectPose| {
+        let turn =
+            (0..3).map(|c| (a.rotation.col(c) - b.rotation.col(c)).length_squared()).sum::<f32>();
+        a.position.distance(b.position) <= REST_STEP_M && turn.sqrt() <= REST_TURN
+    };
+    (0..poses.len())
+        .map(|t| {
+            let pose = &poses[t];
+            let on_support =
+                (mesh.lowest_height(pose.rotation, pose.position) - support).abs() <= REST_HEIGHT_M;
+            let before = t.checked_sub(1).is_none_or(|s| still(&poses[s], pose));
+            let after = poses.get(t + 1).is_none_or(|next| still(pose, next));
+            on_support && before && after
+        })
+        .collect()
 }
 
 /// The nearest signed distance from world points (a hand's joints) to an object's surface: the
@@ -226,6 +275,24 @@ pub fn mixture_targets(
     right_hand_distance: &[f32],
     config: &MixtureTargetConfig,
 ) -> Result<Vec<[f32; 3]>> {
+    mixture_targets_at_rest(left_hand_distance, right_hand_distance, &[], config)
+}
+
+/// [`mixture_targets`] with, per frame, whether the object stands still on its support
+/// ([`resting_frames`]; empty: never), which [`MixtureTargetConfig::free_at_rest`] reads.
+pub fn mixture_targets_at_rest(
+    left_hand_distance: &[f32],
+    right_hand_distance: &[f32],
+    resting: &[bool],
+    config: &MixtureTargetConfig,
+) -> Result<Vec<[f32; 3]>> {
+    if !resting.is_empty() && resting.len() != left_hand_distance.len() {
+        return Err(ReprError::invalid(
+            "resting frames",
+            "one flag per frame, or none",
+            format!("{} flags for {} frames", resting.len(), left_hand_distance.len()),
+        ));
+    }
     if left_hand_distance.len() != right_hand_distance.len() {
         return Err(ReprError::invalid(
             "hand distances",
@@ -245,7 +312,11 @@ pub fn mixture_targets(
     let one_hot: Vec<[f32; 3]> = left_hand_distance
         .iter()
         .zip(right_hand_distance)
-        .map(|(&left, &right)| {
+        .enumerate()
+        .map(|(t, (&left, &right))| {
+            if config.free_at_rest && resting.get(t).copied().unwrap_or(false) {
+                return [0.0, 0.0, 1.0];
+            }
             // NaN distances (no object) compare false: no contact.
             let left = left <= config.contact_distance;
             let right = right <= config.contact_distance;

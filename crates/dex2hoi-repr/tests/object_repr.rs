@@ -7,8 +7,8 @@ use glam::Vec3;
 use proptest::prelude::*;
 
 use dex2hoi_repr::object_repr::{
-    HandRelativeObject, MixtureTargetConfig, ObjectPose, WristPose, Wrists, mixture_targets,
-    softmax3,
+    HandRelativeObject, MixtureTargetConfig, ObjectPose, REST_HEIGHT_M, WristPose, Wrists,
+    mixture_targets, mixture_targets_at_rest, resting_frames, softmax3,
 };
 use dex2hoi_repr::rotation::axis_angle_to_matrix;
 
@@ -116,4 +116,59 @@ fn hand_distances_use_the_object_pose_and_the_hand_groups() {
     // Moving the object into the hand makes the distance negative (penetration counts as contact).
     let inside = ObjectPose { position: wrist, ..object };
     assert!(hand_distances(&cube, inside, &rest, groups).0 < 0.0);
+}
+
+#[test]
+fn resting_frames_are_the_still_frames_on_the_support() {
+    use dex2hoi_repr::MeshQuery;
+    use dex2hoi_repr::mesh::box_mesh;
+    let cube = MeshQuery::new(&box_mesh(Vec3::splat(0.05))).unwrap();
+    let table = Vec3::new(0.1, 0.8, 0.4);
+    let at = |offset: Vec3| ObjectPose { rotation: glam::Mat3::IDENTITY, position: table + offset };
+    let mut poses = Vec::new();
+    poses.extend((0..5).map(|_| at(Vec3::ZERO))); // 0-4 still on the table
+    poses.extend((1..=5).map(|k| at(Vec3::Y * 0.01 * k as f32))); // 5-9 lifted
+    poses.extend((0..5).map(|_| at(Vec3::Y * 0.05))); // 10-14 still, in the air
+    poses.extend((0..5).map(|k| at(Vec3::new(0.02 * k as f32, 0.04 - 0.01 * k as f32, 0.0)))); // 15-19 down, sideways
+    poses.extend((0..5).map(|_| at(Vec3::new(0.1, 0.0, 0.0)))); // 20-24 still, put down elsewhere
+    // 25 as before; 26-29 turned 10 degrees about Y in place (the bottom stays on the table).
+    let turned = glam::Mat3::from_rotation_y(0.17);
+    poses.push(at(Vec3::new(0.1, 0.0, 0.0)));
+    poses.extend((0..4).map(|_| ObjectPose { rotation: turned, position: table + Vec3::X * 0.1 }));
+    // 30-32 just within the support's height, still: at rest where both neighbours are still;
+    // 33-35 just beyond it: not.
+    poses.extend((0..3).map(|_| at(Vec3::new(0.1, REST_HEIGHT_M * 0.9, 0.0))));
+    poses.extend((0..3).map(|_| at(Vec3::new(0.1, REST_HEIGHT_M * 1.5, 0.0))));
+    let resting = resting_frames(&cube, &poses);
+    assert_eq!(resting.len(), poses.len());
+    let expected: Vec<bool> =
+        (0..poses.len()).map(|t| matches!(t, 0..=3 | 21..=24 | 27..=28 | 31)).collect();
+    for (t, (got, want)) in resting.iter().zip(&expected).enumerate() {
+        assert_eq!(got, want, "frame {t}: {resting:?}");
+    }
+    assert!(resting_frames(&cube, &[]).is_empty());
+}
+
+#[test]
+fn an_object_at_rest_is_held_by_no_hand() {
+    let near = [0.01f32; 4];
+    let resting = [true, true, false, false];
+    let free = MixtureTargetConfig { smoothing_radius: 0, ..Default::default() };
+    assert!(free.free_at_rest, "the default");
+    let weights: Vec<[f32; 3]> = mixture_targets_at_rest(&near, &near, &resting, &free)
+        .unwrap()
+        .iter()
+        .map(|l| softmax3(*l))
+        .collect();
+    for (t, want) in
+        [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0], [0.5, 0.5, 0.0]].iter().enumerate()
+    {
+        assert_close(&weights[t], want, 2.1e-3, "free at rest");
+    }
+    // The paper's rule: proximity alone, resting or not; no flags: never at rest.
+    let paper = MixtureTargetConfig { free_at_rest: false, ..free };
+    let proximity = mixture_targets(&near, &near, &free).unwrap();
+    assert_eq!(mixture_targets_at_rest(&near, &near, &resting, &paper).unwrap(), proximity);
+    assert_eq!(mixture_targets_at_rest(&near, &near, &[], &free).unwrap(), proximity);
+    assert!(mixture_targets_at_rest(&near, &near, &[true], &free).is_err());
 }
