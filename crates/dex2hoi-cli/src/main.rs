@@ -28,6 +28,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 
 use dex2hoi_data::dataset::{Dataset, Split};
+use dex2hoi_data::features::MixtureTargets;
 
 mod body;
 mod compare;
@@ -106,6 +107,9 @@ enum DataCommand {
         /// sequences).
         #[arg(long, value_enum, default_value_t = SynthRest::Drawn)]
         rest: SynthRest,
+        /// How the mixture targets (which hand holds an object, Eq. 4) are drawn.
+        #[arg(long, value_enum, default_value_t = MixtureTargetsArg::default())]
+        mixture_targets: MixtureTargetsArg,
     },
     /// Print a summary of a dataset directory: counts per split, task and object, frames, texts.
     Info {
@@ -137,9 +141,13 @@ fn main() -> std::process::ExitCode {
 fn run(command: Command) -> Result<()> {
     match command {
         Command::Data {
-            command: DataCommand::Synth { out, sequences, seed, fps, texts, rest },
+            command: DataCommand::Synth { out, sequences, seed, fps, texts, rest, mixture_targets },
         } => {
-            let options = dex2hoi_synth::SynthOptions { texts: texts.into(), rest: rest.into() };
+            let options = dex2hoi_synth::SynthOptions {
+                texts: texts.into(),
+                rest: rest.into(),
+                mixture_targets: mixture_targets.into(),
+            };
             synth(&out, sequences, seed, fps, options)
         }
         Command::Data { command: DataCommand::Info { dir } } => info(&dir),
@@ -171,6 +179,34 @@ impl From<SynthTexts> for dex2hoi_synth::TrainingTexts {
             SynthTexts::Grammar => Self::Grammar,
             SynthTexts::Templates => Self::Templates,
             SynthTexts::Both => Self::Both,
+        }
+    }
+}
+
+/// `data synth --mixture-targets`, `data prepare --mixture-targets`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum MixtureTargetsArg {
+    /// The paper's: a hand within 3 cm of an object's surface holds it.
+    Proximity,
+    /// The paper's, except that an object standing still on its support is held by no hand,
+    /// touched or not (steadied, about to be lifted, just put down).
+    FreeAtRest,
+}
+
+impl Default for MixtureTargetsArg {
+    fn default() -> Self {
+        match MixtureTargets::default() {
+            MixtureTargets::Proximity => Self::Proximity,
+            MixtureTargets::FreeAtRest => Self::FreeAtRest,
+        }
+    }
+}
+
+impl From<MixtureTargetsArg> for MixtureTargets {
+    fn from(rule: MixtureTargetsArg) -> Self {
+        match rule {
+            MixtureTargetsArg::Proximity => Self::Proximity,
+            MixtureTargetsArg::FreeAtRest => Self::FreeAtRest,
         }
     }
 }
@@ -249,6 +285,13 @@ fn info(dir: &Path) -> Result<()> {
     );
     println!("objects: {}", m.objects.join(", "));
     println!("BPS: {} points in a {} m ball (seed {})", m.bps.points, m.bps.radius, m.bps.seed);
+    let rule = match m.mixture_targets {
+        MixtureTargets::Proximity => "proximity (a hand within 3 cm holds an object)",
+        MixtureTargets::FreeAtRest => {
+            "free at rest (a hand within 3 cm holds an object, unless it stands still on its support)"
+        }
+    };
+    println!("mixture targets: {rule}");
     for split in Split::ALL {
         let Some(summary) = m.splits.get(&split) else { continue };
         println!(

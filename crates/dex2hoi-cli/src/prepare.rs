@@ -110,6 +110,9 @@ pub struct PrepareArgs {
     /// parent, such as HUMOTO's `Adobe Research License v1.1.pdf`).
     #[arg(long)]
     licence: Option<PathBuf>,
+    /// How the mixture targets (which hand holds an object, Eq. 4) are drawn.
+    #[arg(long, value_enum, default_value_t = crate::MixtureTargetsArg::default())]
+    mixture_targets: crate::MixtureTargetsArg,
 }
 
 /// Runs `dex2hoi data prepare`.
@@ -155,6 +158,7 @@ pub fn run(args: PrepareArgs) -> Result<()> {
         bail!("--licence {}: no such file", path.display());
     }
     options.licence = args.licence;
+    options.mixture_targets = args.mixture_targets.into();
 
     let start = Instant::now();
     let bar = indicatif::ProgressBar::new(0);

@@ -13,7 +13,7 @@ use dex2hoi_repr::object_repr::MIXTURE_RANGE;
 use dex2hoi_repr::{Mesh, SkeletonKind, SurfaceSamples};
 
 use crate::error::{DataError, Result};
-use crate::features::{ObjectAsset, ProcessedSequence};
+use crate::features::{MixtureTargets, ObjectAsset, ProcessedSequence};
 use crate::files::{io_error, temporary_path, write_atomically};
 use crate::layout::{FeatureLayout, OBJECT_FEATURE_SIZE, asset_index, slot_assets};
 use crate::sequence::MAX_OBJECTS;
@@ -21,10 +21,11 @@ use crate::start::StartPose;
 
 /// The version of the format this code writes. Version 2 added each sequence's rest offsets
 /// (`rest_offsets`); version 3 each sequence's held-out descriptions (`held_out_texts`, absent
-/// when there are none); version 4 the manifest's `start_pose` (real data).
-pub const FORMAT_VERSION: u32 = 4;
-/// The oldest version this code reads: versions 2 and 3 read as version 4 without what
-/// later versions added; version 1 files are refused (prepare them again).
+/// when there are none); version 4 the manifest's `start_pose` (real data); version 5 the
+/// manifest's `mixture_targets`, and mixture targets that free an object at rest by default.
+pub const FORMAT_VERSION: u32 = 5;
+/// The oldest version this code reads: versions 2 to 4 read as version 5 without what later
+/// versions added; version 1 files are refused (prepare them again).
 pub const OLDEST_READABLE_FORMAT: u32 = 2;
 
 /// The least standard deviation a feature channel is normalised with: channels that never
@@ -110,6 +111,9 @@ pub struct Manifest {
     pub splits: BTreeMap<Split, SplitSummary>,
     /// The generator's seed, when generated.
     pub seed: Option<u64>,
+    /// The rule the mixture targets were drawn by (format 5; older datasets: the paper's).
+    #[serde(default = "MixtureTargets::of_older_formats")]
+    pub mixture_targets: MixtureTargets,
     /// The pose generation starts from, for data of real motion capture (see
     /// [`Manifest::start_pose`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -249,6 +253,7 @@ impl Dataset {
         objects: Vec<ObjectAsset>,
         bps: BpsSettings,
         seed: Option<u64>,
+        mixture_targets: MixtureTargets,
     ) -> Result<Self> {
         let joints = skeleton.joint_count();
         let statistics_split = match (splits.get(&Split::Train), splits.get(&Split::Test)) {
@@ -294,6 +299,7 @@ impl Dataset {
             objects: objects.iter().map(|a| a.name.clone()).collect(),
             splits: summaries,
             seed,
+            mixture_targets,
             start_pose: None,
             licence: None,
         };

@@ -43,6 +43,32 @@ pub fn stream_feature_size(joints: usize) -> usize {
     FeatureLayout::new(joints).stream_width()
 }
 
+/// Which rule draws the mixture targets (the weights of Eq. 4) from the data; a dataset's
+/// manifest records it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MixtureTargets {
+    /// The paper's rule: a hand within 3 cm of the object's surface holds it.
+    Proximity,
+    /// The paper's rule, except that an object standing still on its support is held by no
+    /// hand, touched or not ([`MixtureTargetConfig::free_at_rest`]).
+    FreeAtRest,
+}
+
+impl Default for MixtureTargets {
+    /// [`MixtureTargetConfig`]'s default.
+    fn default() -> Self {
+        TargetConfig::default().mixture_targets()
+    }
+}
+
+impl MixtureTargets {
+    /// The rule datasets of format 4 and older were made with, whose manifests do not say.
+    pub fn of_older_formats() -> Self {
+        Self::Proximity
+    }
+}
+
 /// Thresholds of the targets.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TargetConfig {
@@ -55,6 +81,24 @@ pub struct TargetConfig {
     pub foot_height: [f32; 2],
     /// ... that move less than this per frame (metres) are in contact (MDM's 0.01).
     pub foot_speed: f32,
+}
+
+impl TargetConfig {
+    /// The default thresholds with the mixture targets drawn by `rule`.
+    pub fn with_mixture_targets(rule: MixtureTargets) -> Self {
+        let mut config = Self::default();
+        config.mixture.free_at_rest = rule == MixtureTargets::FreeAtRest;
+        config
+    }
+
+    /// The rule the mixture targets are drawn by.
+    pub fn mixture_targets(&self) -> MixtureTargets {
+        if self.mixture.free_at_rest {
+            MixtureTargets::FreeAtRest
+        } else {
+            MixtureTargets::Proximity
+        }
+    }
 }
 
 impl Default for TargetConfig {

@@ -285,7 +285,7 @@ pub fn prepare(
     let total = items.len();
     let done = AtomicUsize::new(0);
     let queries = Queries::default();
-    let config = TargetConfig::default();
+    let config = TargetConfig::with_mixture_targets(context.options.mixture_targets);
     let results: Vec<Result<ReadOne>> = items
         .par_iter()
         .map(|item| {
@@ -341,6 +341,7 @@ pub fn prepare(
         assets,
         bps,
         None,
+        context.options.mixture_targets,
     )?
     .with_typical_start_pose()?;
     report.licence = context.options.licence_file();

@@ -14,6 +14,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::dataset::Split;
+use dex2hoi_data::features::MixtureTargets;
 use dex2hoi_data::{Sequence, SequenceObject};
 use dex2hoi_repr::{Mesh, SkeletonKind};
 
@@ -142,6 +143,8 @@ pub struct PrepareOptions {
     /// The data's licence file, kept in the dataset (default: the one found by
     /// [`PrepareOptions::licence_file`]).
     pub licence: Option<PathBuf>,
+    /// The rule the mixture targets are drawn by.
+    pub mixture_targets: MixtureTargets,
 }
 
 impl PrepareOptions {
@@ -163,6 +166,7 @@ impl PrepareOptions {
             up_axis: None,
             pickle_rig: PickleRig::default(),
             licence: None,
+            mixture_targets: MixtureTargets::default(),
         }
     }
 

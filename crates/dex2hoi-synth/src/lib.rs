@@ -444,6 +444,8 @@ pub struct SynthOptions {
     pub texts: TrainingTexts,
     /// How long the person stands still around the task.
     pub rest: RestAroundTask,
+    /// The rule the mixture targets are drawn by.
+    pub mixture_targets: dex2hoi_data::features::MixtureTargets,
 }
 
 /// [`build_dataset`] with `options`. With other [`SynthOptions::texts`] the motions and the
@@ -473,7 +475,7 @@ pub fn build_dataset_with(
     let queries: Vec<MeshQuery> =
         assets.iter().map(|a| MeshQuery::new(&a.mesh)).collect::<Result<_, _>>()?;
     let done = AtomicUsize::new(0);
-    let config = TargetConfig::default();
+    let config = TargetConfig::with_mixture_targets(options.mixture_targets);
     let processed: Vec<(usize, dex2hoi_data::features::ProcessedSequence)> = (0..count)
         .into_par_iter()
         .map(|index| {
@@ -525,5 +527,6 @@ pub fn build_dataset_with(
         assets,
         bps,
         Some(seed),
+        options.mixture_targets,
     )?)
 }
