@@ -2,6 +2,7 @@
 
 use dex2hoi_data::augment::{mirror, mirror_text, swap_streams};
 use dex2hoi_data::dataset::{Dataset, Split};
+use dex2hoi_data::features::MixtureTargets;
 use dex2hoi_data::window::{WindowConfig, resample, windows};
 use dex2hoi_repr::Skeleton;
 use dex2hoi_synth::build_dataset;
@@ -75,8 +76,10 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
     dataset.save(&old).unwrap();
     let manifest = std::fs::read_to_string(old.join("manifest.json")).unwrap();
     let current = format!("\"format_version\": {}", dex2hoi_data::dataset::FORMAT_VERSION);
-    std::fs::write(old.join("manifest.json"), manifest.replace(&current, "\"format_version\": 2"))
-        .unwrap();
+    let mut manifest: serde_json::Value =
+        serde_json::from_str(&manifest.replace(&current, "\"format_version\": 2")).unwrap();
+    manifest.as_object_mut().unwrap().remove("mixture_targets").expect("written in format 5");
+    std::fs::write(old.join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
     for split in ["train", "test"] {
         let path = old.join(format!("{split}.json"));
         let mut infos: serde_json::Value =
@@ -88,6 +91,9 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
     }
     let read = Dataset::load(&old).unwrap();
     assert!(read.splits.values().flatten().all(|s| s.held_out_texts.is_empty()));
+    // Its mixture targets were the paper's; new data frees objects at rest, and says so.
+    assert_eq!(read.manifest.mixture_targets, MixtureTargets::Proximity);
+    assert_eq!(loaded.manifest.mixture_targets, MixtureTargets::FreeAtRest);
     assert_eq!(read.splits[&Split::Test][0].texts, loaded.splits[&Split::Test][0].texts);
     std::fs::remove_dir_all(old).ok();
     // Statistics: floors hold, mixture channels are left as logits.

@@ -1,5 +1,6 @@
 //! The procedural dataset: physical checks computed here from scratch (FK and signed
-//! distances), feature round trips, mixture targets against the task schedules, determinism.
+//! distances), feature round trips, mixture targets against the task schedules (an object
+//! standing still on its table held by no hand), determinism.
 
 use glam::{Mat3, Vec3};
 
@@ -220,10 +221,35 @@ fn mixture_targets_follow_the_task_schedule() {
                     a.object == slot && a.reach_start - 0.2 <= t && t <= a.retract_end + 0.2
                 })
             };
+            // Where the object clearly stands still on the table it started on (the same pose
+            // over the 7 frames around, at its first height: no hand holds it, touched or not),
+            // and where it is clearly in the air (more than 2 cm up over those frames).
+            let object = &synth.sequence.objects[slot];
+            let around = |f: usize| f.saturating_sub(3)..(f + 4).min(processed.frames);
+            let at_rest = |f: usize| {
+                let (p, r) = (object.translations[f], object.rotations[f]);
+                (p.y - object.translations[0].y).abs() < 1e-3
+                    && around(f).all(|g| {
+                        object.translations[g].distance(p) < 1e-5
+                            && object.rotations[g].abs_diff_eq(r, 1e-5)
+                    })
+            };
+            let in_the_air = |f: usize| {
+                around(f).all(|g| object.translations[g].y - object.translations[0].y > 0.02)
+            };
             for f in 0..processed.frames {
                 let t = f as f32 / fps;
                 let base = (f * 2 + slot) * 18;
                 let w = softmax3(processed.objects[base + 15..base + 18].try_into().unwrap());
+                if at_rest(f) {
+                    assert!(w[2] > 0.99, "{id} t={t:.2}: object {slot} at rest, weights {w:?}");
+                    continue;
+                }
+                if !in_the_air(f) {
+                    // Lifting off, settling, or slid on the table: the rule's own thresholds
+                    // decide; `dex2hoi-repr`'s tests check them.
+                    continue;
+                }
                 let firm = holders(t, 0.2);
                 // Hands arriving or leaving (within 0.45 s of their grasp or release) blur the
                 // targets: the rule sees their joints near the surface a little before and after.
