@@ -30,20 +30,20 @@ fn synth_then_info() {
     assert!(text.contains("e.g. synth-00000"), "{text}");
     // The procedural data is posed on the built-in skeleton: one body.
     assert!(text.contains("rest skeletons: 1 distinct, rest height 1.58-1.58 m"), "{text}");
-    assert!(text.contains("mixture targets: free at rest"), "{text}");
+    assert!(text.contains("mixture targets: proximity"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `data synth --mixture-targets proximity`: the paper's rule, recorded in the manifest; the
-/// same motions, and mixture logits that differ where an object stands still under a hand.
+/// `data synth --mixture-targets free-at-rest`: recorded in the manifest; the same motions, and
+/// mixture logits that differ where an object stands still under a hand.
 #[test]
-fn synth_takes_the_paper_mixture_targets() {
+fn synth_frees_objects_at_rest_when_asked() {
     let dir = common::temp_dir("cli", "synth-mixture");
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
     let (free, paper) = (path("free"), path("paper"));
     let args = ["data", "synth", "--sequences", "10", "--seed", "3"];
-    common::succeed(&[&args[..], &["--out", &free]].concat());
-    common::succeed(&[&args[..], &["--out", &paper, "--mixture-targets", "proximity"]].concat());
+    common::succeed(&[&args[..], &["--out", &free, "--mixture-targets", "free-at-rest"]].concat());
+    common::succeed(&[&args[..], &["--out", &paper]].concat());
     let manifest = |dir: &str| -> serde_json::Value {
         serde_json::from_slice(
             &std::fs::read(std::path::Path::new(dir).join("manifest.json")).unwrap(),
@@ -52,8 +52,8 @@ fn synth_takes_the_paper_mixture_targets() {
     };
     assert_eq!(manifest(&free)["mixture_targets"], "free_at_rest");
     assert_eq!(manifest(&paper)["mixture_targets"], "proximity");
-    let info = common::succeed(&["data", "info", &paper]);
-    assert!(info.contains("mixture targets: proximity"), "{info}");
+    let info = common::succeed(&["data", "info", &free]);
+    assert!(info.contains("mixture targets: free at rest"), "{info}");
     let texts = |dir: &str| std::fs::read(std::path::Path::new(dir).join("train.json")).unwrap();
     assert_eq!(texts(&free), texts(&paper), "the same sequences and texts");
     let features =

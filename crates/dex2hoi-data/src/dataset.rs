@@ -22,7 +22,7 @@ use crate::start::StartPose;
 /// The version of the format this code writes. Version 2 added each sequence's rest offsets
 /// (`rest_offsets`); version 3 each sequence's held-out descriptions (`held_out_texts`, absent
 /// when there are none); version 4 the manifest's `start_pose` (real data); version 5 the
-/// manifest's `mixture_targets`, and mixture targets that free an object at rest by default.
+/// manifest's `mixture_targets`.
 pub const FORMAT_VERSION: u32 = 5;
 /// The oldest version this code reads: versions 2 to 4 read as version 5 without what later
 /// versions added; version 1 files are refused (prepare them again).

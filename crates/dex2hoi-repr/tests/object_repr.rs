@@ -153,8 +153,9 @@ fn resting_frames_are_the_still_frames_on_the_support() {
 fn an_object_at_rest_is_held_by_no_hand() {
     let near = [0.01f32; 4];
     let resting = [true, true, false, false];
-    let free = MixtureTargetConfig { smoothing_radius: 0, ..Default::default() };
-    assert!(free.free_at_rest, "the default");
+    let free =
+        MixtureTargetConfig { smoothing_radius: 0, free_at_rest: true, ..Default::default() };
+    assert!(!MixtureTargetConfig::default().free_at_rest, "the paper's rule by default");
     let weights: Vec<[f32; 3]> = mixture_targets_at_rest(&near, &near, &resting, &free)
         .unwrap()
         .iter()

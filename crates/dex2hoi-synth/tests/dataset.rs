@@ -91,9 +91,9 @@ fn save_and_load_round_trip_and_same_seed_same_bytes() {
     }
     let read = Dataset::load(&old).unwrap();
     assert!(read.splits.values().flatten().all(|s| s.held_out_texts.is_empty()));
-    // Its mixture targets were the paper's; new data frees objects at rest, and says so.
+    // Its mixture targets were the paper's rule, as new data's by default.
     assert_eq!(read.manifest.mixture_targets, MixtureTargets::Proximity);
-    assert_eq!(loaded.manifest.mixture_targets, MixtureTargets::FreeAtRest);
+    assert_eq!(loaded.manifest.mixture_targets, MixtureTargets::default());
     assert_eq!(read.splits[&Split::Test][0].texts, loaded.splits[&Split::Test][0].texts);
     std::fs::remove_dir_all(old).ok();
     // Statistics: floors hold, mixture channels are left as logits.

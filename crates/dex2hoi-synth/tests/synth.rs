@@ -1,11 +1,11 @@
 //! The procedural dataset: physical checks computed here from scratch (FK and signed
-//! distances), feature round trips, mixture targets against the task schedules (an object
-//! standing still on its table held by no hand), determinism.
+//! distances), feature round trips, mixture targets against the task schedules (by both rules),
+//! determinism.
 
 use glam::{Mat3, Vec3};
 
 use dex2hoi_data::character::Hand;
-use dex2hoi_data::features::{ProcessedSequence, TargetConfig, process_sequence};
+use dex2hoi_data::features::{MixtureTargets, ProcessedSequence, TargetConfig, process_sequence};
 use dex2hoi_repr::object_repr::{HandRelativeObject, WristPose, Wrists, softmax3};
 use dex2hoi_repr::rotation::{is_rotation, sixd_to_matrix};
 use dex2hoi_repr::{MeshQuery, forward_kinematics};
@@ -120,9 +120,13 @@ fn every_task_family_changes_hands_or_objects() {
 }
 
 fn process(synth: &SynthSequence) -> ProcessedSequence {
+    process_with(synth, MixtureTargets::default())
+}
+
+fn process_with(synth: &SynthSequence, rule: MixtureTargets) -> ProcessedSequence {
     let queries = queries(synth);
     let refs: Vec<&MeshQuery> = queries.iter().collect();
-    process_sequence(&synth.sequence, &refs, &TargetConfig::default()).unwrap()
+    process_sequence(&synth.sequence, &refs, &TargetConfig::with_mixture_targets(rule)).unwrap()
 }
 
 #[test]
@@ -199,8 +203,16 @@ fn features_decode_back_to_the_motion() {
 
 #[test]
 fn mixture_targets_follow_the_task_schedule() {
+    assert_eq!(MixtureTargets::default(), MixtureTargets::Proximity, "the paper's rule");
+    for rule in [MixtureTargets::Proximity, MixtureTargets::FreeAtRest] {
+        follow_the_task_schedule(rule);
+    }
+}
+
+fn follow_the_task_schedule(rule: MixtureTargets) {
+    let free_at_rest = rule == MixtureTargets::FreeAtRest;
     for synth in sample() {
-        let processed = process(&synth);
+        let processed = process_with(&synth, rule);
         let fps = synth.sequence.fps;
         let id = &synth.sequence.source_id;
         for slot in 0..synth.sequence.objects.len() {
@@ -241,11 +253,11 @@ fn mixture_targets_follow_the_task_schedule() {
                 let t = f as f32 / fps;
                 let base = (f * 2 + slot) * 18;
                 let w = softmax3(processed.objects[base + 15..base + 18].try_into().unwrap());
-                if at_rest(f) {
+                if free_at_rest && at_rest(f) {
                     assert!(w[2] > 0.99, "{id} t={t:.2}: object {slot} at rest, weights {w:?}");
                     continue;
                 }
-                if !in_the_air(f) {
+                if free_at_rest && !in_the_air(f) {
                     // Lifting off, settling, or slid on the table: the rule's own thresholds
                     // decide; `dex2hoi-repr`'s tests check them.
                     continue;
