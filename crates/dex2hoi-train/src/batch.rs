@@ -24,6 +24,13 @@ pub struct SurfaceCloud {
     pub normals: Vec<glam::Vec3>,
 }
 
+impl SurfaceCloud {
+    /// An object asset's surface samples.
+    pub fn of(asset: &ObjectAsset) -> Self {
+        Self { points: asset.samples.points.clone(), normals: asset.samples.normals.clone() }
+    }
+}
+
 /// What the batches are cut from: the training split, its windows and the object assets.
 #[derive(Debug, Clone)]
 pub struct TrainingSet {
@@ -158,14 +165,7 @@ impl TrainingSet {
         let sides_of = sequences.iter().map(ProcessedSequence::objects_travel).collect();
         let bps_width = dataset.manifest.bps.points * 3;
         let bps = dataset.objects.iter().map(ObjectAsset::bps_features).collect();
-        let clouds = dataset
-            .objects
-            .iter()
-            .map(|a| SurfaceCloud {
-                points: a.samples.points.clone(),
-                normals: a.samples.normals.clone(),
-            })
-            .collect();
+        let clouds = dataset.objects.iter().map(SurfaceCloud::of).collect();
         Ok(Self {
             skeleton,
             sequences,

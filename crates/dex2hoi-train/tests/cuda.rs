@@ -173,14 +173,7 @@ fn the_surface_search_on_the_gpu_picks_the_samples_of_the_host_search() {
     // query's sample on the GPU as near as the host's within f32 rounding, the same one almost
     // always.
     let data = dataset();
-    let clouds: Vec<SurfaceCloud> = data
-        .objects
-        .iter()
-        .map(|a| SurfaceCloud {
-            points: a.samples.points.clone(),
-            normals: a.samples.normals.clone(),
-        })
-        .collect();
+    let clouds: Vec<SurfaceCloud> = data.objects.iter().map(SurfaceCloud::of).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let count = clouds.len();
     let slots: Vec<[Option<usize>; 2]> =
