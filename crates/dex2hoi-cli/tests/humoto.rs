@@ -31,7 +31,11 @@ fn humoto_is_prepared_trained_on_sampled_evaluated_and_packed_with_its_licence()
     assert!(stdout.contains("Adobe Research License v1.1.pdf"), "{stdout}");
     let dataset = Dataset::load(Path::new(&data)).unwrap();
     let manifest = &dataset.manifest;
-    assert_eq!((manifest.skeleton.as_str(), manifest.format_version), ("mixamo65", 4));
+    assert_eq!(
+        (manifest.skeleton.as_str(), manifest.format_version),
+        ("mixamo65", dex2hoi_data::dataset::FORMAT_VERSION)
+    );
+    assert_eq!(manifest.mixture_targets, dex2hoi_data::features::MixtureTargets::Proximity);
     let start = manifest.start_pose().unwrap();
     assert!(
         dataset.splits[&Split::Train].iter().any(|s| s.source_id == start.source),
