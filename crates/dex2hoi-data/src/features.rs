@@ -215,11 +215,13 @@ pub fn process_sequence(
     for (slot, (object, query)) in sequence.objects.iter().zip(object_queries).enumerate() {
         object_present[slot] = true;
         object_names[slot] = Some(object.name.clone());
+        let poses: Vec<ObjectPose> = (0..frames)
+            .map(|t| ObjectPose { rotation: object.rotations[t], position: object.translations[t] })
+            .collect();
         let per_frame: Vec<(Vec<f32>, (f32, f32))> = (0..frames)
             .into_par_iter()
             .map(|t| {
-                let pose =
-                    ObjectPose { rotation: object.rotations[t], position: object.translations[t] };
+                let pose = poses[t];
                 let to_object = pose.rotation.transpose();
                 let distances = hand_joints
                     .iter()
@@ -232,15 +234,11 @@ pub fn process_sequence(
             .collect();
         let left: Vec<f32> = per_frame.iter().map(|(_, (l, _))| *l).collect();
         let right: Vec<f32> = per_frame.iter().map(|(_, (_, r))| *r).collect();
-        let poses: Vec<ObjectPose> = (0..frames)
-            .map(|t| ObjectPose { rotation: object.rotations[t], position: object.translations[t] })
-            .collect();
         let resting =
             if config.mixture.free_at_rest { resting_frames(query, &poses) } else { Vec::new() };
         let logits = mixture_targets_at_rest(&left, &right, &resting, &config.mixture)?;
         for (t, (distances, (l, r))) in per_frame.into_iter().enumerate() {
-            let pose =
-                ObjectPose { rotation: object.rotations[t], position: object.translations[t] };
+            let pose = poses[t];
             let encoded = HandRelativeObject::encode(pose, wrists(t), logits[t]);
             objects[layout.object_row(t, slot)].copy_from_slice(&encoded.to_array());
             hand_distance[slot_range(t, slot, hand_count)].copy_from_slice(&distances);

@@ -166,12 +166,11 @@ impl HandRelativeObject {
 /// The rule: a hand *holds* the object at a frame when the nearest of its joints (wrist and
 /// every finger joint) is within [`contact_distance`](Self::contact_distance) of the object's
 /// surface (signed distance, so penetration counts as contact). Left only gives `(1, 0, 0)`,
-/// right only `(0, 1, 0)`, both `(0.5, 0.5, 0)`, neither `(0, 0, 1)`. The one-hot targets are
-/// With [`free_at_rest`](Self::free_at_rest) (off by default), a frame on which the object stands still on its
-/// support ([`resting_frames`]) counts as neither hand holding it, touched or not. The one-hot
-/// targets are then averaged over a centred window of `2 * smoothing_radius + 1` frames (shrunk
-/// at the ends),
-/// so that a hand-over becomes a ramp of a few frames instead of a jump the model cannot fit.
+/// right only `(0, 1, 0)`, both `(0.5, 0.5, 0)`, neither `(0, 0, 1)`. With
+/// [`free_at_rest`](Self::free_at_rest) (off by default), a frame on which the object stands
+/// still on its support ([`resting_frames`]) counts as neither hand holding it, touched or not.
+/// The one-hot targets are then averaged over a centred window of `2 * smoothing_radius + 1`
+/// frames (shrunk at the ends), so that a hand-over becomes a ramp of a few frames instead of a jump the model cannot fit.
 /// Finally each weight is lifted to at least `probability_floor` (and the three renormalised)
 /// and stored as centred logarithms: `softmax` of the stored logits gives the weights back
 /// exactly, and the logits stay finite (about -6.9 for the floor of 1e-3).

@@ -207,7 +207,7 @@ pub struct LossContext {
     /// Where the nearest surface samples are searched; `None`: the faster for the device
     /// ([`SurfaceSearch::for_device`]).
     surface_search: Option<SurfaceSearch>,
-    /// The clouds on the device of the last tensor search.
+    /// The clouds on the device of the first tensor search (made once, then reused).
     device_clouds: std::sync::OnceLock<DeviceClouds>,
 }
 
