@@ -1,30 +1,41 @@
 #!/usr/bin/env bash
 # The GPU checks of dex2hoi, run on a machine with an NVIDIA GPU and the driver, from the
 # repository root, with `target/cuda-pack/` made by `cargo xtask build-cuda` carried along.
-# Each phase has a time limit and goes on when one fails; logs and figures go to $OUT
-# (default /tmp/gpu-check):
+# Each phase has a time limit and goes on when one fails; logs and figures go to
+# $OUT/gpu-check.tar.gz (default OUT=/tmp/gpu-check) and the picture of a 300-frame sample
+# beside it. The whole script fits one 10-minute call.
 #   1. the machine: GPU, driver, and that the binary finds every CUDA library (those of the
 #      machine's PyTorch wheels, `site-packages/nvidia/*/lib`, which this script puts on
 #      LD_LIBRARY_PATH);
-#   2. the CUDA tests (forward of every model variant, a training step, a checkpoint written
-#      on the GPU sampled on both devices);
-#   3. `small` trained on the procedural dataset on the GPU, then the same run on the CPU for
-#      its first steps (loss curves to compare: metrics-gpu.jsonl, metrics-cpu.jsonl);
-#   4. a one-window sample (40 frames after the 20-frame prefix, 50 DDIM steps, guidance) on
-#      each device, timed;
-#   5. the PyTorch reference (bench/torch_reference.py) on the same GPU.
-# Phase limits in seconds can be set with GPU_CHECK_{TESTS,TRAIN,CPU_TRAIN,TORCH}_SECONDS.
+#   2. the CUDA tests (forward of every model variant, a training step, the surface search,
+#      the fused optimiser, a checkpoint written on the GPU sampled on both devices);
+#   3. the profile of a `small` training step (scripts/cuda-profile.c through CUPTI): kernels,
+#      copies and driver calls per step and the GPU's busy time against the wall time, from
+#      runs of 10 and 40 steps, with the fused optimiser and with the tensor-operation one
+#      (profile.txt);
+#   4. `small` trained on the procedural dataset for a fixed time, with each optimiser, and
+#      `paper` with the fused one: median step time and its parts (steps.txt);
+#   5. a one-window sample (40 frames after the 20-frame prefix, 50 DDIM steps, guidance) on
+#      each device, timed, and 300 frames on the GPU;
+#   6. the PyTorch reference (bench/torch_reference.py) on the same GPU.
+# Phase limits in seconds: GPU_CHECK_{TESTS,PROFILE,TRAIN,TORCH}_SECONDS. For a dry run
+# elsewhere: GPU_CHECK_PACK (a folder of gzipped binaries), GPU_CHECK_DEVICE (default cuda).
 set -uo pipefail
 
 OUT=${OUT:-/tmp/gpu-check}
 mkdir -p "$OUT"
 BIN=/tmp/dex2hoi-gpu
 WORK=/tmp/dex2hoi-work
+rm -rf "$WORK"
 mkdir -p "$BIN" "$WORK"
-PACK=target/cuda-pack
+PACK=${GPU_CHECK_PACK:-target/cuda-pack}
+DEVICE=${GPU_CHECK_DEVICE:-cuda}
 SEQUENCES=${GPU_CHECK_SEQUENCES:-500}
+TRAIN_SECONDS=${GPU_CHECK_TRAIN_SECONDS:-70}
 
 phase() { echo; echo "=== $* ($(date +%T))"; }
+# Stack traces and warnings off the log.
+quiet() { grep -v "^ *[0-9]*: \|^ *at \|warning\|^Stack backtrace:\|^$"; }
 
 phase unpack
 for f in "$PACK"/*.gz; do
@@ -49,46 +60,113 @@ PY
 )
 export LD_LIBRARY_PATH="$CUDA_LIBS${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 ldd "$BIN/dex2hoi" | grep -E 'cuda|nvrtc|curand|cublas'
+ldd "$BIN/libdex2hoi-profile.so" 2>/dev/null | grep cupti
 if ldd "$BIN/dex2hoi" | grep -q 'not found'; then
     echo "missing libraries: the binary cannot start"
 fi
 
 phase "CUDA tests"
-timeout "${GPU_CHECK_TESTS_SECONDS:-120}" "$BIN/dex2hoi-train-cuda" --test-threads=1 2>&1 |
-    tee "$OUT/tests.log"
+if [[ -x $BIN/dex2hoi-train-cuda ]]; then
+    timeout "${GPU_CHECK_TESTS_SECONDS:-120}" "$BIN/dex2hoi-train-cuda" --test-threads=1 \
+        --nocapture >"$OUT/tests.log" 2>&1
+    grep -E "^test |test result|panicked|: value " "$OUT/tests.log"
+fi
 
 phase "procedural dataset ($SEQUENCES sequences)"
-timeout 120 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCES" --seed 0 |
-    tail -2
+timeout 60 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCES" --seed 0 |
+    tail -1
 
-# Every step logged, so the two devices' curves can be compared step by step.
-sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/small.toml"
+# Every step logged, so that the step times and their parts can be read; `composite` is the
+# same run with AdamW and the EMA as tensor operations.
+sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/fused.toml"
+sed '/^\[optimizer\]/a fused = false' "$WORK/fused.toml" >"$WORK/composite.toml"
+sed 's/^log_every = .*/log_every = 1/' configs/paper.toml >"$WORK/paper.toml"
 
-phase "train small on the GPU"
-timeout --foreground -s INT "${GPU_CHECK_TRAIN_SECONDS:-300}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
-    --data "$WORK/synth" --out "$WORK/run-gpu" --steps 5000 --device cuda 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -8
-cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
-cp "$WORK/run-gpu/loss.png" "$OUT/loss-gpu.png" 2>/dev/null
+train() { # NAME CONFIG SECONDS STEPS [ENV...]: one run, stopped by Ctrl-C after SECONDS
+    local name=$1 config=$2 seconds=$3 steps=$4
+    shift 4
+    env "$@" timeout --foreground -s INT "$seconds" "$BIN/dex2hoi" train --config "$config" \
+        --data "$WORK/synth" --out "$WORK/$name" --steps "$steps" --device "$DEVICE" 2>&1 |
+        quiet | tail -2
+}
+
+phase "profile: small, 10 and 40 steps, each optimiser"
+for variant in fused composite; do
+    for steps in 10 40; do
+        train "profile-$variant-$steps" "$WORK/$variant.toml" \
+            "${GPU_CHECK_PROFILE_SECONDS:-35}" "$steps" \
+            CUDA_INJECTION64_PATH="$BIN/libdex2hoi-profile.so" \
+            DEX2HOI_PROFILE_OUT="$OUT/profile-$variant-$steps.json"
+    done
+done
+python3 - "$OUT" <<'PY' | tee "$OUT/profile.txt"
+import json, sys
+from pathlib import Path
+out = Path(sys.argv[1])
+for variant in ["fused", "composite"]:
+    try:
+        short, long = (json.loads((out / f"profile-{variant}-{n}.json").read_text()) for n in (10, 40))
+    except (OSError, ValueError) as e:
+        print(f"{variant}: no profile ({e})")
+        continue
+    per = lambda key: (long[key] - short[key]) / 30
+    calls = {k: (long["driver_calls"].get(k, 0) - short["driver_calls"].get(k, 0)) / 30
+             for k in long["driver_calls"]}
+    top = sorted(calls.items(), key=lambda kv: -kv[1])[:8]
+    print(f"{variant}: per step (40 - 10 steps, profiled): {per('kernels'):.0f} kernels, "
+          f"{per('copies_host_to_device'):.0f} uploads, {per('copies_device_to_host'):.0f} "
+          f"reads back, {per('fills'):.0f} fills; GPU busy {per('busy_s') * 1e3:.1f} ms "
+          f"(kernels {per('kernel_s') * 1e3:.1f} ms) of {per('wall_s') * 1e3:.1f} ms wall; "
+          f"dropped records {long['dropped_records']}")
+    print("  driver calls per step: " + ", ".join(f"{k} {v:.0f}" for k, v in top))
+    print("  kernels by time (40-step run): " + "; ".join(
+        f"{name[:60]} x{count} {seconds * 1e3:.0f} ms" for name, count, seconds in long["top_kernels"][:6]))
+PY
+
+phase "train small ($TRAIN_SECONDS s), then with the tensor-operation optimiser, then paper"
+train run-gpu "$WORK/fused.toml" "$TRAIN_SECONDS" 100000
+train run-composite "$WORK/composite.toml" $((TRAIN_SECONDS / 2)) 100000
+train run-paper "$WORK/paper.toml" $((TRAIN_SECONDS / 2)) 100000
 nvidia-smi --query-gpu=memory.used --format=csv,noheader
-
-phase "train small on the CPU ($(nproc) cores), the same run's first steps"
-timeout --foreground -s INT "${GPU_CHECK_CPU_TRAIN_SECONDS:-30}" "$BIN/dex2hoi" train --config "$WORK/small.toml" \
-    --data "$WORK/synth" --out "$WORK/run-cpu" --steps 5000 --device cpu 2>&1 | grep -v "^ *[0-9]*: \|^ *at " | tail -4
-cp "$WORK/run-cpu/metrics.jsonl" "$OUT/metrics-cpu.jsonl"
+cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
+python3 - "$WORK" <<'PY' | tee "$OUT/steps.txt"
+import json, statistics, sys
+from pathlib import Path
+for name in ["run-gpu", "run-composite", "run-paper"]:
+    try:
+        rows = [json.loads(l) for l in (Path(sys.argv[1]) / name / "metrics.jsonl").read_text().splitlines()]
+    except OSError as e:
+        print(f"{name}: no metrics ({e})")
+        continue
+    rows = [r for r in rows if r.get("timing")][10:]  # the first steps warm up
+    if not rows:
+        print(f"{name}: too few steps")
+        continue
+    median = lambda f: statistics.median(f(r) for r in rows)
+    parts = ", ".join(f"{k} {median(lambda r: r['timing'][k]) * 1e3:.1f} ms" for k in rows[0]["timing"])
+    print(f"{name}: {len(rows)} steps after 10, median {median(lambda r: r['seconds']) * 1e3:.1f} ms "
+          f"({parts}); last loss {rows[-1]['loss']:.4f}")
+PY
 
 phase "one-window samples"
-for device in cuda cuda cpu; do
+for device in "$DEVICE" "$DEVICE" cpu; do
     /usr/bin/time -f "$device: %e s wall, %M KiB peak resident" "$BIN/dex2hoi" sample \
         --run "$WORK/run-gpu" --device "$device" --text "The person picks up the mug." \
-        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | grep -v "^ *[0-9]*: \|^ *at \|warning" | tail -4
+        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | quiet | tail -3
 done
-"$BIN/dex2hoi" sample --run "$WORK/run-gpu" --device cuda --text "The person picks up the mug." \
+"$BIN/dex2hoi" sample --run "$WORK/run-gpu" --device "$DEVICE" --text "The person picks up the mug." \
     --object mug --frames 300 --out "$WORK/sample-300" 2>&1 | grep "generated"
-cp "$WORK/sample-cuda/preview.png" "$OUT/sample-gpu.png" 2>/dev/null
-cp "$WORK/sample-300/preview.gif" "$OUT/sample-300-gpu.gif" 2>/dev/null
+cp "$WORK/sample-300/preview.png" "$OUT/sample-300-gpu.png" 2>/dev/null
 
 phase "PyTorch reference on the GPU"
-timeout "${GPU_CHECK_TORCH_SECONDS:-90}" python3 bench/torch_reference.py --device cuda \
-    --presets small --skip-check --no-compile --out "$OUT/torch-gpu.json" 2>&1 | tail -30
+# One preset per call: a call stopped at its limit writes nothing.
+for preset in small paper; do
+    timeout "${GPU_CHECK_TORCH_SECONDS:-75}" python3 bench/torch_reference.py --device cuda \
+        --presets "$preset" --skip-check --no-compile --out "$OUT/torch-$preset.json" 2>&1 | tail -12
+done
+
+# The device machine sends back at most 8 files: the logs and figures in one archive.
+(cd "$OUT" && tar czf gpu-check.tar.gz --remove-files -- *.log *.json *.jsonl *.txt 2>/dev/null)
+ls "$OUT"
 
 phase done

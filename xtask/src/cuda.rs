@@ -19,7 +19,8 @@
 //!    ask.
 //! 4. The `dex2hoi` binary and the `cuda` test executables are built into `target/cuda/`
 //!    (release profile, one feature resolution for both), stripped and gzipped into
-//!    `target/cuda-pack/` (`dex2hoi.gz`, `dex2hoi-train-cuda.gz`). That folder is what a GPU
+//!    `target/cuda-pack/` (`dex2hoi.gz`, `dex2hoi-train-cuda.gz`), with the CUPTI profiler
+//!    `scripts/cuda-profile.c` compiled against CUPTI's wheel (`libdex2hoi-profile.so.gz`). That folder is what a GPU
 //!    session carries; `scripts/gpu-check.sh` unpacks it there, finds the CUDA libraries of the
 //!    machine's PyTorch, and runs the tests and the measurements.
 
@@ -38,6 +39,10 @@ const WHEELS: [&str; 5] = [
     "nvidia-cuda-crt==13.0.88",
     "nvidia-cuda-cccl==13.0.85",
 ];
+
+/// The pinned wheel of CUPTI, whose headers and library the profiler (`scripts/cuda-profile.c`)
+/// is compiled against; installed into a folder of its own.
+const CUPTI_WHEEL: &str = "nvidia-cuda-cupti==13.0.85";
 
 /// The libraries `cudarc` links, by soname, with the `cudarc` module whose `sys` bindings
 /// declare their functions; stand-ins are linked here, the real ones load on the GPU machine.
@@ -106,7 +111,34 @@ pub fn build_cuda(root: &Path) -> Result<()> {
             .with_context(|| format!("cargo named no executable for the test `{test}`"))?;
         executables.push((format!("dex2hoi-train-{test}"), executable));
     }
+    executables.push(("libdex2hoi-profile.so".to_string(), profiler(root, &toolkit)?));
     pack(root, &executables)
+}
+
+/// Compiles `scripts/cuda-profile.c`, the CUPTI injection library `scripts/gpu-check.sh`
+/// profiles with, into `target/cuda/`.
+fn profiler(root: &Path, toolkit: &Path) -> Result<PathBuf> {
+    let cupti = root.join("target/cuda-toolkit/cupti");
+    let cu13 = cupti.join("nvidia/cu13");
+    if !cu13.join("include/cupti.h").exists() {
+        eprintln!("\n==> pip install --no-deps --target {} {CUPTI_WHEEL}", cupti.display());
+        run(Command::new("python3")
+            .args(["-m", "pip", "install", "--quiet", "--no-deps", "--target"])
+            .arg(&cupti)
+            .arg(CUPTI_WHEEL))?;
+    }
+    let library = root.join("target/cuda/libdex2hoi-profile.so");
+    eprintln!("\n==> cc scripts/cuda-profile.c -o {}", library.display());
+    run(Command::new("cc")
+        .args(["-std=c11", "-D_GNU_SOURCE", "-O2", "-Wall", "-Wextra", "-Werror"])
+        .args(["-shared", "-fPIC", "-o"])
+        .arg(&library)
+        .arg(root.join("scripts/cuda-profile.c"))
+        .arg(format!("-I{}", cu13.join("include").display()))
+        .arg(format!("-I{}", toolkit.join("include").display()))
+        .arg(format!("-L{}", cu13.join("lib").display()))
+        .arg("-l:libcupti.so.13"))?;
+    Ok(library)
 }
 
 /// The toolkit folder (`CUDA_HOME`): made once from the wheels, with the stand-in libraries.

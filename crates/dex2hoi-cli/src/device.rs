@@ -73,7 +73,7 @@ impl DeviceChoice {
                          driver is installed)"
                     );
                 }
-                Device::new_cuda(ordinal).with_context(|| {
+                dex2hoi_model::cuda_device::open_cuda(ordinal).with_context(|| {
                     format!(
                         "--device {self}: could not open the GPU (is there a GPU {ordinal}? the \
                          driver must support CUDA 13.0, i.e. version 580 or newer)"

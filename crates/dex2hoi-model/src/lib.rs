@@ -5,6 +5,7 @@
 pub mod candle_threads;
 pub mod checkpoint;
 pub mod config;
+pub mod cuda_device;
 pub mod differentiable;
 pub mod error;
 pub mod fused;

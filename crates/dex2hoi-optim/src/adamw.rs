@@ -5,7 +5,9 @@ use candle_core::{DType, Tensor};
 use rayon::prelude::*;
 
 use crate::config::OptimizerConfig;
+use crate::ema::Ema;
 use crate::error::Result;
+use crate::fused::{self, FusedScalars};
 use crate::parameter::{Parameter, on_cpu};
 
 /// What one update did.
@@ -45,11 +47,14 @@ struct UpdateConstants {
 impl AdamW {
     /// Zero moments for the parameters, on their devices.
     pub fn new(config: OptimizerConfig, parameters: &[Parameter]) -> Result<Self> {
-        let zeros: Vec<Tensor> = parameters
-            .iter()
-            .map(|p| Tensor::zeros(p.var.shape(), DType::F32, p.var.device()))
-            .collect::<candle_core::Result<_>>()?;
-        Ok(Self { config, first: zeros.clone(), second: zeros, updates: 0 })
+        // Two allocations, not one shared: the fused update writes the moments in place.
+        let zeros = || {
+            parameters
+                .iter()
+                .map(|p| Tensor::zeros(p.var.shape(), DType::F32, p.var.device()))
+                .collect::<candle_core::Result<Vec<_>>>()
+        };
+        Ok(Self { config, first: zeros()?, second: zeros()?, updates: 0 })
     }
 
     /// The first and second moments of parameter `k` (`f32`, the parameter's shape and device).
@@ -66,9 +71,109 @@ impl AdamW {
         first: &Tensor,
         second: &Tensor,
     ) -> Result<()> {
-        self.first[k] = parameter.state_from(first)?;
-        self.second[k] = parameter.state_from(second)?;
+        self.first[k] = parameter.state_from(first)?.copy()?;
+        self.second[k] = parameter.state_from(second)?.copy()?;
         Ok(())
+    }
+
+    /// One update of the parameters and then of their moving average `average`, as
+    /// [`AdamW::update`] and [`Ema::update`] (with `ema_decay` at `step`) would do them; the
+    /// average is left as it was when the gradient norm is not finite.
+    ///
+    /// On a GPU with [`OptimizerConfig::fused`] (the default) both run as one CUDA kernel per
+    /// parameter tensor, the clipping factor computed on the device; a non-finite norm then
+    /// leaves the parameters and moments as they were too.
+    pub fn update_with_average(
+        &mut self,
+        average: &mut Ema,
+        parameters: &[Parameter],
+        gradients: &GradStore,
+        learning_rate: f64,
+        (ema_decay, step): (f64, usize),
+    ) -> Result<UpdateReport> {
+        let fused = self.config.fused && fused::available(parameters);
+        self.update_with_average_on(
+            average,
+            parameters,
+            gradients,
+            learning_rate,
+            (ema_decay, step),
+            fused,
+        )
+    }
+
+    /// [`AdamW::update_with_average`] with the path chosen: the fused kernel, or the update
+    /// and the average one after the other (the tests compare the two on a GPU).
+    #[doc(hidden)]
+    pub fn update_with_average_on(
+        &mut self,
+        average: &mut Ema,
+        parameters: &[Parameter],
+        gradients: &GradStore,
+        learning_rate: f64,
+        (ema_decay, step): (f64, usize),
+        fused: bool,
+    ) -> Result<UpdateReport> {
+        if fused {
+            return self.update_fused(
+                average,
+                parameters,
+                gradients,
+                learning_rate,
+                (ema_decay, step),
+            );
+        }
+        let report = self.update(parameters, gradients, learning_rate)?;
+        if report.gradient_norm.is_finite() {
+            average.update(parameters, ema_decay, step)?;
+        }
+        Ok(report)
+    }
+
+    /// The fused path of [`AdamW::update_with_average`]: the squared gradient norm summed on
+    /// the device, one kernel per parameter, and one read of the norm after all are queued.
+    fn update_fused(
+        &mut self,
+        average: &mut Ema,
+        parameters: &[Parameter],
+        gradients: &GradStore,
+        learning_rate: f64,
+        (ema_decay, step): (f64, usize),
+    ) -> Result<UpdateReport> {
+        let gradients: Vec<Tensor> = parameters
+            .iter()
+            .map(|p| match gradients.get(p.var.as_tensor()) {
+                Some(g) => g.detach().to_dtype(DType::F32)?.contiguous(),
+                None => Tensor::zeros(p.var.shape(), DType::F32, p.var.device()),
+            })
+            .collect::<candle_core::Result<_>>()?;
+        let squares: Vec<Tensor> =
+            gradients.iter().map(|g| g.sqr()?.sum_all()).collect::<candle_core::Result<_>>()?;
+        let squared_norm = Tensor::stack(&squares, 0)?.sum_all()?;
+        let u = self.advance(learning_rate, 1.0);
+        let scalars = FusedScalars {
+            clip: self.config.gradient_clip.unwrap_or(f64::INFINITY),
+            beta1: u.beta1,
+            beta2: u.beta2,
+            step_size: u.step_size,
+            inverse_root_correction2: (1.0 / f64::from(u.root_correction2)) as f32,
+            epsilon: u.epsilon,
+            ema_decay: Ema::decay_at(ema_decay, step),
+        };
+        let weight_decay = (learning_rate * self.config.weight_decay) as f32;
+        for (k, (parameter, gradient)) in parameters.iter().zip(&gradients).enumerate() {
+            let keep = if parameter.decays() { 1.0 - weight_decay } else { 1.0 };
+            let arrays = [
+                parameter.var.as_tensor(),
+                &self.first[k],
+                &self.second[k],
+                average.value(k),
+                gradient,
+            ];
+            fused::launch(arrays, &squared_norm, scalars, keep)?;
+        }
+        let squared: f32 = squared_norm.to_scalar()?;
+        Ok(UpdateReport { learning_rate, gradient_norm: f64::from(squared).sqrt() })
     }
 
     /// One update from the gradients of a backward pass; a parameter without a gradient (not
@@ -120,18 +225,8 @@ impl AdamW {
             Some(clip) if gradient_norm > clip => (clip / (gradient_norm + 1e-6)) as f32,
             _ => 1.0,
         };
-        self.updates += 1;
+        let constants = self.advance(learning_rate, scale);
         let c = &self.config;
-        let correction1 = 1.0 - c.beta1.powi(self.updates as i32);
-        let correction2 = 1.0 - c.beta2.powi(self.updates as i32);
-        let constants = UpdateConstants {
-            beta1: c.beta1 as f32,
-            beta2: c.beta2 as f32,
-            step_size: (learning_rate / correction1) as f32,
-            root_correction2: correction2.sqrt() as f32,
-            epsilon: c.epsilon as f32,
-            scale,
-        };
         let weight_decay = (learning_rate * c.weight_decay) as f32;
         let decay_of = move |p: &Parameter| if p.decays() { weight_decay } else { 0.0 };
         if on_cpu {
@@ -152,6 +247,23 @@ impl AdamW {
             }
         }
         Ok(UpdateReport { learning_rate, gradient_norm })
+    }
+
+    /// Counts one more update and returns its constants; `scale` is the gradient's clipping
+    /// factor.
+    fn advance(&mut self, learning_rate: f64, scale: f32) -> UpdateConstants {
+        self.updates += 1;
+        let c = &self.config;
+        let correction1 = 1.0 - c.beta1.powi(self.updates as i32);
+        let correction2 = 1.0 - c.beta2.powi(self.updates as i32);
+        UpdateConstants {
+            beta1: c.beta1 as f32,
+            beta2: c.beta2 as f32,
+            step_size: (learning_rate / correction1) as f32,
+            root_correction2: correction2.sqrt() as f32,
+            epsilon: c.epsilon as f32,
+            scale,
+        }
     }
 
     fn update_on_host(

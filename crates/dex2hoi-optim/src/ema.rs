@@ -31,7 +31,8 @@ impl Ema {
     /// Replaces the average of parameter `k` (restoring a checkpoint), moved to the parameter's
     /// device as `f32`.
     pub fn set_value(&mut self, k: usize, parameter: &Parameter, value: &Tensor) -> Result<()> {
-        self.values[k] = parameter.state_from(value)?;
+        // A copy: the fused update writes the average in place.
+        self.values[k] = parameter.state_from(value)?.copy()?;
         Ok(())
     }
 
@@ -40,6 +41,11 @@ impl Ema {
     /// other devices one tensor expression per parameter.
     pub fn update(&mut self, parameters: &[Parameter], decay: f64, step: usize) -> Result<()> {
         self.update_on(parameters, decay, step, on_cpu(parameters))
+    }
+
+    /// The weight `d` of the old average at `step`: `min(decay, (1 + step) / (10 + step))`.
+    pub(crate) fn decay_at(decay: f64, step: usize) -> f32 {
+        decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32
     }
 
     /// [`Ema::update`] with the path chosen: the host loop, or the tensor operations (any
@@ -52,7 +58,7 @@ impl Ema {
         step: usize,
         on_cpu: bool,
     ) -> Result<()> {
-        let d = decay.min((1.0 + step as f64) / (10.0 + step as f64)) as f32;
+        let d = Self::decay_at(decay, step);
         if on_cpu {
             return self.values.par_iter_mut().zip(parameters).try_for_each(
                 |(average, parameter)| {

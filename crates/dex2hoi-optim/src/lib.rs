@@ -5,12 +5,14 @@
 //!
 //! The state is `f32` tensors per parameter on the parameters' device, so that a checkpoint
 //! holds it exactly and a resumed run continues bit for bit on the same device. On the CPU the
-//! updates are parallel host loops; elsewhere, elementwise tensor operations on the device.
+//! updates are parallel host loops; on a GPU, one CUDA kernel per parameter tensor for AdamW
+//! and the EMA together (or, with `fused = false`, elementwise tensor operations).
 
 mod adamw;
 mod config;
 mod ema;
 mod error;
+mod fused;
 mod parameter;
 mod schedule;
 

@@ -84,3 +84,38 @@ fn the_tensor_path_updates_as_the_host_loop_does() {
     let before = values(parameters()[2].var.as_tensor());
     assert!(values(host[2].var.as_tensor()).iter().zip(&before).any(|(a, b)| a != b));
 }
+
+#[test]
+fn the_update_with_its_average_is_the_update_then_the_average() {
+    // The fused kernel is asked for (the default) but needs a GPU: the CPU updates the
+    // parameters and then their average with its host loops, and a non-finite gradient norm
+    // leaves the average alone.
+    let config = OptimizerConfig::default();
+    assert!(config.fused);
+    let together = parameters();
+    let apart = copy(&together);
+    let mut adams =
+        [AdamW::new(config.clone(), &together).unwrap(), AdamW::new(config, &apart).unwrap()];
+    let mut averages = [Ema::new(&together).unwrap(), Ema::new(&apart).unwrap()];
+    for step in 0..3 {
+        let grads = loss(&together, step).backward().unwrap();
+        let [a, b] = &mut adams;
+        let [ea, eb] = &mut averages;
+        let ours = a.update_with_average(ea, &together, &grads, 1e-2, (0.9, step)).unwrap();
+        let grads = loss(&apart, step).backward().unwrap();
+        let theirs = b.update(&apart, &grads, 1e-2).unwrap();
+        eb.update(&apart, 0.9, step).unwrap();
+        assert_eq!(ours, theirs);
+    }
+    for (k, (t, a)) in together.iter().zip(&apart).enumerate() {
+        assert_eq!(values(t.var.as_tensor()), values(a.var.as_tensor()), "{}", t.name);
+        assert_eq!(values(averages[0].value(k)), values(averages[1].value(k)), "{}", t.name);
+    }
+    let average_before = values(averages[0].value(0));
+    let grads = (loss(&together, 3) * f64::NAN).unwrap().backward().unwrap();
+    let [a, _] = &mut adams;
+    let [ea, _] = &mut averages;
+    let report = a.update_with_average(ea, &together, &grads, 1e-2, (0.9, 3)).unwrap();
+    assert!(!report.gradient_norm.is_finite());
+    assert_eq!(values(averages[0].value(0)), average_before);
+}

@@ -425,10 +425,19 @@ impl Trainer {
         let mut rng = step_rng(self.config.training.seed, self.step);
         let mut timing = StepTiming::default();
         let (objective, prediction) = self.objective(&mut rng, &mut timing)?;
-        let loss = f64::from(objective.total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+        // The terms and the total in one transfer: on a GPU each read waits for the device.
+        let scalars: Vec<Tensor> = objective
+            .terms
+            .iter()
+            .map(|(_, value)| value)
+            .chain([&objective.total])
+            .map(|value| value.to_dtype(DType::F32))
+            .collect::<candle_core::Result<_>>()?;
+        let values: Vec<f32> = Tensor::stack(&scalars, 0)?.to_vec1()?;
+        let loss = f64::from(values[objective.terms.len()]);
         let mut terms = Vec::with_capacity(objective.terms.len());
-        for (term, value) in &objective.terms {
-            let value = f64::from(value.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+        for ((term, _), &value) in objective.terms.iter().zip(&values) {
+            let value = f64::from(value);
             if !value.is_finite() {
                 return Err(TrainError::NonFinite {
                     step: self.step + 1,
@@ -452,7 +461,14 @@ impl Trainer {
         timing.backward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);
-        let update = self.optimizer.update(&self.parameters, &gradients, rate)?;
+        let ema = (self.config.optimizer.ema_decay, self.step);
+        let update = self.optimizer.update_with_average(
+            &mut self.ema,
+            &self.parameters,
+            &gradients,
+            rate,
+            ema,
+        )?;
         if !update.gradient_norm.is_finite() {
             return Err(TrainError::NonFinite {
                 step: self.step + 1,
@@ -461,7 +477,6 @@ impl Trainer {
                 last_checkpoint,
             });
         }
-        self.ema.update(&self.parameters, self.config.optimizer.ema_decay, self.step)?;
         timing.update = clock.elapsed().as_secs_f64();
         self.step += 1;
         Ok(StepReport {

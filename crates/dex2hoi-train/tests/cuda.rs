@@ -1,6 +1,7 @@
 //! The CUDA device against the CPU (built with `--features cuda`, run on a machine with an
 //! NVIDIA GPU: `cargo xtask build-cuda` packs these tests): every model variant's forward, one
-//! training step's loss and gradients, and a checkpoint written on the GPU sampled on both.
+//! training step's loss and gradients, the surface search, the fused optimiser update, and a
+//! checkpoint written on the GPU sampled on both.
 //! Weights are randomised or trained first: a fresh model's zero-initialised heads output
 //! exact zeros, which would compare equal on any device.
 #![cfg(feature = "cuda")]
@@ -8,7 +9,7 @@
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -18,6 +19,7 @@ use dex2hoi_model::{
     BodyFusion, InferenceModel, Model, ModelConfig, ModelInput, ObjectRepresentation, Prediction,
     SeededVarMap, StreamLayout,
 };
+use dex2hoi_optim::{AdamW, Ema, OptimizerConfig, Parameter};
 use dex2hoi_sample::{Prompt, SampleRequest, SceneObject, TrainedRun, Weights, sample};
 use dex2hoi_train::batch::SurfaceCloud;
 use dex2hoi_train::surface::{DeviceClouds, nearest_on_host};
@@ -26,7 +28,8 @@ use dex2hoi_train::{RunStart, TrainConfig, TrainOptions, Trainer, train};
 const TOLERANCE: f32 = 1e-4;
 
 fn gpu() -> Device {
-    Device::new_cuda(0).expect("a CUDA device (these tests run on a GPU machine)")
+    dex2hoi_model::cuda_device::open_cuda(0)
+        .expect("a CUDA device (these tests run on a GPU machine)")
 }
 
 fn dataset() -> Dataset {
@@ -182,9 +185,10 @@ fn the_surface_search_on_the_gpu_picks_the_samples_of_the_host_search() {
     let local = random(&[slots.len(), 2, queries, 3], &mut rng).affine(0.3, 0.0).unwrap();
     let values: Vec<f32> = local.flatten_all().unwrap().to_vec1().unwrap();
     let (host, _) = nearest_on_host(&values, &slots, &clouds, queries);
-    let on_gpu = DeviceClouds::new(&clouds, &gpu())
+    let gpu = gpu();
+    let on_gpu = DeviceClouds::new(&clouds, &gpu)
         .unwrap()
-        .nearest(&local.to_device(&gpu()).unwrap(), &slots)
+        .nearest(&local.to_device(&gpu).unwrap(), &slots)
         .unwrap()
         .0;
     let on_gpu: Vec<f32> =
@@ -199,6 +203,90 @@ fn the_surface_search_on_the_gpu_picks_the_samples_of_the_host_search() {
         same += usize::from(on_gpu[at.clone()] == host[at]);
     }
     assert!(same * 100 >= values.len() / 3 * 99, "the same sample for {same} queries");
+}
+
+/// Parameters of odd sizes on `device` (one more than a block of threads, a prime, a matrix, a
+/// rank-3 tensor), the same values for every call.
+fn optimised_parameters(device: &Device) -> Vec<Parameter> {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    [&[7, 13][..], &[257], &[1031], &[3, 5, 17], &[64, 96]]
+        .iter()
+        .enumerate()
+        .map(|(k, shape)| Parameter {
+            name: format!("p{k}"),
+            var: Var::from_tensor(&random(shape, &mut rng).to_device(device).unwrap()).unwrap(),
+        })
+        .collect()
+}
+
+/// A loss of every parameter but the last (which gets no gradient), different at each step,
+/// with a gradient norm well above the clip.
+fn optimised_loss(parameters: &[Parameter], step: usize) -> Tensor {
+    let mut total = Tensor::new(0f32, parameters[0].var.device()).unwrap();
+    for (k, p) in parameters[..parameters.len() - 1].iter().enumerate() {
+        let shifted = p.var.as_tensor().affine(1.0, 0.1 * (k + step) as f64).unwrap();
+        let term = (shifted.sqr().unwrap().sum_all().unwrap() * (3.0 + step as f64)).unwrap();
+        total = (total + term).unwrap();
+    }
+    total
+}
+
+#[test]
+fn the_fused_optimiser_kernel_updates_as_the_tensor_operations_do() {
+    let gpu = gpu();
+    let config = OptimizerConfig { gradient_clip: Some(1.0), ..OptimizerConfig::default() };
+    let fused = optimised_parameters(&gpu);
+    let composite = optimised_parameters(&gpu);
+    let mut adams = [
+        AdamW::new(config.clone(), &fused).unwrap(),
+        AdamW::new(config.clone(), &composite).unwrap(),
+    ];
+    let mut averages = [Ema::new(&fused).unwrap(), Ema::new(&composite).unwrap()];
+    // A learning rate that changes between updates: the kernel reads it at every launch.
+    for (step, rate) in [1e-2, 3e-3, 5e-2].into_iter().enumerate() {
+        let [a, b] = &mut adams;
+        let [ea, eb] = &mut averages;
+        let grads = optimised_loss(&fused, step).backward().unwrap();
+        let ours = a.update_with_average_on(ea, &fused, &grads, rate, (0.9, step), true).unwrap();
+        let grads = optimised_loss(&composite, step).backward().unwrap();
+        let theirs =
+            b.update_with_average_on(eb, &composite, &grads, rate, (0.9, step), false).unwrap();
+        assert!(theirs.gradient_norm > 1.0, "clipping is active: {}", theirs.gradient_norm);
+        assert!((ours.gradient_norm - theirs.gradient_norm).abs() / theirs.gradient_norm < 1e-6);
+    }
+    for (k, (f, c)) in fused.iter().zip(&composite).enumerate() {
+        let value = relative_difference(f.var.as_tensor(), c.var.as_tensor());
+        let (f1, f2) = adams[0].moments(k);
+        let (c1, c2) = adams[1].moments(k);
+        let moments = relative_difference(f1, c1).max(relative_difference(f2, c2));
+        let average = relative_difference(averages[0].value(k), averages[1].value(k));
+        eprintln!("{}: value {value:.1e}, moments {moments:.1e}, average {average:.1e}", f.name);
+        assert!(value < 1e-5 && moments < 1e-5 && average < 1e-5, "{}", f.name);
+    }
+    // The parameter without a gradient decayed like the others.
+    let untouched = optimised_parameters(&Device::Cpu);
+    let last = fused.len() - 1;
+    assert!(
+        relative_difference(fused[last].var.as_tensor(), untouched[last].var.as_tensor()) > 0.0
+    );
+    // A non-finite gradient norm leaves every array as it was, and is reported.
+    let before: Vec<Tensor> = fused.iter().map(|p| p.var.as_tensor().copy().unwrap()).collect();
+    let average_before = averages[0].value(0).copy().unwrap();
+    let grads = (optimised_loss(&fused, 3) * f64::NAN).unwrap().backward().unwrap();
+    let [a, _] = &mut adams;
+    let [ea, _] = &mut averages;
+    let report = a.update_with_average_on(ea, &fused, &grads, 1e-2, (0.9, 3), true).unwrap();
+    assert!(!report.gradient_norm.is_finite());
+    for (p, b) in fused.iter().zip(&before) {
+        assert_eq!(
+            relative_difference(p.var.as_tensor(), &b.to_device(&Device::Cpu).unwrap()),
+            0.0
+        );
+    }
+    assert_eq!(
+        relative_difference(averages[0].value(0), &average_before.to_device(&Device::Cpu).unwrap()),
+        0.0
+    );
 }
 
 #[test]
