@@ -14,7 +14,8 @@
 #      runs of 10 and 40 steps, with the fused optimiser and with the tensor-operation one
 #      (profile.txt);
 #   4. `small` trained on the procedural dataset for a fixed time, with each optimiser, and
-#      `paper` with the fused one: median step time and its parts (steps.txt);
+#      `paper` (with the built-in text encoder) with the fused one: median step time and its
+#      parts (steps.txt);
 #   5. a one-window sample (40 frames after the 20-frame prefix, 50 DDIM steps, guidance) on
 #      each device, timed, and 300 frames on the GPU;
 #   6. the PyTorch reference (bench/torch_reference.py) on the same GPU.
@@ -80,7 +81,14 @@ timeout 60 "$BIN/dex2hoi" data synth --out "$WORK/synth" --sequences "$SEQUENCES
 # same run with AdamW and the EMA as tensor operations.
 sed 's/^log_every = .*/log_every = 1/' configs/small.toml >"$WORK/fused.toml"
 sed '/^\[optimizer\]/a fused = false' "$WORK/fused.toml" >"$WORK/composite.toml"
-sed 's/^log_every = .*/log_every = 1/' configs/paper.toml >"$WORK/paper.toml"
+# `paper` with the built-in text encoder: CLIP's weights are not on the machine.
+python3 - configs/paper.toml configs/small.toml >"$WORK/paper.toml" <<'PY'
+import re, sys
+paper, small = (open(f).read() for f in sys.argv[1:])
+text = re.search(r"^\[text\]\n.*?(?=^\[)", small, re.M | re.S).group(0)
+paper = re.sub(r"^\[text\]\n.*?(?=^\[)", lambda _: text, paper, flags=re.M | re.S)
+print(re.sub(r"^log_every = .*$", "log_every = 1", paper, flags=re.M), end="")
+PY
 
 train() { # NAME CONFIG SECONDS STEPS [ENV...]: one run, stopped by Ctrl-C after SECONDS
     local name=$1 config=$2 seconds=$3 steps=$4
@@ -124,10 +132,14 @@ for variant in ["fused", "composite"]:
 PY
 
 phase "train small ($TRAIN_SECONDS s), then with the tensor-operation optimiser, then paper"
+# The GPU's memory in use, every half second (the CUDA context's included).
+nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 >"$WORK/memory.txt" 2>/dev/null &
+watcher=$!
 train run-gpu "$WORK/fused.toml" "$TRAIN_SECONDS" 100000
+kill "$watcher" 2>/dev/null
+echo "GPU memory in use while training small, at most: $(sort -n "$WORK/memory.txt" | tail -1) MiB"
 train run-composite "$WORK/composite.toml" $((TRAIN_SECONDS / 2)) 100000
 train run-paper "$WORK/paper.toml" $((TRAIN_SECONDS / 2)) 100000
-nvidia-smi --query-gpu=memory.used --format=csv,noheader
 cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
 python3 - "$WORK" <<'PY' | tee "$OUT/steps.txt"
 import json, statistics, sys

@@ -15,8 +15,8 @@ use crate::error::{Result, SampleError};
 pub enum TextModule {
     /// The built-in encoder, trained with the denoiser.
     Builtin {
-        /// The encoder.
-        encoder: BuiltinTextEncoder,
+        /// The encoder (boxed: in the CUDA build it is much larger than the other variant).
+        encoder: Box<BuiltinTextEncoder>,
         /// Its parameters.
         vars: SeededVarMap,
     },
@@ -50,7 +50,7 @@ impl TextModule {
                 let vars = SeededVarMap::new(parameter_seed);
                 let encoder =
                     BuiltinTextEncoder::new(vocabulary, sizes, vars.builder(DType::F32, device))?;
-                Self::Builtin { encoder, vars }
+                Self::Builtin { encoder: Box::new(encoder), vars }
             }
             TextConfig::Bert { path } => {
                 Self::Frozen(Box::new(FrozenCache::new(BertSentenceEncoder::load(path, device)?)))
@@ -74,7 +74,7 @@ impl TextModule {
     /// The encoder, whichever kind it is.
     pub fn encoder(&self) -> &dyn TextEncoder {
         match self {
-            Self::Builtin { encoder, .. } => encoder,
+            Self::Builtin { encoder, .. } => encoder.as_ref(),
             Self::Frozen(encoder) => encoder.as_ref(),
         }
     }
@@ -82,7 +82,7 @@ impl TextModule {
     /// The encoder, owned.
     pub fn into_encoder(self) -> Box<dyn TextEncoder> {
         match self {
-            Self::Builtin { encoder, .. } => Box::new(encoder),
+            Self::Builtin { encoder, .. } => encoder,
             Self::Frozen(encoder) => encoder,
         }
     }
