@@ -195,8 +195,13 @@ fn operation_fk(
 ) -> Result<(Tensor, Tensor)> {
     let leading = check_tensor_inputs(skeleton, rest_offsets, local_rotations, root_positions)?;
     let dtype = local_rotations.dtype();
-    let supported = matches!(dtype, DType::F32 | DType::F64);
-    if !local_rotations.device().is_cpu() || !supported {
+    // The operation's CPU side takes both float types, its CUDA side `f32`.
+    let supported = match local_rotations.device() {
+        candle_core::Device::Cpu => matches!(dtype, DType::F32 | DType::F64),
+        candle_core::Device::Cuda(_) => dtype == DType::F32,
+        _ => false,
+    };
+    if !supported {
         return composite_fk(skeleton, rest_offsets, local_rotations, root_positions);
     }
     let joints = skeleton.joint_count();
@@ -470,6 +475,16 @@ impl FkOp {
         self.parents.len()
     }
 
+    /// The skeleton and bodies as the CUDA kernels read them.
+    #[cfg(feature = "cuda")]
+    fn bodies(&self) -> crate::fk_cuda::FkBodies<'_> {
+        crate::fk_cuda::FkBodies {
+            parents: &self.parents,
+            offsets: &self.offsets,
+            frames_per_sample: self.frames_per_sample,
+        }
+    }
+
     /// The rest offsets that frame `frame` of the batch is posed on.
     fn offsets_of_frame(&self, frame: usize) -> &[[f32; 3]] {
         let joints = self.joints();
@@ -704,6 +719,22 @@ impl CustomOp2 for FkOutputOp {
         Ok((storage, shape))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        local_storage: &candle_core::CudaStorage,
+        local_layout: &Layout,
+        root_storage: &candle_core::CudaStorage,
+        root_layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::fk_cuda::forward(
+            &self.op.bodies(),
+            (local_storage, local_layout),
+            (root_storage, root_layout),
+            self.output.width(),
+        )
+    }
+
     fn bwd(
         &self,
         local: &Tensor,
@@ -754,6 +785,15 @@ impl CustomOp1 for SumOverJoints {
         });
         Ok((summed, Shape::from((batch, 3))))
     }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        storage: &candle_core::CudaStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::fk_cuda::sum_over_joints(storage, layout)
+    }
 }
 
 /// The backward pass of an [`FkOutputOp`] as an operation of its own (not
@@ -787,5 +827,24 @@ impl CustomOp3 for FkBackward {
             self.of,
         ));
         Ok((storage, shape))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        local_storage: &candle_core::CudaStorage,
+        local_layout: &Layout,
+        root_storage: &candle_core::CudaStorage,
+        root_layout: &Layout,
+        grad_storage: &candle_core::CudaStorage,
+        grad_layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::fk_cuda::backward(
+            &self.op.bodies(),
+            (local_storage, local_layout),
+            (root_storage, root_layout),
+            (grad_storage, grad_layout),
+            self.of.width(),
+        )
     }
 }

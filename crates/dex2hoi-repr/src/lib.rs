@@ -13,6 +13,8 @@
 pub mod bps;
 pub mod error;
 pub mod fk;
+#[cfg(feature = "cuda")]
+mod fk_cuda;
 pub mod mesh;
 pub mod object_repr;
 pub mod rotation;

@@ -1,7 +1,7 @@
 //! The CUDA device against the CPU (built with `--features cuda`, run on a machine with an
 //! NVIDIA GPU: `cargo xtask build-cuda` packs these tests): every model variant's forward, one
-//! training step's loss and gradients, the surface search, the fused optimiser update, and a
-//! checkpoint written on the GPU sampled on both.
+//! training step's loss and gradients, forward kinematics and its gradients, the surface
+//! search, the fused optimiser update, and a checkpoint written on the GPU sampled on both.
 //! Weights are randomised or trained first: a fresh model's zero-initialised heads output
 //! exact zeros, which would compare equal on any device.
 #![cfg(feature = "cuda")]
@@ -20,6 +20,8 @@ use dex2hoi_model::{
     SeededVarMap, StreamLayout,
 };
 use dex2hoi_optim::{AdamW, Ema, OptimizerConfig, Parameter};
+use dex2hoi_repr::fk::{tensor_forward_kinematics, tensor_forward_kinematics_per_sample};
+use dex2hoi_repr::skeleton::Skeleton;
 use dex2hoi_sample::{Prompt, SampleRequest, SceneObject, TrainedRun, Weights, sample};
 use dex2hoi_train::batch::SurfaceCloud;
 use dex2hoi_train::surface::{DeviceClouds, nearest_on_host};
@@ -203,6 +205,53 @@ fn the_surface_search_on_the_gpu_picks_the_samples_of_the_host_search() {
         same += usize::from(on_gpu[at.clone()] == host[at]);
     }
     assert!(same * 100 >= values.len() / 3 * 99, "the same sample for {same} queries");
+}
+
+#[test]
+fn forward_kinematics_on_the_gpu_computes_and_differentiates_as_on_the_cpu() {
+    // Both skeletons, one set of offsets and one per sample (3 samples of 7 frames), arbitrary
+    // matrices: positions, rotations and the gradients of a weighted sum of both, against the
+    // CPU's operation (itself checked against finite differences).
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for skeleton in [Skeleton::smplx(), Skeleton::mixamo()] {
+        let joints = skeleton.joint_count();
+        let local = random(&[3, 7, joints, 3, 3], &mut rng);
+        let root = random(&[3, 7, 3], &mut rng);
+        let rest = random(&[3, joints, 3], &mut rng).affine(0.2, 0.0).unwrap();
+        let position_weights = random(&[3, 7, joints, 3], &mut rng);
+        let rotation_weights = random(&[3, 7, joints, 3, 3], &mut rng);
+        for per_sample in [false, true] {
+            let run = |device: &Device| -> [Tensor; 4] {
+                let on = |t: &Tensor| t.to_device(device).unwrap();
+                let local = Var::from_tensor(&on(&local)).unwrap();
+                let root = Var::from_tensor(&on(&root)).unwrap();
+                let (positions, rotations) = if per_sample {
+                    tensor_forward_kinematics_per_sample(&skeleton, &on(&rest), &local, &root)
+                } else {
+                    tensor_forward_kinematics(&skeleton, &local, &root)
+                }
+                .unwrap();
+                let weighted = |t: &Tensor, w: &Tensor| (t * on(w)).unwrap().sum_all().unwrap();
+                let loss = (weighted(&positions, &position_weights)
+                    + weighted(&rotations, &rotation_weights))
+                .unwrap();
+                let grads = loss.backward().unwrap();
+                let (of_local, of_root) = (grads.get(&local).unwrap(), grads.get(&root).unwrap());
+                [positions, rotations, of_local.clone(), of_root.clone()]
+            };
+            let (cpu, on_gpu) = (run(&Device::Cpu), run(&gpu));
+            for (name, (g, c)) in ["positions", "rotations", "local gradient", "root gradient"]
+                .iter()
+                .zip(on_gpu.iter().zip(&cpu))
+            {
+                assert!(g.device().is_cuda());
+                let difference = relative_difference(g, c);
+                eprintln!("FK {joints} joints, per sample {per_sample}: {name} {difference:.1e}");
+                assert!(difference < TOLERANCE, "{name}: {difference}");
+            }
+        }
+    }
 }
 
 /// Parameters of odd sizes on `device` (one more than a block of threads, a prime, a matrix, a

@@ -1,0 +1,209 @@
+//! The CUDA side of the forward-kinematics operations (`fk.rs`, [`crate::fk::FkOp`]): one
+//! kernel launch for a pass over a whole batch of frames (`fk.cu`, compiled at run time by
+//! NVRTC), where the composite FK launches several hundred small kernels forward and more
+//! backward.
+//!
+//! Why `unsafe`: launching a kernel is, since the compiler cannot check its arguments against the
+//! kernel's signature; three launches, each checked by hand (their `SAFETY` comments).
+#![allow(unsafe_code)]
+
+use std::sync::OnceLock;
+
+use candle_core::cuda_backend::WrapErr;
+use candle_core::cuda_backend::cudarc::driver::{CudaSlice, CudaView, LaunchConfig, PushKernelArg};
+use candle_core::{CudaDevice, CudaStorage, Layout, Shape};
+
+const MODULE: &str = "dex2hoi_fk";
+const THREADS: u32 = 128;
+
+/// The skeleton and bodies of one FK operation, as the kernels read them.
+pub(crate) struct FkBodies<'a> {
+    /// Each joint's parent (a parent precedes its children).
+    pub parents: &'a [Option<usize>],
+    /// The rest offsets, `[samples * joints]`.
+    pub offsets: &'a [[f32; 3]],
+    /// Consecutive frames that share one sample's offsets (`usize::MAX`: one set for all).
+    pub frames_per_sample: usize,
+}
+
+/// The forward pass: `[batch, joints, 3]` positions, or `[batch, joints, 3, 3]` rotations when
+/// `width` is 9.
+pub(crate) fn forward(
+    bodies: &FkBodies<'_>,
+    (local, local_layout): (&CudaStorage, &Layout),
+    (root, root_layout): (&CudaStorage, &Layout),
+    width: usize,
+) -> candle_core::Result<(CudaStorage, Shape)> {
+    let device = &local.device;
+    let joints = bodies.parents.len();
+    let batch = root_layout.shape().elem_count() / 3;
+    let local = view(local, local_layout, batch * joints * 9, "local rotations")?;
+    let root = view(root, root_layout, batch * 3, "root positions")?;
+    let (parents, offsets) = upload(device, bodies)?;
+    let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
+    let out = device.alloc_zeros::<f32>(batch * joints * width)?;
+    let function = device.get_or_load_custom_func("fk_forward_f32", MODULE, ptx()?)?;
+    let (frames_per_sample, joint_count, frames) = sizes(bodies, batch)?;
+    let (width_arg, from) = (width as u32, if width == 3 { 9u32 } else { 0 });
+    let mut builder = function.builder();
+    builder
+        .arg(&local)
+        .arg(&root)
+        .arg(&parents)
+        .arg(&offsets)
+        .arg(&frames_per_sample)
+        .arg(&joint_count)
+        .arg(&frames)
+        .arg(&packed)
+        .arg(&out)
+        .arg(&width_arg)
+        .arg(&from);
+    // SAFETY: the arguments are those of `fk_forward_f32` in `fk.cu`, in order; `local` and
+    // `root` were checked to hold `batch` frames, `parents` and `offsets` hold the skeleton's
+    // joints and every sample's offsets (checked by `sizes`), and the scratch and output were
+    // allocated here at the sizes the kernel indexes.
+    unsafe { builder.launch(per_frame(batch)) }.w()?;
+    let shape = if width == 3 {
+        Shape::from((batch, joints, 3))
+    } else {
+        Shape::from((batch, joints, 3, 3))
+    };
+    Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), shape))
+}
+
+/// The backward pass: the `[batch, joints, 3, 3]` gradient of the local rotations from the
+/// gradient of the positions (`width` 3) or of the rotations (`width` 9).
+pub(crate) fn backward(
+    bodies: &FkBodies<'_>,
+    (local, local_layout): (&CudaStorage, &Layout),
+    (root, root_layout): (&CudaStorage, &Layout),
+    (grad, grad_layout): (&CudaStorage, &Layout),
+    width: usize,
+) -> candle_core::Result<(CudaStorage, Shape)> {
+    let device = &local.device;
+    let joints = bodies.parents.len();
+    let batch = root_layout.shape().elem_count() / 3;
+    let local_view = view(local, local_layout, batch * joints * 9, "local rotations")?;
+    let root = view(root, root_layout, batch * 3, "root positions")?;
+    let grad = view(grad, grad_layout, batch * joints * width, "output gradient")?;
+    let (parents, offsets) = upload(device, bodies)?;
+    let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
+    let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
+    let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
+    let function = device.get_or_load_custom_func("fk_backward_f32", MODULE, ptx()?)?;
+    let (frames_per_sample, joint_count, frames) = sizes(bodies, batch)?;
+    let width_arg = width as u32;
+    let mut builder = function.builder();
+    builder
+        .arg(&local_view)
+        .arg(&root)
+        .arg(&parents)
+        .arg(&offsets)
+        .arg(&frames_per_sample)
+        .arg(&joint_count)
+        .arg(&frames)
+        .arg(&packed)
+        .arg(&state)
+        .arg(&grad)
+        .arg(&width_arg)
+        .arg(&out);
+    // SAFETY: the arguments are those of `fk_backward_f32` in `fk.cu`, in order; the inputs were
+    // checked to hold `batch` frames of `joints` joints (the gradient `width` numbers per joint),
+    // and the two scratches and the output were allocated here at the sizes the kernel indexes.
+    unsafe { builder.launch(per_frame(batch)) }.w()?;
+    Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), local_layout.shape().clone()))
+}
+
+/// `[batch, joints, 3]` summed over joints to `[batch, 3]`.
+pub(crate) fn sum_over_joints(
+    storage: &CudaStorage,
+    layout: &Layout,
+) -> candle_core::Result<(CudaStorage, Shape)> {
+    let device = &storage.device;
+    let (batch, joints, _) = layout.shape().dims3()?;
+    let values = view(storage, layout, batch * joints * 3, "position gradient")?;
+    let out = device.alloc_zeros::<f32>(batch * 3)?;
+    let function = device.get_or_load_custom_func("fk_sum_over_joints_f32", MODULE, ptx()?)?;
+    let (batch_arg, joints_arg) = (count(batch)?, count(joints)?);
+    let mut builder = function.builder();
+    builder.arg(&values).arg(&batch_arg).arg(&joints_arg).arg(&out);
+    // SAFETY: the arguments are those of `fk_sum_over_joints_f32` in `fk.cu`, in order; `values`
+    // holds `batch * joints * 3` numbers and `out` `batch * 3`, one thread each.
+    unsafe { builder.launch(per_frame(batch * 3)) }.w()?;
+    Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), Shape::from((batch, 3))))
+}
+
+/// The contiguous `f32` values of an input, which must number `expected`.
+fn view<'a>(
+    storage: &'a CudaStorage,
+    layout: &Layout,
+    expected: usize,
+    what: &str,
+) -> candle_core::Result<CudaView<'a, f32>> {
+    let Some((start, end)) = layout.contiguous_offsets() else {
+        candle_core::bail!("dex2hoi FK on the GPU: {what} must be contiguous")
+    };
+    if end - start != expected {
+        candle_core::bail!(
+            "dex2hoi FK on the GPU: {what} hold {} values, expected {expected}",
+            end - start
+        )
+    }
+    Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
+}
+
+/// The parents (`-1` for the root) and the rest offsets on the device.
+fn upload(
+    device: &CudaDevice,
+    bodies: &FkBodies<'_>,
+) -> candle_core::Result<(CudaSlice<i32>, CudaSlice<f32>)> {
+    let parents: Vec<i32> = bodies.parents.iter().map(|p| p.map_or(-1, |p| p as i32)).collect();
+    let offsets: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
+    Ok((device.clone_htod(&parents)?, device.clone_htod(&offsets)?))
+}
+
+/// The kernels' `frames_per_sample` (0 for one set of offsets), joint count and batch, checked
+/// against the offsets: every frame's sample must have its offsets.
+fn sizes(bodies: &FkBodies<'_>, batch: usize) -> candle_core::Result<(u32, u32, u32)> {
+    let joints = bodies.parents.len();
+    let samples = bodies.offsets.len() / joints.max(1);
+    let frames_per_sample = if bodies.frames_per_sample == usize::MAX {
+        0
+    } else {
+        if batch != samples * bodies.frames_per_sample {
+            candle_core::bail!(
+                "dex2hoi FK on the GPU: {batch} frames for {samples} samples of {} frames",
+                bodies.frames_per_sample
+            )
+        }
+        count(bodies.frames_per_sample)?
+    };
+    if bodies.parents.iter().enumerate().any(|(j, p)| p.is_some_and(|p| p >= j)) {
+        candle_core::bail!("dex2hoi FK on the GPU: a parent must precede its children")
+    }
+    Ok((frames_per_sample, count(joints)?, count(batch)?))
+}
+
+fn count(n: usize) -> candle_core::Result<u32> {
+    u32::try_from(n).map_err(|_| candle_core::Error::Msg(format!("dex2hoi FK: {n} is too many")))
+}
+
+fn per_frame(threads: usize) -> LaunchConfig {
+    LaunchConfig {
+        grid_dim: ((threads as u32).div_ceil(THREADS).max(1), 1, 1),
+        block_dim: (THREADS, 1, 1),
+        shared_mem_bytes: 0,
+    }
+}
+
+/// The kernels' PTX, compiled once per process.
+fn ptx() -> candle_core::Result<&'static str> {
+    static PTX: OnceLock<Result<String, String>> = OnceLock::new();
+    PTX.get_or_init(|| {
+        candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(include_str!("fk.cu"))
+            .map(|ptx| ptx.to_src())
+            .map_err(|e| e.to_string())
+    })
+    .as_deref()
+    .map_err(|e| candle_core::Error::Msg(format!("compiling fk.cu: {e}")))
+}
