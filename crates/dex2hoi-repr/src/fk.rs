@@ -364,6 +364,11 @@ pub struct FkOp {
     /// Consecutive frames of the batch that share one sample's offsets (`usize::MAX` when
     /// every frame uses the one set).
     frames_per_sample: usize,
+    /// Per-sample offsets that are on a GPU, `[samples, joints, 3]` `f32`, which the CUDA
+    /// kernels read where they are (`offsets` is then empty): reading them back would stop
+    /// the host until the GPU has caught up.
+    #[cfg_attr(not(feature = "cuda"), allow(dead_code, reason = "read by the CUDA kernels"))]
+    device_offsets: Option<Tensor>,
 }
 
 /// The float types the operation computes in, natively (no conversion copies).
@@ -448,6 +453,7 @@ impl FkOp {
             parents: skeleton.parents().into(),
             offsets: skeleton.rest_offsets().iter().map(|o| o.to_array()).collect(),
             frames_per_sample: usize::MAX,
+            device_offsets: None,
         }
     }
 
@@ -463,11 +469,20 @@ impl FkOp {
                 format!("{:?}", rest_offsets.dims()),
             ));
         }
+        if !rest_offsets.device().is_cpu() {
+            return Ok(Self {
+                parents: skeleton.parents().into(),
+                offsets: Arc::from([]),
+                frames_per_sample: batch / samples,
+                device_offsets: Some(rest_offsets.to_dtype(DType::F32)?.contiguous()?),
+            });
+        }
         let values: Vec<f32> = rest_offsets.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         Ok(Self {
             parents: skeleton.parents().into(),
             offsets: values.chunks_exact(3).map(|o| [o[0], o[1], o[2]]).collect(),
             frames_per_sample: batch / samples,
+            device_offsets: None,
         })
     }
 
@@ -481,6 +496,7 @@ impl FkOp {
         crate::fk_cuda::FkBodies {
             parents: &self.parents,
             offsets: &self.offsets,
+            device_offsets: self.device_offsets.as_ref(),
             frames_per_sample: self.frames_per_sample,
         }
     }

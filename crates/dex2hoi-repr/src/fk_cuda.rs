@@ -11,7 +11,7 @@ use std::sync::OnceLock;
 
 use candle_core::cuda_backend::WrapErr;
 use candle_core::cuda_backend::cudarc::driver::{CudaSlice, CudaView, LaunchConfig, PushKernelArg};
-use candle_core::{CudaDevice, CudaStorage, Layout, Shape};
+use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, Tensor};
 
 const MODULE: &str = "dex2hoi_fk";
 const THREADS: u32 = 128;
@@ -20,8 +20,11 @@ const THREADS: u32 = 128;
 pub(crate) struct FkBodies<'a> {
     /// Each joint's parent (a parent precedes its children).
     pub parents: &'a [Option<usize>],
-    /// The rest offsets, `[samples * joints]`.
+    /// The rest offsets, `[samples * joints]`, uploaded at each pass; empty when
+    /// `device_offsets` holds them.
     pub offsets: &'a [[f32; 3]],
+    /// The rest offsets already on the GPU, `[samples, joints, 3]` `f32` contiguous.
+    pub device_offsets: Option<&'a Tensor>,
     /// Consecutive frames that share one sample's offsets (`usize::MAX`: one set for all).
     pub frames_per_sample: usize,
 }
@@ -39,7 +42,22 @@ pub(crate) fn forward(
     let batch = root_layout.shape().elem_count() / 3;
     let local = view(local, local_layout, batch * joints * 9, "local rotations")?;
     let root = view(root, root_layout, batch * 3, "root positions")?;
-    let (parents, offsets) = upload(device, bodies)?;
+    let parents = parents(device, bodies)?;
+    let (uploaded, resident);
+    let offsets = match bodies.device_offsets {
+        Some(tensor) => {
+            resident = tensor.storage_and_layout();
+            let Storage::Cuda(storage) = &*resident.0 else {
+                candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
+            };
+            view(storage, resident.1, tensor.elem_count(), "rest offsets")?
+        }
+        None => {
+            let flat: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
+            uploaded = device.clone_htod(&flat)?;
+            uploaded.slice(..)
+        }
+    };
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * width)?;
     let function = device.get_or_load_custom_func("fk_forward_f32", MODULE, ptx()?)?;
@@ -86,7 +104,22 @@ pub(crate) fn backward(
     let local_view = view(local, local_layout, batch * joints * 9, "local rotations")?;
     let root = view(root, root_layout, batch * 3, "root positions")?;
     let grad = view(grad, grad_layout, batch * joints * width, "output gradient")?;
-    let (parents, offsets) = upload(device, bodies)?;
+    let parents = parents(device, bodies)?;
+    let (uploaded, resident);
+    let offsets = match bodies.device_offsets {
+        Some(tensor) => {
+            resident = tensor.storage_and_layout();
+            let Storage::Cuda(storage) = &*resident.0 else {
+                candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
+            };
+            view(storage, resident.1, tensor.elem_count(), "rest offsets")?
+        }
+        None => {
+            let flat: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
+            uploaded = device.clone_htod(&flat)?;
+            uploaded.slice(..)
+        }
+    };
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
@@ -152,21 +185,28 @@ fn view<'a>(
     Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
 }
 
-/// The parents (`-1` for the root) and the rest offsets on the device.
-fn upload(
-    device: &CudaDevice,
-    bodies: &FkBodies<'_>,
-) -> candle_core::Result<(CudaSlice<i32>, CudaSlice<f32>)> {
+/// The parents on the device, `-1` for the root.
+fn parents(device: &CudaDevice, bodies: &FkBodies<'_>) -> candle_core::Result<CudaSlice<i32>> {
     let parents: Vec<i32> = bodies.parents.iter().map(|p| p.map_or(-1, |p| p as i32)).collect();
-    let offsets: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
-    Ok((device.clone_htod(&parents)?, device.clone_htod(&offsets)?))
+    device.clone_htod(&parents)
 }
 
 /// The kernels' `frames_per_sample` (0 for one set of offsets), joint count and batch, checked
 /// against the offsets: every frame's sample must have its offsets.
 fn sizes(bodies: &FkBodies<'_>, batch: usize) -> candle_core::Result<(u32, u32, u32)> {
     let joints = bodies.parents.len();
-    let samples = bodies.offsets.len() / joints.max(1);
+    let samples = match bodies.device_offsets {
+        Some(tensor) => {
+            if tensor.dims() != [tensor.dim(0)?, joints, 3] {
+                candle_core::bail!(
+                    "dex2hoi FK on the GPU: rest offsets of shape {:?}",
+                    tensor.dims()
+                )
+            }
+            tensor.dim(0)?
+        }
+        None => bodies.offsets.len() / joints.max(1),
+    };
     let frames_per_sample = if bodies.frames_per_sample == usize::MAX {
         0
     } else {
