@@ -1,7 +1,8 @@
 //! The CUDA device against the CPU (built with `--features cuda`, run on a machine with an
 //! NVIDIA GPU: `cargo xtask build-cuda` packs these tests): every model variant's forward, one
-//! training step's loss and gradients, forward kinematics and its gradients, the surface
-//! search, the fused optimiser update, and a checkpoint written on the GPU sampled on both.
+//! training step's loss and gradients, forward kinematics and its gradients, dropout, the
+//! surface search, the fused optimiser update, and a checkpoint written on the GPU sampled on
+//! both.
 //! Weights are randomised or trained first: a fresh model's zero-initialised heads output
 //! exact zeros, which would compare equal on any device.
 #![cfg(feature = "cuda")]
@@ -252,6 +253,26 @@ fn forward_kinematics_on_the_gpu_computes_and_differentiates_as_on_the_cpu() {
             }
         }
     }
+}
+
+#[test]
+fn dropout_on_the_gpu_draws_its_masks_there_from_the_step_stream() {
+    // The same stream gives the same mask; another gives another; about `1 - p` of the values
+    // are kept, each scaled by `1 / (1 - p)`.
+    let gpu = gpu();
+    let ones = Tensor::ones((64, 37, 11), DType::F32, &gpu).unwrap();
+    let draw = |seed: u64| -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let dropped = dex2hoi_model::layers::dropout(&ones, 0.25, Some(&mut rng)).unwrap();
+        assert!(dropped.device().is_cuda());
+        dropped.flatten_all().unwrap().to_vec1().unwrap()
+    };
+    let (first, again, other) = (draw(7), draw(7), draw(8));
+    assert_eq!(first, again);
+    assert_ne!(first, other);
+    let kept = first.iter().filter(|&&v| v != 0.0).count() as f64 / first.len() as f64;
+    assert!((kept - 0.75).abs() < 0.01, "kept {kept}");
+    assert!(first.iter().all(|&v| v == 0.0 || (v - 1.0 / 0.75).abs() < 1e-6));
 }
 
 /// Parameters of odd sizes on `device` (one more than a block of threads, a prime, a matrix, a
