@@ -18,8 +18,12 @@
 #      parts (steps.txt);
 #   5. a one-window sample (40 frames after the 20-frame prefix, 50 DDIM steps, guidance) on
 #      each device, timed, and 300 frames on the GPU;
-#   6. the PyTorch reference (bench/torch_reference.py) on the same GPU.
-# Phase limits in seconds: GPU_CHECK_{TESTS,PROFILE,TRAIN,TORCH}_SECONDS. For a dry run
+#   6. the PyTorch reference (bench/torch_reference.py) on the same GPU: `small` eager, in
+#      inference mode and compiled, with its training step; `paper`'s sampling;
+#   7. the ratios: dex2hoi's training step and window against PyTorch's, 300 frames against
+#      real time, GPU memory (ratios.txt).
+# Phase limits in seconds: GPU_CHECK_{TESTS,PROFILE,TRAIN,TORCH}_SECONDS. It took about 4 minutes
+# without `torch.compile`; compiling adds up to 3. For a dry run
 # elsewhere: GPU_CHECK_PACK (a folder of gzipped binaries), GPU_CHECK_DEVICE (default cuda).
 set -uo pipefail
 
@@ -137,13 +141,15 @@ nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 >"$WOR
 watcher=$!
 train run-gpu "$WORK/fused.toml" "$TRAIN_SECONDS" 100000
 kill "$watcher" 2>/dev/null
-echo "GPU memory in use while training small, at most: $(sort -n "$WORK/memory.txt" | tail -1) MiB"
+MEMORY=$(sort -n "$WORK/memory.txt" | tail -1)
+echo "GPU memory in use while training small, at most: $MEMORY MiB"
 train run-composite "$WORK/composite.toml" $((TRAIN_SECONDS / 2)) 100000
 train run-paper "$WORK/paper.toml" $((TRAIN_SECONDS / 2)) 100000
 cp "$WORK/run-gpu/metrics.jsonl" "$OUT/metrics-gpu.jsonl"
-python3 - "$WORK" <<'PY' | tee "$OUT/steps.txt"
+python3 - "$WORK" "$OUT" "${MEMORY:-0}" <<'PY' | tee "$OUT/steps.txt"
 import json, statistics, sys
 from pathlib import Path
+summary = {"memory_mib": int(sys.argv[3] or 0)}
 for name in ["run-gpu", "run-composite", "run-paper"]:
     try:
         rows = [json.loads(l) for l in (Path(sys.argv[1]) / name / "metrics.jsonl").read_text().splitlines()]
@@ -158,24 +164,63 @@ for name in ["run-gpu", "run-composite", "run-paper"]:
     parts = ", ".join(f"{k} {median(lambda r: r['timing'][k]) * 1e3:.1f} ms" for k in rows[0]["timing"])
     print(f"{name}: {len(rows)} steps after 10, median {median(lambda r: r['seconds']) * 1e3:.1f} ms "
           f"({parts}); last loss {rows[-1]['loss']:.4f}")
+    summary[name] = {"steps": len(rows), "median_s": median(lambda r: r["seconds"])}
+(Path(sys.argv[2]) / "steps.json").write_text(json.dumps(summary))
 PY
 
 phase "one-window samples"
 for device in "$DEVICE" "$DEVICE" cpu; do
     /usr/bin/time -f "$device: %e s wall, %M KiB peak resident" "$BIN/dex2hoi" sample \
         --run "$WORK/run-gpu" --device "$device" --text "The person picks up the mug." \
-        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | quiet | tail -3
+        --object mug --frames 40 --out "$WORK/sample-$device" 2>&1 | quiet |
+        grep "generated\|wall" | sed "s/^generated/$device: generated/" | tee -a "$OUT/sampling.txt"
 done
 "$BIN/dex2hoi" sample --run "$WORK/run-gpu" --device "$DEVICE" --text "The person picks up the mug." \
-    --object mug --frames 300 --out "$WORK/sample-300" 2>&1 | grep "generated"
+    --object mug --frames 300 --out "$WORK/sample-300" 2>&1 | grep "generated" | tee -a "$OUT/sampling.txt"
 cp "$WORK/sample-300/preview.png" "$OUT/sample-300-gpu.png" 2>/dev/null
 
 phase "PyTorch reference on the GPU"
-# One preset per call: a call stopped at its limit writes nothing.
-for preset in small paper; do
-    timeout "${GPU_CHECK_TORCH_SECONDS:-75}" python3 bench/torch_reference.py --device cuda \
-        --presets "$preset" --skip-check --no-compile --out "$OUT/torch-$preset.json" 2>&1 | tail -12
-done
+# One preset per call: a call stopped at its limit writes nothing. `small` also compiled.
+timeout "${GPU_CHECK_TORCH_SECONDS:-240}" python3 bench/torch_reference.py --device cuda \
+    --presets small --skip-check --compile-timeout 180 --out "$OUT/torch-small.json" 2>&1 | tail -12
+timeout 75 python3 bench/torch_reference.py --device cuda --presets paper --skip-check \
+    --no-compile --no-train --out "$OUT/torch-paper.json" 2>&1 | tail -8
+
+phase "ratios"
+python3 - "$OUT" <<'PY' | tee "$OUT/ratios.txt"
+import json, re, sys
+from pathlib import Path
+out = Path(sys.argv[1])
+def read(name):
+    try:
+        return json.loads((out / name).read_text())
+    except (OSError, ValueError):
+        return None
+steps, torch = read("steps.json") or {}, read("torch-small.json") or {}
+ours = steps.get("run-gpu", {}).get("median_s")
+theirs = torch.get("train_small", {}).get("seconds")
+if ours and theirs:
+    print(f"training step, small: dex2hoi {ours * 1e3:.1f} ms, PyTorch eager {theirs * 1e3:.1f} ms "
+          f"(L_diff only): dex2hoi at {theirs / ours:.2f}x PyTorch's speed")
+sampling = (out / "sampling.txt").read_text() if (out / "sampling.txt").exists() else ""
+windows = [float(m) for m in re.findall(r"cuda\S*: generated 40 frames .* in ([0-9.]+) s", sampling)]
+sample = torch.get("small", {}).get("sample", {})
+if windows:
+    window = windows[-1]
+    for mode in ["eager", "inference_mode", "compile"]:
+        seconds = (sample.get(mode) or {}).get("seconds")
+        if seconds:
+            print(f"one window, small: dex2hoi {window:.3f} s, PyTorch {mode} {seconds:.3f} s: "
+                  f"dex2hoi at {seconds / window:.2f}x")
+long = re.search(r"generated 300 frames .* ([0-9.]+)x real time", sampling)
+if long:
+    print(f"300 frames: {long.group(1)}x real time")
+memory = steps.get("memory_mib")
+peak = torch.get("train_small", {}).get("peak_gpu_gib")
+if memory and peak:
+    print(f"GPU memory training small: dex2hoi {memory} MiB in use (context included), "
+          f"PyTorch {peak * 1024:.0f} MiB allocated (tensors only)")
+PY
 
 # The device machine sends back at most 8 files: the logs and figures in one archive.
 (cd "$OUT" && tar czf gpu-check.tar.gz --remove-files -- *.log *.json *.jsonl *.txt 2>/dev/null)
