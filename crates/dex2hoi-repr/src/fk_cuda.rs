@@ -11,7 +11,7 @@ use std::sync::OnceLock;
 
 use candle_core::cuda_backend::WrapErr;
 use candle_core::cuda_backend::cudarc::driver::{CudaSlice, CudaView, LaunchConfig, PushKernelArg};
-use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, Tensor};
+use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, StorageRef, Tensor};
 
 const MODULE: &str = "dex2hoi_fk";
 const THREADS: u32 = 128;
@@ -43,21 +43,8 @@ pub(crate) fn forward(
     let local = view(local, local_layout, batch * joints * 9, "local rotations")?;
     let root = view(root, root_layout, batch * 3, "root positions")?;
     let parents = parents(device, bodies)?;
-    let (uploaded, resident);
-    let offsets = match bodies.device_offsets {
-        Some(tensor) => {
-            resident = tensor.storage_and_layout();
-            let Storage::Cuda(storage) = &*resident.0 else {
-                candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
-            };
-            view(storage, resident.1, tensor.elem_count(), "rest offsets")?
-        }
-        None => {
-            let flat: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
-            uploaded = device.clone_htod(&flat)?;
-            uploaded.slice(..)
-        }
-    };
+    let offsets = Offsets::of(device, bodies)?;
+    let offsets = offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * width)?;
     let function = device.get_or_load_custom_func("fk_forward_f32", MODULE, ptx()?)?;
@@ -105,21 +92,8 @@ pub(crate) fn backward(
     let root = view(root, root_layout, batch * 3, "root positions")?;
     let grad = view(grad, grad_layout, batch * joints * width, "output gradient")?;
     let parents = parents(device, bodies)?;
-    let (uploaded, resident);
-    let offsets = match bodies.device_offsets {
-        Some(tensor) => {
-            resident = tensor.storage_and_layout();
-            let Storage::Cuda(storage) = &*resident.0 else {
-                candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
-            };
-            view(storage, resident.1, tensor.elem_count(), "rest offsets")?
-        }
-        None => {
-            let flat: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
-            uploaded = device.clone_htod(&flat)?;
-            uploaded.slice(..)
-        }
-    };
+    let offsets = Offsets::of(device, bodies)?;
+    let offsets = offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
@@ -183,6 +157,39 @@ fn view<'a>(
         )
     }
     Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
+}
+
+/// The rest offsets as the kernels read them: the GPU tensor where it is, or an upload.
+enum Offsets<'a> {
+    Resident(StorageRef<'a>, &'a Layout, usize),
+    Uploaded(CudaSlice<f32>),
+}
+
+impl<'a> Offsets<'a> {
+    fn of(device: &CudaDevice, bodies: &FkBodies<'a>) -> candle_core::Result<Self> {
+        Ok(match bodies.device_offsets {
+            Some(tensor) => {
+                let (storage, layout) = tensor.storage_and_layout();
+                Self::Resident(storage, layout, tensor.elem_count())
+            }
+            None => {
+                let flat: Vec<f32> = bodies.offsets.iter().flatten().copied().collect();
+                Self::Uploaded(device.clone_htod(&flat)?)
+            }
+        })
+    }
+
+    fn view(&self) -> candle_core::Result<CudaView<'_, f32>> {
+        match self {
+            Self::Resident(storage, layout, count) => {
+                let Storage::Cuda(storage) = &**storage else {
+                    candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
+                };
+                view(storage, layout, *count, "rest offsets")
+            }
+            Self::Uploaded(slice) => Ok(slice.slice(..)),
+        }
+    }
 }
 
 /// The parents on the device, `-1` for the root.
