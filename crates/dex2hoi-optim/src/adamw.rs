@@ -91,30 +91,7 @@ impl AdamW {
         learning_rate: f64,
         (ema_decay, step): (f64, usize),
     ) -> Result<UpdateReport> {
-        let fused = self.config.fused && fused::available(parameters);
-        self.update_with_average_on(
-            average,
-            parameters,
-            gradients,
-            learning_rate,
-            (ema_decay, step),
-            fused,
-        )
-    }
-
-    /// [`AdamW::update_with_average`] with the path chosen: the fused kernel, or the update
-    /// and the average one after the other (the tests compare the two on a GPU).
-    #[doc(hidden)]
-    pub fn update_with_average_on(
-        &mut self,
-        average: &mut Ema,
-        parameters: &[Parameter],
-        gradients: &GradStore,
-        learning_rate: f64,
-        (ema_decay, step): (f64, usize),
-        fused: bool,
-    ) -> Result<UpdateReport> {
-        if fused {
+        if self.config.fused && fused::available(parameters) {
             return self.update_fused(
                 average,
                 parameters,
@@ -161,6 +138,7 @@ impl AdamW {
             ema_decay: Ema::decay_at(ema_decay, step),
         };
         let weight_decay = (learning_rate * self.config.weight_decay) as f32;
+        let kernel = fused::Kernel::load(&squared_norm)?;
         for (k, (parameter, gradient)) in parameters.iter().zip(&gradients).enumerate() {
             let keep = if parameter.decays() { 1.0 - weight_decay } else { 1.0 };
             let arrays = [
@@ -170,7 +148,7 @@ impl AdamW {
                 average.value(k),
                 gradient,
             ];
-            fused::launch(arrays, &squared_norm, scalars, keep)?;
+            kernel.launch(arrays, &squared_norm, scalars, keep)?;
         }
         let squared: f32 = squared_norm.to_scalar()?;
         Ok(UpdateReport { learning_rate, gradient_norm: f64::from(squared).sqrt() })

@@ -10,7 +10,9 @@
 use std::sync::OnceLock;
 
 use candle_core::cuda_backend::WrapErr;
-use candle_core::cuda_backend::cudarc::driver::{CudaSlice, CudaView, LaunchConfig, PushKernelArg};
+use candle_core::cuda_backend::cudarc::driver::{
+    CudaSlice, CudaView, LaunchArgs, LaunchConfig, PushKernelArg,
+};
 use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, StorageRef, Tensor};
 
 const MODULE: &str = "dex2hoi_fk";
@@ -29,44 +31,79 @@ pub(crate) struct FkBodies<'a> {
     pub frames_per_sample: usize,
 }
 
+/// What both passes read: the frames' local rotations and roots, the skeleton's parents and the
+/// rest offsets on the GPU, and the kernels' sizes, checked against one another.
+struct Frames<'a> {
+    device: &'a CudaDevice,
+    local: CudaView<'a, f32>,
+    root: CudaView<'a, f32>,
+    parents: CudaSlice<i32>,
+    offsets: Offsets<'a>,
+    batch: usize,
+    joints: usize,
+    /// `frames_per_sample` (0 for one set of offsets), the joint count and the batch, as the
+    /// kernels take them.
+    sizes: (u32, u32, u32),
+}
+
+impl<'a> Frames<'a> {
+    fn new(
+        bodies: &FkBodies<'a>,
+        (local, local_layout): (&'a CudaStorage, &Layout),
+        (root, root_layout): (&'a CudaStorage, &Layout),
+    ) -> candle_core::Result<Self> {
+        let device = &local.device;
+        let joints = bodies.parents.len();
+        let batch = root_layout.shape().elem_count() / 3;
+        Ok(Self {
+            device,
+            local: view(local, local_layout, batch * joints * 9, "local rotations")?,
+            root: view(root, root_layout, batch * 3, "root positions")?,
+            parents: parents(device, bodies)?,
+            offsets: Offsets::of(device, bodies)?,
+            batch,
+            joints,
+            sizes: sizes(bodies, batch)?,
+        })
+    }
+
+    /// The kernels' first seven arguments, shared by both passes: local rotations, roots,
+    /// parents, `offsets` (this batch's, from [`Offsets::view`]), frames per sample, joint
+    /// count, batch.
+    fn push<'b>(&'b self, offsets: &'b CudaView<'_, f32>, builder: &mut LaunchArgs<'b>) {
+        let (frames_per_sample, joints, batch) = &self.sizes;
+        builder
+            .arg(&self.local)
+            .arg(&self.root)
+            .arg(&self.parents)
+            .arg(offsets)
+            .arg(frames_per_sample)
+            .arg(joints)
+            .arg(batch);
+    }
+}
+
 /// The forward pass: `[batch, joints, 3]` positions, or `[batch, joints, 3, 3]` rotations when
 /// `width` is 9.
 pub(crate) fn forward(
     bodies: &FkBodies<'_>,
-    (local, local_layout): (&CudaStorage, &Layout),
-    (root, root_layout): (&CudaStorage, &Layout),
+    local: (&CudaStorage, &Layout),
+    root: (&CudaStorage, &Layout),
     width: usize,
 ) -> candle_core::Result<(CudaStorage, Shape)> {
-    let device = &local.device;
-    let joints = bodies.parents.len();
-    let batch = root_layout.shape().elem_count() / 3;
-    let local = view(local, local_layout, batch * joints * 9, "local rotations")?;
-    let root = view(root, root_layout, batch * 3, "root positions")?;
-    let parents = parents(device, bodies)?;
-    let offsets = Offsets::of(device, bodies)?;
-    let offsets = offsets.view()?;
+    let frames = Frames::new(bodies, local, root)?;
+    let (device, batch, joints) = (frames.device, frames.batch, frames.joints);
+    let offsets = frames.offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * width)?;
     let function = device.get_or_load_custom_func("fk_forward_f32", MODULE, ptx()?)?;
-    let (frames_per_sample, joint_count, frames) = sizes(bodies, batch)?;
     let (width_arg, from) = (width as u32, if width == 3 { 9u32 } else { 0 });
     let mut builder = function.builder();
-    builder
-        .arg(&local)
-        .arg(&root)
-        .arg(&parents)
-        .arg(&offsets)
-        .arg(&frames_per_sample)
-        .arg(&joint_count)
-        .arg(&frames)
-        .arg(&packed)
-        .arg(&out)
-        .arg(&width_arg)
-        .arg(&from);
-    // SAFETY: the arguments are those of `fk_forward_f32` in `fk.cu`, in order; `local` and
-    // `root` were checked to hold `batch` frames, `parents` and `offsets` hold the skeleton's
-    // joints and every sample's offsets (checked by `sizes`), and the scratch and output were
-    // allocated here at the sizes the kernel indexes.
+    frames.push(&offsets, &mut builder);
+    builder.arg(&packed).arg(&out).arg(&width_arg).arg(&from);
+    // SAFETY: the arguments are those of `fk_forward_f32` in `fk.cu`, in order; `Frames::new`
+    // checked the local rotations and roots to hold `batch` frames and the offsets to hold every
+    // sample's, and the scratch and output were allocated here at the sizes the kernel indexes.
     unsafe { builder.launch(per_frame(batch)) }.w()?;
     let shape = if width == 3 {
         Shape::from((batch, joints, 3))
@@ -80,45 +117,30 @@ pub(crate) fn forward(
 /// gradient of the positions (`width` 3) or of the rotations (`width` 9).
 pub(crate) fn backward(
     bodies: &FkBodies<'_>,
-    (local, local_layout): (&CudaStorage, &Layout),
-    (root, root_layout): (&CudaStorage, &Layout),
+    local: (&CudaStorage, &Layout),
+    root: (&CudaStorage, &Layout),
     (grad, grad_layout): (&CudaStorage, &Layout),
     width: usize,
 ) -> candle_core::Result<(CudaStorage, Shape)> {
-    let device = &local.device;
-    let joints = bodies.parents.len();
-    let batch = root_layout.shape().elem_count() / 3;
-    let local_view = view(local, local_layout, batch * joints * 9, "local rotations")?;
-    let root = view(root, root_layout, batch * 3, "root positions")?;
+    let shape = local.1.shape().clone();
+    let frames = Frames::new(bodies, local, root)?;
+    let (device, batch, joints) = (frames.device, frames.batch, frames.joints);
     let grad = view(grad, grad_layout, batch * joints * width, "output gradient")?;
-    let parents = parents(device, bodies)?;
-    let offsets = Offsets::of(device, bodies)?;
-    let offsets = offsets.view()?;
+    let offsets = frames.offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
     let function = device.get_or_load_custom_func("fk_backward_f32", MODULE, ptx()?)?;
-    let (frames_per_sample, joint_count, frames) = sizes(bodies, batch)?;
     let width_arg = width as u32;
     let mut builder = function.builder();
-    builder
-        .arg(&local_view)
-        .arg(&root)
-        .arg(&parents)
-        .arg(&offsets)
-        .arg(&frames_per_sample)
-        .arg(&joint_count)
-        .arg(&frames)
-        .arg(&packed)
-        .arg(&state)
-        .arg(&grad)
-        .arg(&width_arg)
-        .arg(&out);
-    // SAFETY: the arguments are those of `fk_backward_f32` in `fk.cu`, in order; the inputs were
-    // checked to hold `batch` frames of `joints` joints (the gradient `width` numbers per joint),
-    // and the two scratches and the output were allocated here at the sizes the kernel indexes.
+    frames.push(&offsets, &mut builder);
+    builder.arg(&packed).arg(&state).arg(&grad).arg(&width_arg).arg(&out);
+    // SAFETY: the arguments are those of `fk_backward_f32` in `fk.cu`, in order; `Frames::new`
+    // checked the inputs to hold `batch` frames of `joints` joints and the offsets every
+    // sample's, the gradient was checked to hold `width` numbers per joint, and the two scratches
+    // and the output were allocated here at the sizes the kernel indexes.
     unsafe { builder.launch(per_frame(batch)) }.w()?;
-    Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), local_layout.shape().clone()))
+    Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), shape))
 }
 
 /// `[batch, joints, 3]` summed over joints to `[batch, 3]`.

@@ -170,7 +170,8 @@ impl HandRelativeObject {
 /// [`free_at_rest`](Self::free_at_rest) (off by default), a frame on which the object stands
 /// still on its support ([`resting_frames`]) counts as neither hand holding it, touched or not.
 /// The one-hot targets are then averaged over a centred window of `2 * smoothing_radius + 1`
-/// frames (shrunk at the ends), so that a hand-over becomes a ramp of a few frames instead of a jump the model cannot fit.
+/// frames (shrunk at the ends), so that a hand-over becomes a ramp of a few frames instead of a
+/// jump the model cannot fit.
 /// Finally each weight is lifted to at least `probability_floor` (and the three renormalised)
 /// and stored as centred logarithms: `softmax` of the stored logits gives the weights back
 /// exactly, and the logits stay finite (about -6.9 for the floor of 1e-3).

@@ -305,11 +305,12 @@ fn optimised_loss(parameters: &[Parameter], step: usize) -> Tensor {
 fn the_fused_optimiser_kernel_updates_as_the_tensor_operations_do() {
     let gpu = gpu();
     let config = OptimizerConfig { gradient_clip: Some(1.0), ..OptimizerConfig::default() };
+    assert!(config.fused);
     let fused = optimised_parameters(&gpu);
     let composite = optimised_parameters(&gpu);
     let mut adams = [
         AdamW::new(config.clone(), &fused).unwrap(),
-        AdamW::new(config.clone(), &composite).unwrap(),
+        AdamW::new(OptimizerConfig { fused: false, ..config }, &composite).unwrap(),
     ];
     let mut averages = [Ema::new(&fused).unwrap(), Ema::new(&composite).unwrap()];
     // A learning rate that changes between updates: the kernel reads it at every launch.
@@ -317,10 +318,9 @@ fn the_fused_optimiser_kernel_updates_as_the_tensor_operations_do() {
         let [a, b] = &mut adams;
         let [ea, eb] = &mut averages;
         let grads = optimised_loss(&fused, step).backward().unwrap();
-        let ours = a.update_with_average_on(ea, &fused, &grads, rate, (0.9, step), true).unwrap();
+        let ours = a.update_with_average(ea, &fused, &grads, rate, (0.9, step)).unwrap();
         let grads = optimised_loss(&composite, step).backward().unwrap();
-        let theirs =
-            b.update_with_average_on(eb, &composite, &grads, rate, (0.9, step), false).unwrap();
+        let theirs = b.update_with_average(eb, &composite, &grads, rate, (0.9, step)).unwrap();
         assert!(theirs.gradient_norm > 1.0, "clipping is active: {}", theirs.gradient_norm);
         assert!((ours.gradient_norm - theirs.gradient_norm).abs() / theirs.gradient_norm < 1e-6);
     }
@@ -345,7 +345,7 @@ fn the_fused_optimiser_kernel_updates_as_the_tensor_operations_do() {
     let grads = (optimised_loss(&fused, 3) * f64::NAN).unwrap().backward().unwrap();
     let [a, _] = &mut adams;
     let [ea, _] = &mut averages;
-    let report = a.update_with_average_on(ea, &fused, &grads, 1e-2, (0.9, 3), true).unwrap();
+    let report = a.update_with_average(ea, &fused, &grads, 1e-2, (0.9, 3)).unwrap();
     assert!(!report.gradient_norm.is_finite());
     for (p, b) in fused.iter().zip(&before) {
         assert_eq!(
