@@ -107,6 +107,11 @@ enum DataCommand {
         /// sequences).
         #[arg(long, value_enum, default_value_t = SynthRest::Drawn)]
         rest: SynthRest,
+        /// How fast the person does the task: at a pace drawn per sequence (every time of the
+        /// task 0.5-1.5 times the even pace's), or at the even pace (otherwise the same
+        /// sequences).
+        #[arg(long, value_enum, default_value_t = SynthTempo::Drawn)]
+        tempo: SynthTempo,
         /// How the mixture targets (which hand holds an object, Eq. 4) are drawn.
         #[arg(long, value_enum, default_value_t = MixtureTargetsArg::default())]
         mixture_targets: MixtureTargetsArg,
@@ -141,11 +146,12 @@ fn main() -> std::process::ExitCode {
 fn run(command: Command) -> Result<()> {
     match command {
         Command::Data {
-            command: DataCommand::Synth { out, sequences, seed, fps, texts, rest, mixture_targets },
+            command:
+                DataCommand::Synth { out, sequences, seed, fps, texts, rest, tempo, mixture_targets },
         } => {
             let options = dex2hoi_synth::SynthOptions {
                 texts: texts.into(),
-                rest: rest.into(),
+                timing: dex2hoi_synth::plan::Timing { rest: rest.into(), tempo: tempo.into() },
                 mixture_targets: mixture_targets.into(),
             };
             synth(&out, sequences, seed, fps, options)
@@ -207,6 +213,24 @@ impl From<MixtureTargetsArg> for MixtureTargets {
         match rule {
             MixtureTargetsArg::Proximity => Self::Proximity,
             MixtureTargetsArg::FreeAtRest => Self::FreeAtRest,
+        }
+    }
+}
+
+/// `data synth --tempo`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum SynthTempo {
+    /// A pace drawn per sequence.
+    Drawn,
+    /// The even pace.
+    Even,
+}
+
+impl From<SynthTempo> for dex2hoi_synth::plan::TaskTempo {
+    fn from(tempo: SynthTempo) -> Self {
+        match tempo {
+            SynthTempo::Drawn => Self::Drawn,
+            SynthTempo::Even => Self::Even,
         }
     }
 }

@@ -26,8 +26,8 @@ use dex2hoi_data::{Sequence, SequenceObject};
 
 pub use error::{Result, SynthError};
 use plan::{
-    Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, RestAroundTask, Task, layout_stream,
-    minimum_jerk, plan_task_laid_out,
+    Attachment, CLOSE_TIME, GraspStyle, Plan, Pose, Task, Timing, layout_stream, minimum_jerk,
+    plan_task_laid_out,
 };
 
 /// Distance from the grasped surface to the wrist joint along the surface normal.
@@ -370,16 +370,11 @@ const LAYOUT_DRAWS: usize = MAX_DRAWS / 2;
 /// Generates sequence `index` of the dataset with `seed` at `fps`: task family
 /// `index mod 8`, everything else drawn from a random stream of `(seed, index)`.
 pub fn generate(index: usize, seed: u64, fps: f32) -> Result<SynthSequence> {
-    generate_with(index, seed, fps, RestAroundTask::Drawn)
+    generate_with(index, seed, fps, Timing::default())
 }
 
-/// [`generate`] with the given rest around the task.
-pub fn generate_with(
-    index: usize,
-    seed: u64,
-    fps: f32,
-    rest: RestAroundTask,
-) -> Result<SynthSequence> {
+/// [`generate`] with the given timing around and within the task.
+pub fn generate_with(index: usize, seed: u64, fps: f32, timing: Timing) -> Result<SynthSequence> {
     let mut rng =
         ChaCha8Rng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ index as u64);
     let task = Task::ALL[index % Task::ALL.len()];
@@ -390,7 +385,7 @@ pub fn generate_with(
             // The layout itself may be what no draw of the rest can realise.
             layout = layout_stream(&rng);
         }
-        let plan = plan_task_laid_out(task, rest, layout.clone(), &mut rng);
+        let plan = plan_task_laid_out(task, timing, layout.clone(), &mut rng);
         let synth = match realise(&plan, fps, &mut rng, index) {
             Ok(synth) => synth,
             Err(error) => {
@@ -442,15 +437,15 @@ pub fn build_dataset(
 pub struct SynthOptions {
     /// The sentences that describe the training split.
     pub texts: TrainingTexts,
-    /// How long the person stands still around the task.
-    pub rest: RestAroundTask,
+    /// How long the person stands still around the task, and how fast they do it.
+    pub timing: Timing,
     /// The rule the mixture targets are drawn by.
     pub mixture_targets: dex2hoi_data::features::MixtureTargets,
 }
 
 /// [`build_dataset`] with `options`. With other [`SynthOptions::texts`] the motions and the
-/// held-out phrasings are the same for a seed; with other [`SynthOptions::rest`] everything
-/// but the times the person stands still is.
+/// held-out phrasings are the same for a seed; with another rest or tempo
+/// ([`SynthOptions::timing`]) everything but the times is.
 pub fn build_dataset_with(
     count: usize,
     seed: u64,
@@ -479,7 +474,7 @@ pub fn build_dataset_with(
     let processed: Vec<(usize, dex2hoi_data::features::ProcessedSequence)> = (0..count)
         .into_par_iter()
         .map(|index| {
-            let mut synth = generate_with(index, seed, fps, options.rest)?;
+            let mut synth = generate_with(index, seed, fps, options.timing)?;
             match options.texts {
                 TrainingTexts::Grammar => {}
                 TrainingTexts::Templates => {

@@ -151,6 +151,8 @@ pub struct Plan {
     pub task: Task,
     /// Seconds.
     pub duration: f32,
+    /// The pace of the task: its times are the even pace's times this ([`TaskTempo`]).
+    pub tempo: f32,
     /// Height of the table top.
     pub table_height: f32,
     /// Objects: catalogue entry and trajectory.
@@ -186,6 +188,52 @@ pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..8.0;
 
 /// Seconds of the short idle time ([`RestAroundTask::Short`]) before the first reach.
 pub const SHORT_IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..0.9;
+
+/// How fast a person does the task, drawn per sequence: every time of the task (reaches,
+/// carries, holds, the hands' return to rest) is the even pace's times this factor. People do
+/// the same task faster or slower, and a sequence whose task is done early shows the person at
+/// rest at prompt-clock readings that, at one pace, only ever came before the task: a model
+/// met a person standing still 4 s into a lift with both hands only in its own generations,
+/// and started the task again.
+pub const TASK_TEMPO: std::ops::Range<f32> = 0.5..1.5;
+
+/// How fast the person does the task.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TaskTempo {
+    /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: the
+    /// places, objects and words are those of [`TaskTempo::Even`] for a seed.
+    #[default]
+    Drawn,
+    /// Every sequence at the even pace (the factor 1), as the generator made sequences before
+    /// it drew one.
+    Even,
+}
+
+impl TaskTempo {
+    /// The factor of a plan whose main random stream is `rng` (not advanced).
+    fn factor(self, rng: &ChaCha8Rng) -> f32 {
+        match self {
+            Self::Drawn => {
+                let mut tempo = rng.clone();
+                tempo.set_stream(TEMPO_STREAM);
+                tempo.random_range(TASK_TEMPO)
+            }
+            Self::Even => 1.0,
+        }
+    }
+}
+
+/// The stream number of [`TaskTempo::Drawn`]'s draw.
+const TEMPO_STREAM: u64 = 2;
+
+/// How the time around and within the task is drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Timing {
+    /// How long the person stands still around the task.
+    pub rest: RestAroundTask,
+    /// How fast they do it.
+    pub tempo: TaskTempo,
+}
 
 /// How long the person stands still around the task.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -345,11 +393,15 @@ struct Planner<'r> {
     objects: Vec<(&'static CatalogueObject, Track)>,
     attachments: Vec<Attachment>,
     rest: RestAroundTask,
+    /// The factor of every time of the task ([`TaskTempo`]).
+    tempo: f32,
 }
 
 impl<'r> Planner<'r> {
-    /// Draws the scene: the table's height and near edge, the idle time, the main hand.
-    fn start(rng: &'r mut ChaCha8Rng, layout: ChaCha8Rng, rest: RestAroundTask) -> Self {
+    /// Draws the scene: the table's height and near edge, the idle time, the main hand, and
+    /// the pace.
+    fn start(rng: &'r mut ChaCha8Rng, layout: ChaCha8Rng, timing: Timing) -> Self {
+        let (rest, tempo) = (timing.rest, timing.tempo.factor(rng));
         let height = rng.random_range(0.86..0.94);
         let near = rng.random_range(0.20..0.26);
         let idle = rest.idle_before(rng.random_range(IDLE_BEFORE_TASK));
@@ -364,6 +416,7 @@ impl<'r> Planner<'r> {
             objects: Vec::new(),
             attachments: Vec::new(),
             rest,
+            tempo,
         }
     }
 
@@ -378,6 +431,7 @@ impl<'r> Planner<'r> {
         Plan {
             task,
             duration,
+            tempo: self.tempo,
             table_height: self.table.height,
             objects: self.objects,
             attachments: self.attachments,
@@ -387,8 +441,19 @@ impl<'r> Planner<'r> {
         }
     }
 
-    fn duration(&mut self, range: std::ops::Range<f32>) -> f32 {
+    /// A number (a height, an angle) drawn from `range`.
+    fn draw(&mut self, range: std::ops::Range<f32>) -> f32 {
         self.rng.random_range(range)
+    }
+
+    /// A time of the task drawn from `range` at the even pace, at this plan's pace.
+    fn seconds(&mut self, range: std::ops::Range<f32>) -> f32 {
+        self.rng.random_range(range) * self.tempo
+    }
+
+    /// A fixed time of the task at the even pace, at this plan's pace.
+    fn paced(&self, seconds: f32) -> f32 {
+        seconds * self.tempo
     }
 
     /// A small turn of an object about the vertical.
@@ -433,7 +498,7 @@ impl<'r> Planner<'r> {
 
     /// A hand reaches for an object starting now; returns the grasp time.
     fn reach(&mut self) -> f32 {
-        let reach = self.duration(0.7..1.1);
+        let reach = self.seconds(0.7..1.1);
         self.t + reach
     }
 
@@ -443,7 +508,7 @@ impl<'r> Planner<'r> {
         let mut t = start + CLOSE_TIME;
         self.key(object, t, self.last_pose(object));
         for pose in poses {
-            t += self.duration(0.6..1.0);
+            t += self.seconds(0.6..1.0);
             self.key(object, t, *pose);
         }
         t
@@ -456,7 +521,7 @@ impl<'r> Planner<'r> {
     }
 
     /// `hand` holds `object` from `start` to `end`, reaching from `reach_start`; returns when
-    /// the hand is back at rest (0.6-0.9 s after letting go).
+    /// the hand is back at rest (0.6-0.9 s after letting go at the even pace).
     fn attach(
         &mut self,
         hand: Hand,
@@ -466,7 +531,7 @@ impl<'r> Planner<'r> {
         start: f32,
         end: f32,
     ) -> f32 {
-        let retract_end = end + self.rng.random_range(0.6..0.9);
+        let retract_end = end + self.seconds(0.6..0.9);
         self.attachments.push(Attachment {
             hand,
             object,
@@ -562,7 +627,7 @@ impl<'r> Planner<'r> {
         let o = self.place_for_main_hand_at(object, start);
         let x = o.rest.position.x + hand.side() * shift;
         let target = self.rest_in_reach(o.object, x);
-        let lift = self.duration(0.12..0.2);
+        let lift = self.draw(0.12..0.2);
         let arrive = self.carry_over(o.index, o.grasp, &o.rest, target, lift);
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, arrive + CLOSE_TIME);
         // From the person's point of view: +X is their left.
@@ -583,8 +648,8 @@ impl<'r> Planner<'r> {
             rotation: axis_angle_to_matrix(angles) * o.rest.rotation,
             position: held.position,
         };
-        let spin = self.duration(0.8..1.3);
-        let tilt = self.duration(0.3..0.6);
+        let spin = self.draw(0.8..1.3);
+        let tilt = self.draw(0.3..0.6);
         let looks = [
             held,
             turn(Vec3::new(tilt, spin, 0.0)),
@@ -607,7 +672,7 @@ impl<'r> Planner<'r> {
         let rest = self.table.rest(object, x, z, yaw);
         let o = self.add_object(object, rest);
         let start = self.reach();
-        let lift = self.duration(0.15..0.3);
+        let lift = self.draw(0.15..0.3);
         let up = Pose { rotation: rest.rotation, position: rest.position + Vec3::Y * lift };
         let arrive = self.carry(o, start, &[up, up, rest]);
         let end = arrive + CLOSE_TIME;
@@ -629,8 +694,8 @@ impl<'r> Planner<'r> {
         let arrive = self.carry(o.index, o.grasp, &[middle]);
         // The other hand reaches while the object comes to the middle and takes it; both
         // hold it a moment before the giving hand lets go.
-        let take = arrive + 0.1;
-        let give_end = take + CLOSE_TIME + 0.3;
+        let take = arrive + self.paced(0.1);
+        let give_end = take + CLOSE_TIME + self.paced(0.3);
         self.attach(hand, o.index, GraspStyle::Top, self.idle, o.grasp, give_end);
         self.key(o.index, give_end, middle);
         // Sideways on the taking hand's side: where the object stood, and where it goes down.
@@ -638,10 +703,10 @@ impl<'r> Planner<'r> {
         let put_down =
             self.rng.random_range(SIDE_SPOT.start.max(stood + HANDOVER_TRAVEL)..SIDE_SPOT.end);
         let target = self.spot_at(o.object, other.side() * put_down);
-        let lift = self.duration(0.08..0.15);
+        let lift = self.draw(0.08..0.15);
         // The taking hand's fingers closed while both held it: it carries on from `give_end`.
         let place = self.carry_over(o.index, give_end - CLOSE_TIME, &middle, target, lift);
-        let reach_start = take - self.duration(0.8..1.1);
+        let reach_start = take - self.seconds(0.8..1.1);
         self.attach(other, o.index, GraspStyle::Side, reach_start, take, place + CLOSE_TIME);
         Description::Handover { object: o.object.name, from: hand }
     }
@@ -651,11 +716,11 @@ impl<'r> Planner<'r> {
     fn hold_two(&mut self) -> Description<'static> {
         let p = self.place_pair(0.09..0.16, false);
         let start_left = self.reach();
-        let delay = self.duration(0.0..0.4);
+        let delay = self.seconds(0.0..0.4);
         let start_right = start_left + delay;
-        let lift_left = self.duration(0.12..0.25);
-        let lift_right = self.duration(0.12..0.25);
-        let hold = self.duration(0.8..1.4);
+        let lift_left = self.draw(0.12..0.25);
+        let lift_right = self.draw(0.12..0.25);
+        let hold = self.seconds(0.8..1.4);
         let up_left = Pose { position: p.left_rest.position + Vec3::Y * lift_left, ..p.left_rest };
         let up_right =
             Pose { position: p.right_rest.position + Vec3::Y * lift_right, ..p.right_rest };
@@ -704,7 +769,7 @@ impl<'r> Planner<'r> {
         let right_back =
             self.attach(Hand::Right, p.right_index, GraspStyle::Top, idle, start1, end1);
 
-        self.t = end1 - 0.9;
+        self.t = end1 - self.paced(0.9);
         let reach2 = self.t;
         let start2 = self.reach();
         let moved = self.carry_over(p.left_index, start2, &p.left_rest, left_to, 0.14);
@@ -712,7 +777,7 @@ impl<'r> Planner<'r> {
         self.attach(Hand::Left, p.left_index, GraspStyle::Top, reach2, start2, end2);
 
         // The right hand cannot reach again before it is back from parking.
-        self.t = (end2 - 0.9).max(right_back);
+        self.t = (end2 - self.paced(0.9)).max(right_back);
         let reach3 = self.t;
         let start3 = self.reach();
         let placed = self.carry_over(p.right_index, start3, &park, right_to, 0.30);
@@ -736,7 +801,7 @@ impl<'r> Planner<'r> {
         let source = self.add_object(pourer, source_rest);
         let target = self.add_object(receiver, target_rest);
         let hold_start = self.reach();
-        let start = hold_start + self.duration(0.0..0.3);
+        let start = hold_start + self.seconds(0.0..0.3);
         // Beside the receiver's top on the pouring hand's side, a little above it.
         let above = target_rest.position
             + Vec3::new(
@@ -756,7 +821,14 @@ impl<'r> Planner<'r> {
         let reach_start = self.t;
         self.attach(hand, source, GraspStyle::Top, reach_start, start, end);
         // The steadying hand lets go only after the pourer is down.
-        self.attach(other, target, GraspStyle::Side, reach_start, hold_start, end + 0.2);
+        self.attach(
+            other,
+            target,
+            GraspStyle::Side,
+            reach_start,
+            hold_start,
+            end + self.paced(0.2),
+        );
         Description::Pour { pourer: pourer.name, receiver: receiver.name, hand }
     }
 
@@ -788,7 +860,7 @@ impl<'r> Planner<'r> {
             ..moved_rest
         };
         let start = self.reach();
-        let lift = self.duration(0.08..0.15);
+        let lift = self.draw(0.08..0.15);
         let arrive = self.carry_over(o, start, &moved_rest, target, lift);
         self.attach(hand, o, GraspStyle::Top, self.idle, start, arrive + CLOSE_TIME);
         Description::MoveNextTo { moved: moved.name, anchor: anchor.name, hand }
@@ -798,13 +870,13 @@ impl<'r> Planner<'r> {
 /// Plans one sequence of a task: the scene, then the task family's object tracks and hand
 /// assignments (see [`Planner`] on why the order of the random draws must not change).
 pub fn plan_task(task: Task, rng: &mut ChaCha8Rng) -> Plan {
-    plan_task_with(task, RestAroundTask::Drawn, rng)
+    plan_task_with(task, Timing::default(), rng)
 }
 
-/// [`plan_task`] with the given rest around the task.
-pub fn plan_task_with(task: Task, rest: RestAroundTask, rng: &mut ChaCha8Rng) -> Plan {
+/// [`plan_task`] with the given timing.
+pub fn plan_task_with(task: Task, timing: Timing, rng: &mut ChaCha8Rng) -> Plan {
     let layout = layout_stream(rng);
-    plan_task_laid_out(task, rest, layout, rng)
+    plan_task_laid_out(task, timing, layout, rng)
 }
 
 /// The stream of a plan's layout draws (see [`Planner`]'s `layout`): `rng`'s seed on a stream
@@ -822,11 +894,11 @@ const LAYOUT_STREAM: u64 = 1;
 /// layout to its redraws.
 pub fn plan_task_laid_out(
     task: Task,
-    rest: RestAroundTask,
+    timing: Timing,
     layout: ChaCha8Rng,
     rng: &mut ChaCha8Rng,
 ) -> Plan {
-    let mut planner = Planner::start(rng, layout, rest);
+    let mut planner = Planner::start(rng, layout, timing);
     let description = match task {
         Task::PickPlace => planner.pick_place(),
         Task::Inspect => planner.inspect(),

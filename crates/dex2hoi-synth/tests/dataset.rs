@@ -369,11 +369,12 @@ fn template_texts_describe_the_same_motions() {
 /// hand is back; the task itself is drawn as with the default rest.
 #[test]
 fn short_rest_ends_sequences_with_the_task() {
-    use dex2hoi_synth::plan::{REST_AFTER_TASK, RestAroundTask, SHORT_IDLE_BEFORE_TASK};
+    use dex2hoi_synth::plan::{REST_AFTER_TASK, RestAroundTask, SHORT_IDLE_BEFORE_TASK, Timing};
     use dex2hoi_synth::{generate, generate_with};
     for index in 0..16 {
         let drawn = generate(index, 6, 20.0).unwrap();
-        let short = generate_with(index, 6, 20.0, RestAroundTask::Short).unwrap();
+        let timing = Timing { rest: RestAroundTask::Short, ..Timing::default() };
+        let short = generate_with(index, 6, 20.0, timing).unwrap();
         let last_retract = |s: &dex2hoi_synth::SynthSequence| {
             s.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max)
         };

@@ -1,7 +1,8 @@
 //! Properties of the procedural plans over many seeds: the hand the words name does not follow
 //! from where the object stands, nor the side a pick and place names from the hand or the
 //! object's place; a hand-over ends on the taking hand's side; every sequence ends at rest, the
-//! box is lifted, and an object no hand holds stands on the table top.
+//! box is lifted, an object no hand holds stands on the table top, and the pace of the task
+//! varies so that the person is at rest after it at every time of the prompt clock.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -9,7 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use dex2hoi_data::character::Hand;
 use dex2hoi_synth::plan::{
     HANDOVER_START, HANDOVER_TRAVEL, IDLE_BEFORE_TASK, ONE_HANDED_PUT_DOWN, ONE_HANDED_REACH, Plan,
-    REST_AFTER_TASK, Task, plan_task,
+    REST_AFTER_TASK, TASK_TEMPO, Task, TaskTempo, Timing, plan_task, plan_task_with,
 };
 use dex2hoi_synth::text::Description;
 use dex2hoi_synth::{SynthSequence, generate};
@@ -194,4 +195,75 @@ fn a_share_of_plans_stand_still_for_longer_than_a_prefix_before_the_task() {
     }
     let share = longer as f32 / all as f32;
     assert!((0.3..0.8).contains(&share), "{share} of plans stand still for over 1.25 s");
+}
+
+/// The first reach and the time the last hand is back at rest.
+fn task_span(plan: &Plan) -> (f32, f32) {
+    let first = plan.attachments.iter().map(|a| a.reach_start).fold(f32::INFINITY, f32::min);
+    let done = plan.attachments.iter().map(|a| a.retract_end).fold(0.0, f32::max);
+    (first, done)
+}
+
+#[test]
+fn the_tempo_changes_the_times_of_the_task_and_nothing_else() {
+    let even = Timing { tempo: TaskTempo::Even, ..Timing::default() };
+    for task in Task::ALL {
+        let (mut faster, mut slower) = (0, 0);
+        for seed in 0..60 {
+            let at_even = plan_task_with(task, even, &mut ChaCha8Rng::seed_from_u64(seed));
+            let paced =
+                plan_task_with(task, Timing::default(), &mut ChaCha8Rng::seed_from_u64(seed));
+            assert_eq!(at_even.tempo, 1.0);
+            assert!(TASK_TEMPO.contains(&paced.tempo), "{task:?} {seed}: tempo {}", paced.tempo);
+            // The same scene, objects, places and words.
+            assert_eq!(at_even.table_height, paced.table_height);
+            assert_eq!(at_even.texts, paced.texts);
+            assert_eq!(at_even.held_out_texts, paced.held_out_texts);
+            assert_eq!(at_even.objects.len(), paced.objects.len());
+            for ((a, track_a), (b, track_b)) in at_even.objects.iter().zip(&paced.objects) {
+                assert_eq!(a.name, b.name);
+                let poses = |t: &dex2hoi_synth::plan::Track| -> Vec<_> {
+                    t.keys.iter().map(|k| (k.1.position, k.1.rotation)).collect()
+                };
+                assert_eq!(poses(track_a), poses(track_b), "{task:?} {seed}");
+            }
+            // The same idle time before, and a task that takes longer at a slower pace.
+            let (first_even, done_even) = task_span(&at_even);
+            let (first_paced, done_paced) = task_span(&paced);
+            assert_eq!(first_even, first_paced, "{task:?} {seed}");
+            let longer = (done_paced - first_paced) - (done_even - first_even);
+            assert!(longer * (paced.tempo - 1.0) >= 0.0, "{task:?} {seed}: {longer} s longer");
+            faster += usize::from(paced.tempo < 0.8);
+            slower += usize::from(paced.tempo > 1.2);
+        }
+        assert!(faster >= 6 && slower >= 6, "{task:?}: {faster} fast, {slower} slow of 60");
+    }
+}
+
+/// A ten-second generation reads the prompt clock at every time from 0 to 10 s; at rest, a
+/// model can tell before the task from after it only by the clock. At the even pace no lift
+/// with both hands was done before 4.5 s (400 seeds), so a person standing still at 4 s was,
+/// in the data, always about to start; drawn paces end a tenth of every family's tasks before
+/// the even pace's earliest, and keep a tenth busy for longer than its latest.
+#[test]
+fn drawn_paces_end_tasks_earlier_and_later_than_the_even_pace() {
+    let even = Timing { tempo: TaskTempo::Even, ..Timing::default() };
+    for task in Task::ALL {
+        let done = |timing: Timing| -> Vec<f32> {
+            (0..400)
+                .map(|seed| {
+                    task_span(&plan_task_with(task, timing, &mut ChaCha8Rng::seed_from_u64(seed))).1
+                })
+                .collect()
+        };
+        let (at_even, drawn) = (done(even), done(Timing::default()));
+        let earliest = at_even.iter().copied().fold(f32::INFINITY, f32::min);
+        let latest = at_even.iter().copied().fold(0.0, f32::max);
+        let earlier = drawn.iter().filter(|&&t| t < earliest).count();
+        let later = drawn.iter().filter(|&&t| t > latest).count();
+        eprintln!(
+            "{task:?}: even pace {earliest:.2}-{latest:.2} s; drawn: {earlier} earlier, {later} later"
+        );
+        assert!(earlier >= 40 && later >= 40, "{task:?}: {earlier} earlier, {later} later of 400");
+    }
 }
