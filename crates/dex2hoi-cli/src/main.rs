@@ -107,10 +107,10 @@ enum DataCommand {
         /// sequences).
         #[arg(long, value_enum, default_value_t = SynthRest::Drawn)]
         rest: SynthRest,
-        /// How fast the person does the task: at a pace drawn per sequence (every time of the
-        /// task 0.5-1.5 times the even pace's), or at the even pace (otherwise the same
+        /// How fast the person does the task: at the even pace, or at a pace drawn per
+        /// sequence (every time of the task 0.5-1.5 times the even pace's; otherwise the same
         /// sequences).
-        #[arg(long, value_enum, default_value_t = SynthTempo::Drawn)]
+        #[arg(long, value_enum, default_value_t = SynthTempo::Even)]
         tempo: SynthTempo,
         /// How the mixture targets (which hand holds an object, Eq. 4) are drawn.
         #[arg(long, value_enum, default_value_t = MixtureTargetsArg::default())]
@@ -220,10 +220,10 @@ impl From<MixtureTargetsArg> for MixtureTargets {
 /// `data synth --tempo`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum SynthTempo {
-    /// A pace drawn per sequence.
-    Drawn,
     /// The even pace.
     Even,
+    /// A pace drawn per sequence.
+    Drawn,
 }
 
 impl From<SynthTempo> for dex2hoi_synth::plan::TaskTempo {

@@ -200,13 +200,14 @@ pub const TASK_TEMPO: std::ops::Range<f32> = 0.5..1.5;
 /// How fast the person does the task.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum TaskTempo {
-    /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: the
-    /// places, objects and words are those of [`TaskTempo::Even`] for a seed.
+    /// Every sequence at the even pace (the factor 1).
     #[default]
-    Drawn,
-    /// Every sequence at the even pace (the factor 1), as the generator made sequences before
-    /// it drew one.
     Even,
+    /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: the
+    /// places, objects and words are those of [`TaskTempo::Even`] for a seed. Not the default:
+    /// a model trained 6000 steps on such data lifted objects again no less often than one
+    /// trained on the even pace (docs/results/long-generations.md, "The pace of the task").
+    Drawn,
 }
 
 impl TaskTempo {

@@ -206,13 +206,13 @@ fn task_span(plan: &Plan) -> (f32, f32) {
 
 #[test]
 fn the_tempo_changes_the_times_of_the_task_and_nothing_else() {
-    let even = Timing { tempo: TaskTempo::Even, ..Timing::default() };
+    let (even, drawn) =
+        (Timing::default(), Timing { tempo: TaskTempo::Drawn, ..Timing::default() });
     for task in Task::ALL {
         let (mut faster, mut slower) = (0, 0);
         for seed in 0..60 {
             let at_even = plan_task_with(task, even, &mut ChaCha8Rng::seed_from_u64(seed));
-            let paced =
-                plan_task_with(task, Timing::default(), &mut ChaCha8Rng::seed_from_u64(seed));
+            let paced = plan_task_with(task, drawn, &mut ChaCha8Rng::seed_from_u64(seed));
             assert_eq!(at_even.tempo, 1.0);
             assert!(TASK_TEMPO.contains(&paced.tempo), "{task:?} {seed}: tempo {}", paced.tempo);
             // The same scene, objects, places and words.
@@ -247,7 +247,8 @@ fn the_tempo_changes_the_times_of_the_task_and_nothing_else() {
 /// the even pace's earliest, and keep a tenth busy for longer than its latest.
 #[test]
 fn drawn_paces_end_tasks_earlier_and_later_than_the_even_pace() {
-    let even = Timing { tempo: TaskTempo::Even, ..Timing::default() };
+    let (even, drawn) =
+        (Timing::default(), Timing { tempo: TaskTempo::Drawn, ..Timing::default() });
     for task in Task::ALL {
         let done = |timing: Timing| -> Vec<f32> {
             (0..400)
@@ -256,11 +257,11 @@ fn drawn_paces_end_tasks_earlier_and_later_than_the_even_pace() {
                 })
                 .collect()
         };
-        let (at_even, drawn) = (done(even), done(Timing::default()));
+        let (at_even, paced) = (done(even), done(drawn));
         let earliest = at_even.iter().copied().fold(f32::INFINITY, f32::min);
         let latest = at_even.iter().copied().fold(0.0, f32::max);
-        let earlier = drawn.iter().filter(|&&t| t < earliest).count();
-        let later = drawn.iter().filter(|&&t| t > latest).count();
+        let earlier = paced.iter().filter(|&&t| t < earliest).count();
+        let later = paced.iter().filter(|&&t| t > latest).count();
         eprintln!(
             "{task:?}: even pace {earliest:.2}-{latest:.2} s; drawn: {earlier} earlier, {later} later"
         );
