@@ -205,8 +205,9 @@ pub enum TaskTempo {
     Even,
     /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: the
     /// places, objects and words are those of [`TaskTempo::Even`] for a seed. Not the default:
-    /// a model trained 6000 steps on such data lifted objects again no less often than one
-    /// trained on the even pace (docs/results/long-generations.md, "The pace of the task").
+    /// a model trained 6000 steps on such data did fewer tasks as asked and lifted more objects
+    /// again than one trained as long on the even pace (docs/results/long-generations.md,
+    /// "The pace of the task").
     Drawn,
 }
 
