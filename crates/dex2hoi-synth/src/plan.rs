@@ -189,8 +189,9 @@ pub const REST_AFTER_TASK: std::ops::Range<f32> = 0.5..8.0;
 /// Seconds of the short idle time ([`RestAroundTask::Short`]) before the first reach.
 pub const SHORT_IDLE_BEFORE_TASK: std::ops::Range<f32> = 0.4..0.9;
 
-/// How fast a person does the task, drawn per sequence: every time of the task (reaches,
-/// carries, holds, the hands' return to rest) is the even pace's times this factor. People do
+/// How fast a person does the task with [`TaskTempo::Drawn`], drawn per sequence: every time of
+/// the task (reaches, carries, holds, the hands' return to rest) is the even pace's times this
+/// factor. People do
 /// the same task faster or slower, and a sequence whose task is done early shows the person at
 /// rest at prompt-clock readings that, at one pace, only ever came before the task: a model
 /// met a person standing still 4 s into a lift with both hands only in its own generations,
@@ -450,7 +451,8 @@ impl<'r> Planner<'r> {
 
     /// A time of the task drawn from `range` at the even pace, at this plan's pace.
     fn seconds(&mut self, range: std::ops::Range<f32>) -> f32 {
-        self.rng.random_range(range) * self.tempo
+        let even = self.rng.random_range(range);
+        self.paced(even)
     }
 
     /// A fixed time of the task at the even pace, at this plan's pace.
@@ -752,8 +754,8 @@ impl<'r> Planner<'r> {
 
     /// [`Task::Swap`]: the right hand parks its object far to the right, the left hand moves
     /// its object to the right spot, the right hand brings the parked object to the left spot,
-    /// high over the object now standing in the middle. Each reach starts 0.9 s before the
-    /// previous hand lets go, so the hands overlap a little.
+    /// high over the object now standing in the middle. Each reach starts 0.9 s (at the even
+    /// pace) before the previous hand lets go, so the hands overlap a little.
     fn swap(&mut self) -> Description<'static> {
         let p = self.place_pair(0.06..0.11, true);
         let park_yaw = self.yaw();
