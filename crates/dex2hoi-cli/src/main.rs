@@ -109,7 +109,8 @@ enum DataCommand {
         rest: SynthRest,
         /// How fast the person does the task: at the even pace, or at a pace drawn per
         /// sequence (every time of the task 0.5-1.5 times the even pace's; otherwise the same
-        /// sequences).
+        /// sequences, but where the physical checks refuse a plan at one pace and not at the
+        /// other).
         #[arg(long, value_enum, default_value_t = SynthTempo::Even)]
         tempo: SynthTempo,
         /// How the mixture targets (which hand holds an object, Eq. 4) are drawn.

@@ -104,6 +104,43 @@ fn synth_takes_template_texts_and_short_rest() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `data synth --tempo drawn`: the tasks at other paces, so other frames; the same families and,
+/// but where the physical checks refuse a plan at one pace and not at the other, the same
+/// places, objects and words as the even pace (the default); `--tempo even` is the default to
+/// the byte; an unknown pace is refused with the choices.
+#[test]
+fn synth_draws_the_task_pace_when_asked() {
+    let dir = common::temp_dir("cli", "synth-tempo");
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let (default, even, drawn) = (path("default"), path("even"), path("drawn"));
+    let args = ["data", "synth", "--sequences", "16", "--seed", "4"];
+    common::succeed(&[&args[..], &["--out", &default]].concat());
+    common::succeed(&[&args[..], &["--out", &even, "--tempo", "even"]].concat());
+    common::succeed(&[&args[..], &["--out", &drawn, "--tempo", "drawn"]].concat());
+    let bytes =
+        |dir: &str, file: &str| std::fs::read(std::path::Path::new(dir).join(file)).unwrap();
+    for file in ["train.json", "train.safetensors", "manifest.json"] {
+        assert!(bytes(&default, file) == bytes(&even, file), "{file} differs");
+    }
+    let read = |dir: &str, file: &str| -> serde_json::Value {
+        serde_json::from_slice(&bytes(dir, file)).unwrap()
+    };
+    let (paced, evenly) = (read(&drawn, "train.json"), read(&even, "train.json"));
+    let (paced, evenly) = (paced.as_array().unwrap(), evenly.as_array().unwrap());
+    assert_eq!(paced.len(), evenly.len());
+    assert!(paced.iter().zip(evenly).all(|(p, e)| p["action"] == e["action"]));
+    let same = paced.iter().zip(evenly).filter(|(p, e)| p == e).count();
+    assert!(4 * same >= 3 * paced.len(), "{same} of {} sequences described alike", paced.len());
+    let frames = |dir: &str| read(dir, "manifest.json")["splits"]["train"]["frames"].as_u64();
+    assert_ne!(frames(&drawn), frames(&even), "the tasks take other times");
+    let wrong = common::fail(&[&args[..], &["--out", &path("x"), "--tempo", "fast"]].concat());
+    assert!(
+        wrong.contains("--tempo") && wrong.contains("even") && wrong.contains("drawn"),
+        "{wrong}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn bad_input_gives_clear_errors() {
     let run = dex2hoi(&["data", "synth", "--out", "/tmp/never-written", "--sequences", "0"]);

@@ -204,8 +204,10 @@ pub enum TaskTempo {
     /// Every sequence at the even pace (the factor 1).
     #[default]
     Even,
-    /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: the
-    /// places, objects and words are those of [`TaskTempo::Even`] for a seed. Not the default:
+    /// A factor drawn from [`TASK_TEMPO`] per sequence, from a random stream of its own: a
+    /// plan's places, objects and words are those of [`TaskTempo::Even`] for a seed (a
+    /// generated sequence's too, unless the physical checks refuse the plan at one pace and
+    /// not at the other, and draw it again). Not the default:
     /// a model trained 6000 steps on such data did fewer tasks as asked and lifted more objects
     /// again than one trained as long on the even pace (docs/results/long-generations.md,
     /// "The pace of the task").
