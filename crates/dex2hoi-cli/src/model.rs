@@ -184,7 +184,10 @@ pub fn run(command: ModelCommand) -> Result<()> {
                 }
             };
             let clock = model.prompt_clock.then_some("the prompt clock");
-            let beyond: Vec<&str> = [clock, object_start].into_iter().flatten().collect();
+            let settled = model
+                .settled_objects
+                .then_some("which objects have been moved and set down again since the start");
+            let beyond: Vec<&str> = [clock, object_start, settled].into_iter().flatten().collect();
             if !beyond.is_empty() {
                 println!("  the condition also reads: {}", beyond.join(", "));
             }

@@ -14,6 +14,7 @@ pub mod normalise;
 pub mod npz;
 pub mod processed;
 pub mod sequence;
+pub mod settled;
 pub mod start;
 pub mod timeline;
 pub mod window;

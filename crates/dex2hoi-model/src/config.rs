@@ -154,6 +154,13 @@ pub struct ModelConfig {
     /// in the models made before it, and left out of a written configuration when off.
     #[serde(default, skip_serializing_if = "ObjectStart::is_off")]
     pub object_start: ObjectStart,
+    /// The memory of set-down objects (beyond the paper): the condition also reads whether
+    /// each object has been moved and set down again since the prompt in force began
+    /// ([`crate::model::ModelInput::settled`]), so that a window whose prefix shows a task
+    /// already done does not start it again. Absent (false) in the models made before it, and
+    /// left out of a written configuration when false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub settled_objects: bool,
 }
 
 impl ModelConfig {

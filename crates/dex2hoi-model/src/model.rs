@@ -12,7 +12,7 @@ use candle_core::{D, DType, Tensor};
 use candle_nn::{VarBuilder, init::Init};
 use rand_chacha::ChaCha8Rng;
 
-use dex2hoi_data::FeatureLayout;
+use dex2hoi_data::{FeatureLayout, MAX_OBJECTS};
 use dex2hoi_repr::Skeleton;
 use dex2hoi_repr::object_repr::{
     GLOBAL_POSITION_RANGE, LEFT_OFFSET_RANGE, MIXTURE_RANGE, RIGHT_OFFSET_RANGE, ROTATION_RANGE,
@@ -71,6 +71,11 @@ pub struct ModelInput<'a> {
     /// 6J + 3 + 18]`: where the object start reads each object's rotation and world position
     /// (`ModelConfig::object_start`; ignored when it is off, required otherwise).
     pub object_start: Option<&'a Tensor>,
+    /// Whether each object has been moved and set down again since the prompt in force began,
+    /// as of the window's last prefix frame (`dex2hoi_data::settled`), 1 or 0, `[batch, 2]`:
+    /// what the memory of set-down objects reads (`ModelConfig::settled_objects`; ignored
+    /// without it, required with it).
+    pub settled: Option<&'a Tensor>,
 }
 
 /// The prompt clock stops here (frames): twelve seconds at 20 fps, beyond the longest rest
@@ -84,12 +89,22 @@ pub struct PromptState<'a> {
     pub elapsed: Option<&'a Tensor>,
     /// See [`ModelInput::object_start`].
     pub object_start: Option<&'a Tensor>,
+    /// See [`ModelInput::settled`].
+    pub settled: Option<&'a Tensor>,
 }
 
 impl<'a> PromptState<'a> {
     fn of(input: &ModelInput<'a>) -> Self {
-        Self { elapsed: input.elapsed, object_start: input.object_start }
+        Self { elapsed: input.elapsed, object_start: input.object_start, settled: input.settled }
     }
+}
+
+/// What [`Conditioning::fixed_part`] reads of the prompt in force besides its words, each in
+/// the shape the stream layout gives it.
+struct PromptReadings<'a> {
+    elapsed: Option<&'a Tensor>,
+    start: Option<&'a Tensor>,
+    settled: Option<&'a Tensor>,
 }
 
 /// Each object's placement in stream rows: its rotation and world position
@@ -136,6 +151,9 @@ struct Conditioning {
     /// What the object start reads, and its MLP over this stream's object and the other's
     /// (its output layer zero-initialised, like the clock's).
     object_start: Option<(ObjectStart, (Dense, Dense))>,
+    /// The memory of set-down objects' MLP over this stream's object's flag and the other's
+    /// (its output layer zero-initialised, like the clock's).
+    settled: Option<(Dense, Dense)>,
     layout: FeatureLayout,
     latent: usize,
 }
@@ -165,6 +183,14 @@ impl Conditioning {
                     ),
                 )),
             },
+            settled: if cfg.settled_objects {
+                Some((
+                    dense(MAX_OBJECTS, l, vb.pp("settled_in"))?,
+                    zero_dense(l, l, vb.pp("settled_out"))?,
+                ))
+            } else {
+                None
+            },
             layout: cfg.layout(),
             latent: l,
         })
@@ -172,19 +198,22 @@ impl Conditioning {
 
     /// The part that does not change over a sample's diffusion steps: projected text, object
     /// (BPS MLP), presence and, with the prompt clock, the elapsed frames, and with the object
-    /// start, where the objects stood when the prompt began ([`Self::object_start`]).
+    /// start, where the objects stood when the prompt began ([`Self::object_start`]), and with
+    /// the memory of set-down objects, which of them have been moved and set down again.
     ///
     /// # Shapes
     /// - `text`: `[batch, E]`; `bps`: `[batch, bps_inputs]`; `presence`: `[batch, 2]`;
-    ///   `elapsed`: `[batch]`; `start`: `[batch, 2 * OBJECT_START_WIDTH]` (this stream's
-    ///   object, then the other's, zero where absent); returns `[batch, latent]`
+    ///   `prompt.elapsed`: `[batch]`; `prompt.start`: `[batch, 2 * OBJECT_START_WIDTH]` and
+    ///   `prompt.settled`: `[batch, 2]` (this stream's object, then the other's, zero where
+    ///   absent); returns `[batch, latent]`
     fn fixed_part(
         &self,
         text: &Tensor,
         bps: &Tensor,
         presence: &Tensor,
-        (elapsed, start): (Option<&Tensor>, Option<&Tensor>),
+        prompt: PromptReadings<'_>,
     ) -> Result<Tensor> {
+        let PromptReadings { elapsed, start, settled } = prompt;
         let object = self.bps_out.forward(&self.bps_in.forward(bps)?.silu()?)?;
         let mut fixed =
             ((self.text.forward(text)? + object)? + self.presence.forward(presence)?)?;
@@ -199,6 +228,12 @@ impl Conditioning {
         if let Some((_, mlp)) = &self.object_start {
             let start = required(start, "object_start", "each object's start (object start)")?;
             fixed = (fixed + two_layers(mlp, start)?)?;
+        }
+        if let Some(mlp) = &self.settled {
+            let settled =
+                required(settled, "settled", "which objects are set down again (settled objects)")?;
+            let settled = settled.to_dtype(fixed.dtype())?;
+            fixed = (fixed + two_layers(mlp, &settled)?)?;
         }
         Ok(fixed)
     }
@@ -635,11 +670,24 @@ impl DualStream {
                 Ok(Tensor::cat(&[&own_start, &swap_streams(&own_start)?], 1)?)
             })
             .transpose()?;
+        // And its own object's flag first, then the other's, zero where a slot is empty.
+        let settled = prompt
+            .settled
+            .map(|settled| -> Result<Tensor> {
+                let own_settled = streams_into_batch(&settled.to_dtype(dtype)?.unsqueeze(2)?)?
+                    .broadcast_mul(&own)?;
+                Ok(Tensor::cat(&[&own_settled, &swap_streams(&own_settled)?], 1)?)
+            })
+            .transpose()?;
         self.conditioning.fixed_part(
             &Tensor::cat(&[&text, &text], 0)?,
             &bps,
             &flags,
-            (elapsed.as_ref(), start.as_ref()),
+            PromptReadings {
+                elapsed: elapsed.as_ref(),
+                start: start.as_ref(),
+                settled: settled.as_ref(),
+            },
         )
     }
 
@@ -766,7 +814,13 @@ impl SingleStream {
             })
             .transpose()?;
         let text = text.to_dtype(dtype)?;
-        self.conditioning.fixed_part(&text, &bps, &presence, (prompt.elapsed, start.as_ref()))
+        let settled = prompt.settled.map(|s| s.to_dtype(dtype)? * &presence).transpose()?;
+        let readings = PromptReadings {
+            elapsed: prompt.elapsed,
+            start: start.as_ref(),
+            settled: settled.as_ref(),
+        };
+        self.conditioning.fixed_part(&text, &bps, &presence, readings)
     }
 
     /// The denoiser's single-stream output as both streams' frames.
@@ -853,6 +907,9 @@ impl Model {
         }
         if let Some(start) = input.object_start {
             expect("object_start", start, vec![batch, 2, d])?;
+        }
+        if let Some(settled) = input.settled {
+            expect("settled", settled, vec![batch, 2])?;
         }
         Ok(())
     }

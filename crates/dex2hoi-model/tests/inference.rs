@@ -232,8 +232,9 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
     let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
     let absolute = ModelConfig { object_start: ObjectStart::Absolute, ..clocked.clone() };
     let from_prefix = ModelConfig { object_start: ObjectStart::FromPrefix, ..clocked.clone() };
-    let single = ModelConfig { stream_layout: StreamLayout::Single, ..from_prefix.clone() };
-    for cfg in variants().into_iter().chain([clocked, absolute, from_prefix, single]) {
+    let settled = ModelConfig { settled_objects: true, ..from_prefix.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..settled.clone() };
+    for cfg in variants().into_iter().chain([clocked, absolute, from_prefix, settled, single]) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -250,6 +251,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let timesteps = Tensor::new(&[0u32, 411, 999], &Device::Cpu).unwrap();
         let elapsed = Tensor::new(&[0f32, 37.0, 500.0], &Device::Cpu).unwrap();
         let start = random(&[batch, 2, d], &mut rng);
+        let settled = Tensor::new(&[[1f32, 0.0], [0.0, 0.0], [1.0, 1.0]], &Device::Cpu).unwrap();
         let input = ModelInput {
             noisy: &noisy,
             prefix: &prefix,
@@ -260,11 +262,16 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             frame_mask: None,
             elapsed: cfg.prompt_clock.then_some(&elapsed),
             object_start: (!cfg.object_start.is_off()).then_some(&start),
+            settled: cfg.settled_objects.then_some(&settled),
         };
         let expected = model.forward(&input, None).unwrap();
         let scale = expected.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
         assert!(scale.to_scalar::<f32>().unwrap() > 0.1, "{cfg:?}: the randomised model does work");
-        let prompt = PromptState { elapsed: input.elapsed, object_start: input.object_start };
+        let prompt = PromptState {
+            elapsed: input.elapsed,
+            object_start: input.object_start,
+            settled: input.settled,
+        };
         let condition = inference.prepare(&text, &bps, &presence, prompt, &prefix).unwrap();
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
         let difference = max_difference(&got, &expected);
@@ -325,6 +332,7 @@ fn other_dtypes_run_the_composite_model() {
         frame_mask: None,
         elapsed: None,
         object_start: None,
+        settled: None,
     };
     let expected = model.forward(&input, None).unwrap();
     let difference = (got - expected).unwrap().abs().unwrap().max_all().unwrap();

@@ -25,6 +25,7 @@ struct Inputs {
     mask: Tensor,
     elapsed: Tensor,
     start: Tensor,
+    settled: Tensor,
 }
 
 impl Inputs {
@@ -73,6 +74,15 @@ impl Inputs {
             .to_dtype(dtype)
             .unwrap(),
             start,
+            // Sample 0's object A set down again, nothing else.
+            settled: Tensor::from_vec(
+                (0..batch * 2).map(|k| f32::from(u8::from(k == 0))).collect::<Vec<_>>(),
+                (batch, 2),
+                &Device::Cpu,
+            )
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap(),
         }
     }
 
@@ -85,10 +95,11 @@ impl Inputs {
             bps: &self.bps,
             presence: &self.presence,
             frame_mask: Some(&self.mask),
-            // Read by the variants with the prompt clock and the object start, ignored by the
-            // others.
+            // Read by the variants with the prompt clock, the object start and the memory of
+            // set-down objects, ignored by the others.
             elapsed: Some(&self.elapsed),
             object_start: Some(&self.start),
+            settled: Some(&self.settled),
         }
     }
 }
@@ -514,14 +525,15 @@ fn checkpoints_round_trip_and_refuse_mismatches() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// The tiny model with the prompt clock, and with the object start, both readings, in both
-/// stream layouts.
-fn with_prompt_state() -> [ModelConfig; 4] {
+/// The tiny model with the prompt clock, and with the object start, both readings, and the
+/// memory of set-down objects, in both stream layouts.
+fn with_prompt_state() -> [ModelConfig; 5] {
     let clocked = ModelConfig { prompt_clock: true, ..ModelConfig::tiny() };
     let absolute = ModelConfig { object_start: ObjectStart::Absolute, ..clocked.clone() };
     let from_prefix = ModelConfig { object_start: ObjectStart::FromPrefix, ..clocked.clone() };
-    let single = ModelConfig { stream_layout: StreamLayout::Single, ..from_prefix.clone() };
-    [clocked, absolute, from_prefix, single]
+    let settled = ModelConfig { settled_objects: true, ..from_prefix.clone() };
+    let single = ModelConfig { stream_layout: StreamLayout::Single, ..settled.clone() };
+    [clocked, absolute, from_prefix, settled, single]
 }
 
 const LAYOUTS: [StreamLayout; 2] = [StreamLayout::Dual, StreamLayout::Single];
@@ -625,6 +637,43 @@ fn the_object_start_from_the_prefix_is_the_start_less_the_last_prefix_frame() {
         }
         inputs.prefix = Tensor::from_vec(prefix, inputs.prefix.dims(), &Device::Cpu).unwrap();
         assert_eq!(difference(&inputs), 0.0, "{stream_layout:?}");
+    }
+}
+
+#[test]
+fn the_memory_of_set_down_objects_reads_each_present_objects_flag() {
+    for stream_layout in LAYOUTS {
+        let cfg = ModelConfig { settled_objects: true, stream_layout, ..ModelConfig::tiny() };
+        let (model, vars) = build(&cfg, 3, DType::F32);
+        // Sample 0 holds two objects, sample 1 one (its slot B empty).
+        let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
+        let error = model
+            .forward(&ModelInput { settled: None, ..inputs.view() }, None)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("settled"), "{stream_layout:?}: required: {error}");
+        let one = Tensor::zeros((2, 1), DType::F32, &Device::Cpu).unwrap();
+        assert!(model.forward(&ModelInput { settled: Some(&one), ..inputs.view() }, None).is_err());
+        let run = |flags: [f32; 4]| {
+            let settled = Tensor::from_vec(flags.to_vec(), (2, 2), &Device::Cpu).unwrap();
+            model.forward(&ModelInput { settled: Some(&settled), ..inputs.view() }, None).unwrap()
+        };
+        // Per sample, the largest change between two outputs.
+        let changed = |a: &Tensor, b: &Tensor| -> Vec<f32> {
+            let d = (a - b).unwrap().abs().unwrap();
+            d.flatten_from(1).unwrap().max(1).unwrap().to_vec1().unwrap()
+        };
+        let none = [0.0; 4];
+        // Zero-initialised output layer: nothing changes until it is trained.
+        assert!(changed(&run(none), &run([1.0; 4])).iter().all(|&c| c == 0.0));
+        randomise(&vars, 11);
+        let base = run(none);
+        // Slot A's flag is read in both samples, slot B's only where the slot holds an
+        // object (sample 0; sample 1's output is the same to the bit).
+        let a = changed(&base, &run([1.0, 0.0, 1.0, 0.0]));
+        assert!(a.iter().all(|&c| c > 1e-4), "{stream_layout:?}: {a:?}");
+        let b = changed(&base, &run([0.0, 1.0, 0.0, 1.0]));
+        assert!(b[0] > 1e-4 && b[1] == 0.0, "{stream_layout:?}: {b:?}");
     }
 }
 

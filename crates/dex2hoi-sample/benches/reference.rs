@@ -45,6 +45,7 @@ fn main() {
             frame_mask: None,
             elapsed: None,
             object_start: None,
+            settled: None,
         };
         let output = model.forward(&input, None).expect("a forward pass");
         let mut tensors: HashMap<String, Tensor> = HashMap::new();

@@ -108,6 +108,7 @@ fn main() {
             presence: Tensor::ones((1, 2), DType::F32, &device).unwrap(),
             elapsed: None,
             object_start: None,
+            settled: None,
         };
         reset_peak_memory();
         let window = median(runs, || {

@@ -26,6 +26,9 @@ pub struct WindowCondition {
     /// Both streams' normalised rows at the first frame of the prompt in force, `[B, 2, D]`
     /// (read by a model with the object start).
     pub object_start: Option<Tensor>,
+    /// Whether each object has been moved and set down again since the prompt in force began,
+    /// `[B, 2]` (read by a model with the memory of set-down objects).
+    pub settled: Option<Tensor>,
 }
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
@@ -71,7 +74,12 @@ impl<'a> ModelDenoiser<'a> {
         let elapsed = self.condition.elapsed.as_ref().map(|e| repeat_rows(e, times)).transpose()?;
         let object_start =
             self.condition.object_start.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
-        let prompt = PromptState { elapsed: elapsed.as_ref(), object_start: object_start.as_ref() };
+        let settled = self.condition.settled.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
+        let prompt = PromptState {
+            elapsed: elapsed.as_ref(),
+            object_start: object_start.as_ref(),
+            settled: settled.as_ref(),
+        };
         let prefix = repeat_rows(&self.condition.prefix, times)?;
         let prepared = self
             .model

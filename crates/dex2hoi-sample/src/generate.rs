@@ -25,7 +25,9 @@ use dex2hoi_model::{InferenceModel, ObjectRepresentation};
 use dex2hoi_repr::Skeleton;
 
 use dex2hoi_data::normalise::Normaliser;
+use dex2hoi_data::settled::SettledObjects;
 use dex2hoi_data::timeline::in_force;
+use dex2hoi_repr::object_repr::GLOBAL_POSITION_RANGE;
 
 use crate::denoiser::{WindowCondition, sample_window};
 use crate::error::{Result, SampleError};
@@ -163,14 +165,20 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     // the first prompt the initial prefix's first frame, as a training window at the start of
     // its sequence reads its frame 0), with the start frame of the prompt they belong to.
     let mut start: Option<(usize, Tensor)> = None;
+    // The memory of set-down objects: one tracker per batch row over every frame of the
+    // prompt in force, from the same first frame as the object start.
+    let mut settled: Vec<SettledObjects> = Vec::new();
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
         let prompt = in_force(&request.timeline, |t| t.start_frame, produced)
             .unwrap_or(&request.timeline[0]);
         if start.as_ref().is_none_or(|(of, _)| *of != prompt.start_frame) {
-            let first = history.narrow(2, history.dims()[2] - tp, 1)?.squeeze(2)?;
-            start = Some((prompt.start_frame, first));
+            let prefix = history.narrow(2, history.dims()[2] - tp, tp)?;
+            start = Some((prompt.start_frame, prefix.narrow(2, 0, 1)?.squeeze(2)?));
+            settled = vec![SettledObjects::new(); batch];
+            follow_objects(&mut settled, &request.normaliser.denormalise(&prefix)?, c.layout())?;
         }
+        let flags: Vec<f32> = settled.iter().flat_map(SettledObjects::flags).collect();
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
         // prompt applies from its first frame, so a window whose prefix ends at generated frame
         // `produced` starts `produced - start_frame` frames into its prompt.
@@ -186,6 +194,10 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
                     .to_dtype(request.model.dtype())?,
             ),
             object_start: start.as_ref().map(|(_, rows)| rows.clone()),
+            settled: Some(
+                Tensor::from_vec(flags, (batch, MAX_OBJECTS), request.initial_prefix.device())?
+                    .to_dtype(request.model.dtype())?,
+            ),
         };
         let window =
             sample_window(request.model, request.schedule, &condition, &request.sampler, rng)?;
@@ -204,6 +216,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             )?;
             window = request.normaliser.normalise(&settled)?;
         }
+        follow_objects(&mut settled, &request.normaliser.denormalise(&window)?, c.layout())?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -227,6 +240,32 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     }
     Ok(request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)?)
 }
+/// Feeds each batch row's tracker the objects' world positions on every frame of `frames`
+/// (their global-position channels, Eq. 2).
+///
+/// # Shapes
+/// - `frames`: `[B, 2, T, D]` (unnormalised); `trackers`: `[B]`
+fn follow_objects(
+    trackers: &mut [SettledObjects],
+    frames: &Tensor,
+    layout: dex2hoi_data::FeatureLayout,
+) -> Result<()> {
+    let positions = layout
+        .object_of(frames)?
+        .narrow(3, GLOBAL_POSITION_RANGE.start, GLOBAL_POSITION_RANGE.len())?
+        .to_dtype(DType::F32)?;
+    let length = positions.dim(2)?;
+    let positions: Vec<f32> = positions.flatten_all()?.to_vec1()?;
+    for (b, tracker) in trackers.iter_mut().enumerate() {
+        for t in 0..length {
+            tracker.push(std::array::from_fn(|s| {
+                Vec3::from_slice(&positions[((b * MAX_OBJECTS + s) * length + t) * 3..])
+            }));
+        }
+    }
+    Ok(())
+}
+
 /// What a generation is conditioned on besides the model.
 #[derive(Debug, Clone)]
 pub struct Conditioning<'a> {

@@ -48,13 +48,14 @@ fn tiny_model_of(cfg: &ModelConfig) -> InferenceModel {
     InferenceModel::new(&model).unwrap()
 }
 
-/// The tiny model, and the same with the prompt clock and the object start (which a generation
-/// must feed each window, or the model refuses it).
+/// The tiny model, and the same with the prompt clock, the object start and the memory of
+/// set-down objects (which a generation must feed each window, or the model refuses it).
 #[test]
 fn generation_runs_window_by_window_with_a_timeline() {
     let from_prefix = ModelConfig {
         prompt_clock: true,
         object_start: ObjectStart::FromPrefix,
+        settled_objects: true,
         ..ModelConfig::tiny()
     };
     for cfg in [ModelConfig::tiny(), from_prefix] {

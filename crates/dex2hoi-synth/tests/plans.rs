@@ -1,19 +1,23 @@
 //! Properties of the procedural plans over many seeds: the hand the words name does not follow
 //! from where the object stands, nor the side a pick and place names from the hand or the
 //! object's place; a hand-over ends on the taking hand's side; every sequence ends at rest, the
-//! box is lifted, an object no hand holds stands on the table top, and a drawn pace changes
-//! only the times of the task, ending some earlier and some later than the even pace.
+//! box is lifted, an object no hand holds stands on the table top, a drawn pace changes only
+//! the times of the task, ending some earlier and some later than the even pace, and an object
+//! set down after the task moved it is left there.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::character::Hand;
+use dex2hoi_data::settled::{MOVED_RISE_M, MOVED_TRAVEL_M, SettledObjects};
 use dex2hoi_synth::plan::{
     HANDOVER_START, HANDOVER_TRAVEL, IDLE_BEFORE_TASK, ONE_HANDED_PUT_DOWN, ONE_HANDED_REACH, Plan,
     REST_AFTER_TASK, TASK_TEMPO, Task, TaskTempo, Timing, plan_task, plan_task_with,
 };
 use dex2hoi_synth::text::Description;
 use dex2hoi_synth::{SynthSequence, generate};
+use glam::Vec3;
 
 fn plans(task: Task, seeds: std::ops::Range<u64>) -> impl Iterator<Item = Plan> {
     seeds.map(move |seed| plan_task(task, &mut ChaCha8Rng::seed_from_u64(seed)))
@@ -265,5 +269,52 @@ fn drawn_paces_end_tasks_earlier_and_later_than_the_even_pace() {
             "{task:?}: even pace {earliest:.2}-{latest:.2} s; drawn: {earlier} earlier, {later} later"
         );
         assert!(earlier >= 40 && later >= 40, "{task:?}: {earlier} earlier, {later} later of 400");
+    }
+}
+
+/// What the memory of set-down objects reads (`dex2hoi_data::settled`) on generated sequences:
+/// by the last frame every object the task moved is set down and flagged, and none it leaves
+/// is; once flagged, an object is never moved again, except the object a swap parks on the
+/// way (flagged while parked, then carried to the other's place), which only its words tell.
+#[test]
+fn objects_a_task_moves_are_flagged_set_down_at_the_end_and_then_left() {
+    for (family, &task) in Task::ALL.iter().enumerate() {
+        let mut moved_again = 0;
+        for k in 0..40 {
+            let synth = generate(family + 8 * k, 11, 20.0).expect("generated");
+            let objects = &synth.sequence.objects;
+            let frames = objects[0].translations.len();
+            let position = |t: usize| -> [Vec3; MAX_OBJECTS] {
+                std::array::from_fn(|s| objects.get(s).map_or(Vec3::ZERO, |o| o.translations[t]))
+            };
+            let moved: Vec<bool> = (0..objects.len())
+                .map(|s| {
+                    (0..frames).any(|t| {
+                        let travel = position(t)[s] - position(0)[s];
+                        travel.length() > MOVED_TRAVEL_M || travel.y > MOVED_RISE_M
+                    })
+                })
+                .collect();
+            let mut tracker = SettledObjects::new();
+            let mut first_flagged = [None; MAX_OBJECTS];
+            for t in 0..frames {
+                tracker.push(position(t));
+                for (s, flagged) in tracker.settled().into_iter().enumerate() {
+                    if flagged && first_flagged[s].is_none() {
+                        first_flagged[s] = Some(t);
+                    }
+                }
+            }
+            let last = tracker.settled();
+            for s in 0..objects.len() {
+                assert_eq!(last[s], moved[s], "{task:?}, sequence {k}, slot {s}");
+                let Some(from) = first_flagged[s] else { continue };
+                let left =
+                    (from..frames).all(|t| (position(t)[s] - position(from)[s]).length() < 0.02);
+                moved_again += usize::from(!left);
+            }
+        }
+        let expected = if task == Task::Swap { 40 } else { 0 };
+        assert_eq!(moved_again, expected, "{task:?}: objects moved again after being set down");
     }
 }

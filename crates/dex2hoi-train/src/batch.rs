@@ -2,6 +2,7 @@
 //! (stream swap, left/right mirror), normalised, with the targets the losses need.
 
 use candle_core::{DType, Device, Tensor};
+use glam::Vec3;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -10,6 +11,7 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::augment::{mirror, swap_streams};
 use dex2hoi_data::dataset::{Dataset, FeatureStats, Split};
 use dex2hoi_data::features::{ObjectAsset, ProcessedSequence};
+use dex2hoi_data::settled::settled_after;
 use dex2hoi_data::window::{Window, WindowConfig, windows};
 use dex2hoi_repr::Skeleton;
 
@@ -19,9 +21,9 @@ use crate::error::{Result, TrainError};
 #[derive(Debug, Clone)]
 pub struct SurfaceCloud {
     /// Sample positions, `[samples]`.
-    pub points: Vec<glam::Vec3>,
+    pub points: Vec<Vec3>,
     /// Outward unit normals at the samples.
-    pub normals: Vec<glam::Vec3>,
+    pub normals: Vec<Vec3>,
 }
 
 impl SurfaceCloud {
@@ -97,6 +99,11 @@ pub struct Batch {
     /// texts begin to apply; swapped and mirrored with the window), `[B, 2, D]`: what the object
     /// start reads.
     pub object_start: Tensor,
+    /// Per window and slot, whether the object has been moved and set down again between its
+    /// sequence's first frame and the window's last prefix frame
+    /// ([`dex2hoi_data::settled`]; swapped with the window), 1 or 0, `[B, 2]`: what the
+    /// memory of set-down objects reads.
+    pub settled: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Whether each hand holds an object at some time of the window's whole sequence
@@ -239,6 +246,7 @@ impl TrainingSet {
         let mut clouds = Vec::with_capacity(b);
         let mut elapsed = Vec::with_capacity(b);
         let mut start = vec![0.0f32; b * 2 * width];
+        let mut settled = Vec::with_capacity(b * 2);
         let mut hands = Vec::with_capacity(b * 2);
         let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
@@ -280,6 +288,15 @@ impl TrainingSet {
                 layout.write_stream_row(&first.body, &first.objects, 0, s, row);
                 self.stats.normalise_row(row);
             }
+            let position = |t: usize| -> [Vec3; MAX_OBJECTS] {
+                std::array::from_fn(|s| {
+                    let p = (t * MAX_OBJECTS + s) * 3;
+                    Vec3::from_slice(&source.object_positions[p..p + 3])
+                })
+            };
+            let [a, b_settled] = settled_after(window.frame(tp - 1) + 1, position);
+            let (a, b_settled) = if swap { (b_settled, a) } else { (a, b_settled) };
+            settled.extend([f32::from(u8::from(a)), f32::from(u8::from(b_settled))]);
             for (of, out) in [(&self.hands_of, &mut hands), (&self.sides_of, &mut sides)] {
                 let [left, right] = of[window.sequence];
                 let (left, right) = if mirrored { (right, left) } else { (left, right) };
@@ -342,6 +359,7 @@ impl TrainingSet {
             root_start: tensor(root_start, &[b, 1, 3])?,
             elapsed: tensor(elapsed, &[b])?,
             object_start: tensor(start, &[b, 2, width])?,
+            settled: tensor(settled, &[b, 2])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,

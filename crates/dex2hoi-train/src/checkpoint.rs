@@ -161,7 +161,8 @@ impl Trainer {
         let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
-        // A run may add the prompt clock or the object start: both start with no effect.
+        // A run may add the prompt clock, the object start or the memory of set-down objects:
+        // each starts with no effect.
         let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
         if gains_clock {
             stored.model.prompt_clock = true;
@@ -170,6 +171,10 @@ impl Trainer {
             stored.model.object_start.is_off() && !self.config.model.object_start.is_off();
         if gains_start {
             stored.model.object_start = self.config.model.object_start;
+        }
+        let gains_settled = !stored.model.settled_objects && self.config.model.settled_objects;
+        if gains_settled {
+            stored.model.settled_objects = true;
         }
         for (section, model, run) in [
             (
@@ -223,7 +228,8 @@ impl Trainer {
             let name = format!("ema.{}", p.name);
             let Some(t) = tensors.get(&name) else {
                 let gained = (gains_clock && p.name.contains(".clock_"))
-                    || (gains_start && p.name.contains(".object_start_"));
+                    || (gains_start && p.name.contains(".object_start_"))
+                    || (gains_settled && p.name.contains(".settled_"));
                 if gained {
                     initialisation.kept.push(p.name.clone());
                     continue;

@@ -287,6 +287,7 @@ impl Trainer {
             frame_mask: Some(&batch.frame_mask),
             elapsed: Some(&batch.elapsed),
             object_start: Some(&batch.object_start),
+            settled: Some(&batch.settled),
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -338,6 +339,7 @@ impl Trainer {
                 let mask = input.frame_mask.map(rows).transpose()?;
                 let elapsed = input.elapsed.map(rows).transpose()?;
                 let object_start = input.object_start.map(rows).transpose()?;
+                let settled = input.settled.map(rows).transpose()?;
                 let group = ModelInput {
                     noisy: &rows(input.noisy)?,
                     prefix: &rows(input.prefix)?,
@@ -348,6 +350,7 @@ impl Trainer {
                     frame_mask: mask.as_ref(),
                     elapsed: elapsed.as_ref(),
                     object_start: object_start.as_ref(),
+                    settled: settled.as_ref(),
                 };
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 Ok(model.forward(&group, Some(&mut rng))?)

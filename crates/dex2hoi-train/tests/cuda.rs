@@ -68,6 +68,7 @@ fn input<'a>(t: &[&'a Tensor]) -> ModelInput<'a> {
         frame_mask: None,
         elapsed: None,
         object_start: None,
+        settled: None,
     }
 }
 

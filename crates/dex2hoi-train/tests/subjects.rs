@@ -11,6 +11,8 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::dataset::Split;
 use dex2hoi_data::features::ObjectDecoding;
+use dex2hoi_data::settled::{STILL_FRAMES, STILL_M};
+use dex2hoi_repr::object_repr::GLOBAL_POSITION_RANGE;
 use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
 
@@ -250,4 +252,58 @@ fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_w
     let later = anywhere.iter().filter(|(_, start)| *start > 0.0).count();
     let elsewhere = anywhere.iter().filter(|(same, _)| !same).count();
     assert!(later > 16 && elsewhere == later, "{elsewhere} of {later} later windows");
+}
+
+/// The memory of set-down objects' flags: none in windows at the start of their sequences
+/// (nothing has been moved yet), some in windows from anywhere, each flag on a window whose
+/// prefix shows that object standing still on its last frames (up to `STILL_FRAMES`), in the slot the
+/// window's swap puts it in.
+#[test]
+fn the_settled_flags_are_set_only_after_a_move_on_a_still_object() {
+    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
+    let batch = |share: f64| {
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        let options = BatchOptions {
+            size: 64,
+            swap_probability: 0.5,
+            mirror_probability: 0.5,
+            first_window_share: share,
+        };
+        trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
+    };
+    let flags = |batch: &dex2hoi_train::batch::Batch| batch.settled.to_vec2::<f32>().unwrap();
+    assert!(flags(&batch(1.0)).iter().flatten().all(|&f| f == 0.0));
+    let anywhere = batch(0.0);
+    let settled = flags(&anywhere);
+    let flagged = settled.iter().flatten().filter(|&&f| f == 1.0).count();
+    assert!(flagged >= 8, "{flagged} flags in 64 windows");
+    assert!(settled.iter().flatten().all(|&f| f == 0.0 || f == 1.0));
+    // A flagged object's world position over the prefix's last frames, unnormalised.
+    let stats = trainer.training_set().stats();
+    let layout = dex2hoi_data::FeatureLayout::new(trainer.config().model.joints);
+    let tp = trainer.config().model.prefix_frames;
+    let d = layout.stream_width();
+    let features: Vec<f32> = anywhere.features.flatten_all().unwrap().to_vec1().unwrap();
+    let t_all = anywhere.features.dims()[2];
+    let position = layout.object_part_range(GLOBAL_POSITION_RANGE);
+    for (i, window) in settled.iter().enumerate() {
+        for (slot, &flag) in window.iter().enumerate() {
+            if flag == 0.0 {
+                continue;
+            }
+            let at = |t: usize| -> Vec<f32> {
+                let row = &features[((i * 2 + slot) * t_all + t) * d..][..d];
+                position.clone().map(|c| row[c] * stats.std[c] + stats.mean[c]).collect()
+            };
+            let last = at(tp - 1);
+            for t in tp.saturating_sub(STILL_FRAMES)..tp {
+                let moved: f32 =
+                    at(t).iter().zip(&last).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+                assert!(moved <= STILL_M + 1e-4, "window {i}, slot {slot}, frame {t}: {moved}");
+            }
+        }
+    }
 }

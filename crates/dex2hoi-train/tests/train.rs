@@ -551,17 +551,19 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         };
         assert_eq!(row(&new_rows, new_id), expected, "{word}");
     }
-    // A configuration that adds the prompt clock, and one that adds the object start too: what
-    // they add starts at its initialisation, its output layers zero, everything else from the
-    // model.
+    // A configuration that adds the prompt clock, one that adds the object start too, and one
+    // that adds the memory of set-down objects as well: what they add starts at its
+    // initialisation, its output layers zero, everything else from the model.
     let adding = [
-        (ObjectStart::Off, ["clock_"].as_slice()),
-        (ObjectStart::FromPrefix, &["clock_", "object_start_"]),
+        (ObjectStart::Off, false, ["clock_"].as_slice()),
+        (ObjectStart::FromPrefix, false, &["clock_", "object_start_"]),
+        (ObjectStart::FromPrefix, true, &["clock_", "object_start_", "settled_"]),
     ];
-    for (object_start, added) in adding {
+    for (object_start, settled_objects, added) in adding {
         let mut gaining = tuned.clone();
         gaining.model.prompt_clock = true;
         gaining.model.object_start = object_start;
+        gaining.model.settled_objects = settled_objects;
         let mut trainer = Trainer::new(gaining, &data, Path::new("d"), &Device::Cpu).unwrap();
         let bridged = trainer.initialise_from(&packed).unwrap();
         assert_eq!(bridged.kept.len(), 4 * added.len(), "{:?}", bridged.kept);
@@ -633,6 +635,7 @@ fn grouped_steps_match_whole_batch_steps_and_not_the_thread_count() {
     // The prompt state splits into the groups with the rest of the batch.
     config.model.prompt_clock = true;
     config.model.object_start = ObjectStart::FromPrefix;
+    config.model.settled_objects = true;
     config.training.group_windows = None;
     let (whole, whole_parameters) = train_steps(&config, &data, 4);
     config.training.group_windows = Some(3);

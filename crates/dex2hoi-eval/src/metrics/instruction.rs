@@ -29,13 +29,12 @@ use crate::error::{EvalError, Result};
 use super::contact::{CONTACT_RADIUS_M, hand_object_distances};
 use super::sample::MotionSample;
 
-/// Travel from the clip's first frame beyond which an object has moved.
-pub const MOVED_TRAVEL_M: f32 = 0.10;
-/// Rise above the clip's first frame beyond which an object has moved.
-pub const MOVED_RISE_M: f32 = 0.05;
 /// The sides across the body and the half-width of their centre band: the data's, which training
 /// reads too.
 pub use dex2hoi_data::processed::{SIDE_MARGIN_M, Side};
+/// Travel and rise from the clip's first frame beyond which an object has moved: the rule the
+/// condition's memory of set-down objects reads too.
+pub use dex2hoi_data::settled::{MOVED_RISE_M, MOVED_TRAVEL_M};
 /// Hand-to-surface distance beyond which an object counts as untouched.
 pub const UNTOUCHED_DISTANCE_M: f32 = 0.15;
 /// Drop below the resting height beyond which an object counts as sunk into its support (a

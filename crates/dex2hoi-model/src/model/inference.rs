@@ -362,6 +362,7 @@ pub struct PreparedCondition {
     presence: Tensor,
     elapsed: Option<Tensor>,
     object_start: Option<Tensor>,
+    settled: Option<Tensor>,
     /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
     /// dual layout (stream A first), `[batch, latent]` in the single one.
     fixed: Tensor,
@@ -389,6 +390,7 @@ impl PreparedCondition {
                 .as_ref()
                 .map(|s| s.narrow(0, start, len))
                 .transpose()?,
+            settled: self.settled.as_ref().map(|s| s.narrow(0, start, len)).transpose()?,
             fixed: self
                 .fixed
                 .reshape((streams, batch, latent))?
@@ -464,7 +466,8 @@ impl InferenceModel {
     /// # Shapes
     /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
     ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `prompt`: `[batch]` and
-    ///   `[batch, 2, D]` (see [`ModelInput::elapsed`] and [`ModelInput::object_start`]);
+    ///   `[batch, 2, D]` and `[batch, 2]` (see [`ModelInput::elapsed`],
+    ///   [`ModelInput::object_start`] and [`ModelInput::settled`]);
     ///   `prefix`: `[batch, 2, T_p, D]`, the prefix the window's steps will see (read by an
     ///   object start from the prefix)
     pub fn prepare(
@@ -490,6 +493,7 @@ impl InferenceModel {
             presence: presence.detach(),
             elapsed: prompt.elapsed.map(Tensor::detach),
             object_start: prompt.object_start.map(Tensor::detach),
+            settled: prompt.settled.map(Tensor::detach),
             fixed: fixed.detach(),
         })
     }
@@ -555,6 +559,7 @@ impl InferenceModel {
             frame_mask: None,
             elapsed: condition.elapsed.as_ref(),
             object_start: condition.object_start.as_ref(),
+            settled: condition.settled.as_ref(),
         }
     }
 
