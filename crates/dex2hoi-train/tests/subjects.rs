@@ -217,25 +217,39 @@ fn the_hands_a_batch_holds_are_those_its_texts_name() {
     }
 }
 
+/// The tiny preset on 16 procedural sequences, windows every 5 frames.
+fn tiny_trainer_with_stride_5() -> Trainer {
+    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap()
+}
+
+/// A batch of `size` windows, half of them swapped and half mirrored, a `share` of them first
+/// windows, drawn with `seed`.
+fn swapped_and_mirrored_batch(
+    trainer: &Trainer,
+    size: usize,
+    share: f64,
+    seed: u64,
+) -> dex2hoi_train::batch::Batch {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let options = BatchOptions {
+        size,
+        swap_probability: 0.5,
+        mirror_probability: 0.5,
+        first_window_share: share,
+    };
+    trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
+}
+
 /// The object start's rows: each window's sequence at frame 0, swapped and mirrored with the
 /// window. A batch of first windows starts at those rows; in a batch of windows from anywhere,
 /// a window that starts later reads rows other than its own first frame.
 #[test]
 fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_window() {
-    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
-    let mut config = TrainConfig::preset("tiny").unwrap();
-    config.training.window_stride = 5;
-    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
-    let batch = |share: f64| {
-        let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let options = BatchOptions {
-            size: 32,
-            swap_probability: 0.5,
-            mirror_probability: 0.5,
-            first_window_share: share,
-        };
-        trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
-    };
+    let trainer = tiny_trainer_with_stride_5();
+    let batch = |share: f64| swapped_and_mirrored_batch(&trainer, 32, share, 5);
     // Per window, whether its start rows equal its own first frame's, and its start frame.
     let own_first_frame = |share: f64| -> Vec<(bool, f32)> {
         let batch = batch(share);
@@ -260,20 +274,8 @@ fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_w
 /// window's swap puts it in.
 #[test]
 fn the_settled_flags_are_set_only_after_a_move_on_a_still_object() {
-    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
-    let mut config = TrainConfig::preset("tiny").unwrap();
-    config.training.window_stride = 5;
-    let trainer = Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap();
-    let batch = |share: f64| {
-        let mut rng = ChaCha8Rng::seed_from_u64(6);
-        let options = BatchOptions {
-            size: 64,
-            swap_probability: 0.5,
-            mirror_probability: 0.5,
-            first_window_share: share,
-        };
-        trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
-    };
+    let trainer = tiny_trainer_with_stride_5();
+    let batch = |share: f64| swapped_and_mirrored_batch(&trainer, 64, share, 6);
     let flags = |batch: &dex2hoi_train::batch::Batch| batch.settled.to_vec2::<f32>().unwrap();
     assert!(flags(&batch(1.0)).iter().flatten().all(|&f| f == 0.0));
     let anywhere = batch(0.0);
