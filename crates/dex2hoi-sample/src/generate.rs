@@ -167,7 +167,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     let mut start: Option<(usize, Tensor)> = None;
     // The memory of set-down objects: one tracker per batch row over every frame of the
     // prompt in force, from the same first frame as the object start.
-    let mut settled: Vec<SettledObjects> = Vec::new();
+    let mut set_down: Vec<SettledObjects> = Vec::new();
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
         let prompt = in_force(&request.timeline, |t| t.start_frame, produced)
@@ -175,10 +175,10 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
         if start.as_ref().is_none_or(|(of, _)| *of != prompt.start_frame) {
             let prefix = history.narrow(2, history.dims()[2] - tp, tp)?;
             start = Some((prompt.start_frame, prefix.narrow(2, 0, 1)?.squeeze(2)?));
-            settled = vec![SettledObjects::new(); batch];
-            follow_objects(&mut settled, &request.normaliser.denormalise(&prefix)?, c.layout())?;
+            set_down = vec![SettledObjects::new(); batch];
+            follow_objects(&mut set_down, &request.normaliser.denormalise(&prefix)?, c.layout())?;
         }
-        let flags: Vec<f32> = settled.iter().flat_map(SettledObjects::flags).collect();
+        let flags: Vec<f32> = set_down.iter().flat_map(SettledObjects::flags).collect();
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
         // prompt applies from its first frame, so a window whose prefix ends at generated frame
         // `produced` starts `produced - start_frame` frames into its prompt.
@@ -216,7 +216,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             )?;
             window = request.normaliser.normalise(&settled)?;
         }
-        follow_objects(&mut settled, &request.normaliser.denormalise(&window)?, c.layout())?;
+        follow_objects(&mut set_down, &request.normaliser.denormalise(&window)?, c.layout())?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -240,6 +240,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     }
     Ok(request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)?)
 }
+
 /// Feeds each batch row's tracker the objects' world positions on every frame of `frames`
 /// (their global-position channels, Eq. 2).
 ///
