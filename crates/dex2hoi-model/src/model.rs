@@ -662,22 +662,17 @@ impl DualStream {
         let bps = streams_into_batch(bps)?.broadcast_mul(&own)?;
         let text = text.to_dtype(dtype)?;
         let elapsed = prompt.elapsed.map(|e| Tensor::cat(&[e, e], 0)).transpose()?;
-        // Each stream reads its own object's start first, then the other's.
+        // Each stream reads its own object's numbers first, then the other's, zero where a
+        // slot is empty: `[batch, 2, W]` per slot becomes `[2 batch, 2 W]` per stream.
+        let own_then_other = |per_slot: &Tensor| -> Result<Tensor> {
+            let own_slot = streams_into_batch(per_slot)?.broadcast_mul(&own)?;
+            Ok(Tensor::cat(&[&own_slot, &swap_streams(&own_slot)?], 1)?)
+        };
         let start = self.conditioning.object_start(prompt.object_start, prefix, dtype)?;
-        let start = start
-            .map(|start| -> Result<Tensor> {
-                let own_start = streams_into_batch(&start)?.broadcast_mul(&own)?;
-                Ok(Tensor::cat(&[&own_start, &swap_streams(&own_start)?], 1)?)
-            })
-            .transpose()?;
-        // And its own object's flag first, then the other's, zero where a slot is empty.
+        let start = start.map(|start| own_then_other(&start)).transpose()?;
         let settled = prompt
             .settled
-            .map(|settled| -> Result<Tensor> {
-                let own_settled = streams_into_batch(&settled.to_dtype(dtype)?.unsqueeze(2)?)?
-                    .broadcast_mul(&own)?;
-                Ok(Tensor::cat(&[&own_settled, &swap_streams(&own_settled)?], 1)?)
-            })
+            .map(|settled| own_then_other(&settled.to_dtype(dtype)?.unsqueeze(2)?))
             .transpose()?;
         self.conditioning.fixed_part(
             &Tensor::cat(&[&text, &text], 0)?,
@@ -806,15 +801,18 @@ impl SingleStream {
         let batch = text.dim(0)?;
         let presence = presence.to_dtype(dtype)?;
         let bps = bps.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?;
-        // Both objects' starts, slot A first, zero where a slot is empty.
+        // Both objects' numbers, slot A first, zero where a slot is empty: `[batch, 2, W]`
+        // becomes `[batch, 2 W]`.
+        let both_slots = |per_slot: &Tensor| -> Result<Tensor> {
+            Ok(per_slot.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?)
+        };
         let start = self.conditioning.object_start(prompt.object_start, prefix, dtype)?;
-        let start = start
-            .map(|start| -> Result<Tensor> {
-                Ok(start.broadcast_mul(&presence.unsqueeze(2)?)?.reshape((batch, ()))?)
-            })
+        let start = start.map(|start| both_slots(&start)).transpose()?;
+        let settled = prompt
+            .settled
+            .map(|settled| both_slots(&settled.to_dtype(dtype)?.unsqueeze(2)?))
             .transpose()?;
         let text = text.to_dtype(dtype)?;
-        let settled = prompt.settled.map(|s| s.to_dtype(dtype)? * &presence).transpose()?;
         let readings = PromptReadings {
             elapsed: prompt.elapsed,
             start: start.as_ref(),
