@@ -191,6 +191,9 @@ pub fn run(command: ModelCommand) -> Result<()> {
             if !beyond.is_empty() {
                 println!("  the condition also reads: {}", beyond.join(", "));
             }
+            if model.start_in_prefix {
+                println!("  the first prefix frame: the first frame of the prompt in force");
+            }
             println!(
                 "  data: {} ({} skeleton, {} fps); objects: {}",
                 run.manifest.source,

@@ -161,6 +161,14 @@ pub struct ModelConfig {
     /// left out of a written configuration when false.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub settled_objects: bool,
+    /// The start frame in the prefix (beyond the paper): the first prefix token shows both
+    /// streams' rows at the first frame of the prompt in force instead of the frame `T_p`
+    /// frames back ([`crate::model::ModelInput::object_start`]), so that attention can read
+    /// where each object stood as it reads the prefix. No parameters of its own. Absent
+    /// (false) in the models made before it, and left out of a written configuration when
+    /// false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub start_in_prefix: bool,
 }
 
 impl ModelConfig {
@@ -262,6 +270,14 @@ impl ModelConfig {
                 "prefix_frames",
                 "at least 1 with a prefix-residual prediction",
                 0,
+            ));
+        }
+        if self.start_in_prefix && self.prefix_frames < 2 {
+            return Err(ModelError::config(
+                "prefix_frames",
+                "at least 2 with the start frame in the prefix (its first frame is the start, \
+                 its last the frame the window continues)",
+                self.prefix_frames,
             ));
         }
         if self.prediction == Prediction::PrefixResidualCleanFingers {

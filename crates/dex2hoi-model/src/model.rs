@@ -69,7 +69,8 @@ pub struct ModelInput<'a> {
     pub elapsed: Option<&'a Tensor>,
     /// Both streams' normalised rows at the first frame of the prompt in force, `[batch, 2,
     /// 6J + 3 + 18]`: where the object start reads each object's rotation and world position
-    /// (`ModelConfig::object_start`; ignored when it is off, required otherwise).
+    /// (`ModelConfig::object_start`), and the first prefix token with the start frame in the
+    /// prefix (`ModelConfig::start_in_prefix`); ignored without either, required with one.
     pub object_start: Option<&'a Tensor>,
     /// Whether each object has been moved and set down again since the prompt in force began,
     /// as of the window's last prefix frame (`dex2hoi_data::settled`), 1 or 0, `[batch, 2]`:
@@ -921,11 +922,31 @@ impl Model {
     /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
     pub fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         self.check_input(input)?;
+        let tokens = self.token_prefix(input.prefix, input.object_start)?;
+        let read = ModelInput { prefix: &tokens, ..*input };
         let out = match &self.layout {
-            Layout::Dual(dual) => dual.forward(input, rng)?,
-            Layout::Single(single) => single.forward(input, rng)?,
+            Layout::Dual(dual) => dual.forward(&read, rng)?,
+            Layout::Single(single) => single.forward(&read, rng)?,
         };
         self.add_prefix_residual(out, input.prefix)
+    }
+
+    /// The prefix the denoiser reads as tokens: the prefix itself, or with the start frame in
+    /// the prefix (`ModelConfig::start_in_prefix`) the prefix whose first frame is the rows at
+    /// the first frame of the prompt in force. Why: an object put back after a hold longer
+    /// than the prefix is put down where nothing in the window says it stood; as a token, where
+    /// it stood can be read by attention the way the prefix's frames are. The prefix-residual
+    /// head and the object start from the prefix still read the real last prefix frame.
+    ///
+    /// # Shapes
+    /// - `prefix`: `[batch, 2, T_p, D]`; `start`: `[batch, 2, D]`; returns `prefix`'s shape
+    pub(crate) fn token_prefix(&self, prefix: &Tensor, start: Option<&Tensor>) -> Result<Tensor> {
+        if !self.config.start_in_prefix {
+            return Ok(prefix.clone());
+        }
+        let start = required(start, "object_start", "the rows at each prompt's first frame")?;
+        let rest = prefix.narrow(2, 1, self.config.prefix_frames - 1)?;
+        Ok(Tensor::cat(&[&start.to_dtype(prefix.dtype())?.unsqueeze(2)?, &rest], 2)?)
     }
 
     /// The head's output as clean frames: with a prefix-residual [`Prediction`] the last

@@ -234,7 +234,10 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
     let from_prefix = ModelConfig { object_start: ObjectStart::FromPrefix, ..clocked.clone() };
     let settled = ModelConfig { settled_objects: true, ..from_prefix.clone() };
     let single = ModelConfig { stream_layout: StreamLayout::Single, ..settled.clone() };
-    for cfg in variants().into_iter().chain([clocked, absolute, from_prefix, settled, single]) {
+    let start_token = ModelConfig { start_in_prefix: true, ..settled.clone() };
+    let start_token_single = ModelConfig { start_in_prefix: true, ..single.clone() };
+    let variants = variants().into_iter().chain([clocked, absolute, from_prefix, settled, single]);
+    for cfg in variants.chain([start_token, start_token_single]) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -261,7 +264,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             presence: &presence,
             frame_mask: None,
             elapsed: cfg.prompt_clock.then_some(&elapsed),
-            object_start: (!cfg.object_start.is_off()).then_some(&start),
+            object_start: (!cfg.object_start.is_off() || cfg.start_in_prefix).then_some(&start),
             settled: cfg.settled_objects.then_some(&settled),
         };
         let expected = model.forward(&input, None).unwrap();

@@ -49,7 +49,8 @@ fn tiny_model_of(cfg: &ModelConfig) -> InferenceModel {
 }
 
 /// The tiny model, and the same with the prompt clock, the object start and the memory of
-/// set-down objects (which a generation must feed each window, or the model refuses it).
+/// set-down objects, and with the start frame in the prefix alone (which a generation must
+/// feed each window, or the model refuses it).
 #[test]
 fn generation_runs_window_by_window_with_a_timeline() {
     let from_prefix = ModelConfig {
@@ -58,7 +59,8 @@ fn generation_runs_window_by_window_with_a_timeline() {
         settled_objects: true,
         ..ModelConfig::tiny()
     };
-    for cfg in [ModelConfig::tiny(), from_prefix] {
+    let start_token = ModelConfig { start_in_prefix: true, ..ModelConfig::tiny() };
+    for cfg in [ModelConfig::tiny(), from_prefix, start_token] {
         runs_window_by_window_with_a_timeline(&tiny_model_of(&cfg));
     }
 }

@@ -161,8 +161,9 @@ impl Trainer {
         let mut stored = TrainConfig::from_model_metadata(&metadata, path)?;
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
-        // A run may add the prompt clock, the object start or the memory of set-down objects:
-        // each starts with no effect.
+        // A run may add the prompt clock, the object start or the memory of set-down objects
+        // (each starts with no effect), or the start frame in the prefix (no parameters of its
+        // own; the network learns to read its first prefix token anew).
         let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
         if gains_clock {
             stored.model.prompt_clock = true;
@@ -175,6 +176,9 @@ impl Trainer {
         let gains_settled = !stored.model.settled_objects && self.config.model.settled_objects;
         if gains_settled {
             stored.model.settled_objects = true;
+        }
+        if !stored.model.start_in_prefix && self.config.model.start_in_prefix {
+            stored.model.start_in_prefix = true;
         }
         for (section, model, run) in [
             (

@@ -574,11 +574,12 @@ impl InferenceModel {
         let input = self.input(prefix, noisy, timesteps, condition);
         let dtype = self.model.dtype();
         let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
+        let tokens = self.model.token_prefix(prefix, condition.object_start.as_ref())?;
         let time_in = |x: &Tensor| fast.time_in.forward(x);
         let time_out = |x: &Tensor| fast.time_out.forward(x);
         let head = match (&fast.layout, &self.model.layout) {
             (FastLayout::Dual { denoiser, fusion }, Layout::Dual(dual)) => {
-                let frames = streams_into_batch(&Tensor::cat(&[prefix, noisy], 2)?)?;
+                let frames = streams_into_batch(&Tensor::cat(&[&tokens, noisy], 2)?)?;
                 let timesteps = Tensor::cat(&[timesteps, timesteps], 0)?;
                 let time = dual.conditioning.time_with(&timesteps, dtype, time_in, time_out)?;
                 let out = denoiser.forward(&frames, &(time + &condition.fixed)?)?;
@@ -587,7 +588,7 @@ impl InferenceModel {
                 })
             }
             (FastLayout::Single { denoiser }, Layout::Single(single)) => {
-                let frames = single.frames(prefix, noisy)?;
+                let frames = single.frames(&tokens, noisy)?;
                 let time = single.conditioning.time_with(timesteps, dtype, time_in, time_out)?;
                 single.split(&denoiser.forward(&frames, &(time + &condition.fixed)?)?)
             }
