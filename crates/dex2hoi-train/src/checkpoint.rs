@@ -177,9 +177,7 @@ impl Trainer {
         if gains_settled {
             stored.model.settled_objects = true;
         }
-        if !stored.model.start_in_prefix && self.config.model.start_in_prefix {
-            stored.model.start_in_prefix = true;
-        }
+        stored.model.start_in_prefix |= self.config.model.start_in_prefix;
         for (section, model, run) in [
             (
                 "[model]",
