@@ -194,6 +194,12 @@ pub fn run(command: ModelCommand) -> Result<()> {
             if model.start_in_prefix {
                 println!("  the first prefix frame: the first frame of the prompt in force");
             }
+            if model.reach_in_prefix {
+                println!(
+                    "  the first prefix frame: per object, the last frame before it moved (the \
+                     frame it was reached)"
+                );
+            }
             println!(
                 "  data: {} ({} skeleton, {} fps); objects: {}",
                 run.manifest.source,

@@ -12,6 +12,11 @@
 //! within [`STILL_M`] of where it is, at most [`SET_DOWN_HEIGHT_M`] off the height it started
 //! at. Both the training batch (on the ground truth) and the sampler (on what it generated)
 //! run the same tracker, frame by frame.
+//!
+//! The same tracker says where each object was **reached**: the last frame before it first
+//! moved, whose arm pose is the one that took it and so the one that puts it back
+//! ([`SettledObjects::left_at`], [`reach_frames`]; the reach frame in the prefix,
+//! `reach_in_prefix`).
 
 use std::collections::VecDeque;
 
@@ -38,6 +43,10 @@ pub const SET_DOWN_HEIGHT_M: f32 = 0.02;
 pub struct SettledObjects {
     start: Option<[Vec3; MAX_OBJECTS]>,
     moved: [bool; MAX_OBJECTS],
+    /// Frames read so far.
+    read: usize,
+    /// The frame (counted from the first read) on which each object first counted as moved.
+    left_at: [Option<usize>; MAX_OBJECTS],
     /// The last [`STILL_FRAMES`] positions, oldest first.
     recent: VecDeque<[Vec3; MAX_OBJECTS]>,
 }
@@ -55,7 +64,11 @@ impl SettledObjects {
         for slot in 0..MAX_OBJECTS {
             let (p, s) = (positions[slot], start[slot]);
             self.moved[slot] |= (p - s).length() > MOVED_TRAVEL_M || p.y - s.y > MOVED_RISE_M;
+            if self.moved[slot] && self.left_at[slot].is_none() {
+                self.left_at[slot] = Some(self.read);
+            }
         }
+        self.read += 1;
         if self.recent.len() == STILL_FRAMES {
             self.recent.pop_front();
         }
@@ -76,6 +89,17 @@ impl SettledObjects {
         })
     }
 
+    /// The frame, counted from the first one read, on which each object first counted as moved
+    /// (never the first: an object stands where it starts); `None` while it has not.
+    pub fn left_at(&self) -> [Option<usize>; MAX_OBJECTS] {
+        self.left_at
+    }
+
+    /// How many frames have been read.
+    pub fn frames_read(&self) -> usize {
+        self.read
+    }
+
     /// [`Self::settled`] as the condition reads it: 1 or 0 per slot.
     pub fn flags(&self) -> [f32; MAX_OBJECTS] {
         self.settled().map(|s| f32::from(u8::from(s)))
@@ -92,6 +116,26 @@ pub fn settled_after(
         tracker.push(position(t));
     }
     tracker.settled()
+}
+
+/// The frame each object was reached, as the first prefix token of a window with the reach frame
+/// in the prefix shows it: the last frame before the object first moved, when that is before
+/// `first_prefix_frame`, otherwise `first_prefix_frame` itself (the prefix still shows the
+/// object where it stood, or leaving it). Reads `position(frame)` from frame 0 up to, not
+/// including, `prefix_end`, as [`SettledObjects`] does frame by frame.
+pub fn reach_frames(
+    first_prefix_frame: usize,
+    prefix_end: usize,
+    position: impl Fn(usize) -> [Vec3; MAX_OBJECTS],
+) -> [usize; MAX_OBJECTS] {
+    let mut tracker = SettledObjects::new();
+    for t in 0..prefix_end {
+        tracker.push(position(t));
+    }
+    tracker.left_at().map(|left| match left {
+        Some(left) => (left - 1).min(first_prefix_frame),
+        None => first_prefix_frame,
+    })
 }
 
 #[cfg(test)]
@@ -166,5 +210,28 @@ mod tests {
             assert_eq!(settled_after(frames, |t| [track[t], Vec3::ZERO]), states[frames - 1]);
         }
         assert_eq!(settled_after(0, |_| unreachable!()), [false, false]);
+    }
+
+    #[test]
+    fn an_object_is_reached_on_the_last_frame_before_it_moved() {
+        // Rises 2 cm a frame from frame 5: beyond 5 cm on frame 8, so reached on frame 7.
+        let track = lift_and_put_back(15, 30);
+        let mut tracker = SettledObjects::new();
+        for &p in &track {
+            tracker.push([p, Vec3::ZERO]);
+        }
+        assert_eq!(tracker.left_at(), [Some(8), None]);
+        let reach = |first, end| reach_frames(first, end, |t| [track[t], Vec3::ZERO]);
+        // Before it has moved, and while the prefix still shows it leaving: the prefix's own
+        // first frame, for both objects.
+        assert_eq!(reach(0, 8), [0, 0]);
+        assert_eq!(reach(3, 20), [3, 3]);
+        assert_eq!(reach(7, 20), [7, 7]);
+        // Once it left before the prefix: the frame it was reached; the still one follows
+        // the prefix.
+        assert_eq!(reach(8, 20), [7, 8]);
+        assert_eq!(reach(30, 50), [7, 30]);
+        // Put back and still: the first departure counts, not the return.
+        assert_eq!(reach(60, track.len()), [7, 60]);
     }
 }

@@ -169,6 +169,15 @@ pub struct ModelConfig {
     /// false.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub start_in_prefix: bool,
+    /// The reach frame in the prefix (beyond the paper): the first prefix token of each stream
+    /// shows its rows at the frame its object was reached, the last before the object first
+    /// moved since the prompt in force began, once that lies before the prefix
+    /// ([`crate::model::ModelInput::reach`], `dex2hoi_data::settled::reach_frames`), so that
+    /// the arm that took an object can be read when it puts it back. No parameters of its
+    /// own; not with `start_in_prefix`. Absent (false) in the models made before it, and left
+    /// out of a written configuration when false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub reach_in_prefix: bool,
 }
 
 impl ModelConfig {
@@ -272,11 +281,18 @@ impl ModelConfig {
                 0,
             ));
         }
-        if self.start_in_prefix && self.prefix_frames < 2 {
+        if self.start_in_prefix && self.reach_in_prefix {
+            return Err(ModelError::config(
+                "reach_in_prefix",
+                "not with start_in_prefix (both show their frame as the first prefix token)",
+                true,
+            ));
+        }
+        if (self.start_in_prefix || self.reach_in_prefix) && self.prefix_frames < 2 {
             return Err(ModelError::config(
                 "prefix_frames",
-                "at least 2 with the start frame in the prefix (its first frame is the start, \
-                 its last the frame the window continues)",
+                "at least 2 with the start or reach frame in the prefix (its first frame is that \
+                 frame, its last the frame the window continues)",
                 self.prefix_frames,
             ));
         }

@@ -77,6 +77,12 @@ pub struct ModelInput<'a> {
     /// what the memory of set-down objects reads (`ModelConfig::settled_objects`; ignored
     /// without it, required with it).
     pub settled: Option<&'a Tensor>,
+    /// Both streams' normalised rows at the frame each stream's object was reached
+    /// (`dex2hoi_data::settled::reach_frames`: the last frame before it first moved since the
+    /// prompt in force began, or the window's first prefix frame while that is earlier),
+    /// `[batch, 2, 6J + 3 + 18]`: the first prefix token with the reach frame in the prefix
+    /// (`ModelConfig::reach_in_prefix`; ignored without it, required with it).
+    pub reach: Option<&'a Tensor>,
 }
 
 /// The prompt clock stops here (frames): twelve seconds at 20 fps, beyond the longest rest
@@ -92,11 +98,18 @@ pub struct PromptState<'a> {
     pub object_start: Option<&'a Tensor>,
     /// See [`ModelInput::settled`].
     pub settled: Option<&'a Tensor>,
+    /// See [`ModelInput::reach`].
+    pub reach: Option<&'a Tensor>,
 }
 
 impl<'a> PromptState<'a> {
     fn of(input: &ModelInput<'a>) -> Self {
-        Self { elapsed: input.elapsed, object_start: input.object_start, settled: input.settled }
+        Self {
+            elapsed: input.elapsed,
+            object_start: input.object_start,
+            settled: input.settled,
+            reach: input.reach,
+        }
     }
 }
 
@@ -910,6 +923,9 @@ impl Model {
         if let Some(settled) = input.settled {
             expect("settled", settled, vec![batch, 2])?;
         }
+        if let Some(reach) = input.reach {
+            expect("reach", reach, vec![batch, 2, d])?;
+        }
         Ok(())
     }
 
@@ -922,7 +938,7 @@ impl Model {
     /// - see [`ModelInput`]; returns `[batch, 2, T_f, 6J + 3 + 18]`
     pub fn forward(&self, input: &ModelInput<'_>, rng: Option<&mut ChaCha8Rng>) -> Result<Tensor> {
         self.check_input(input)?;
-        let tokens = self.token_prefix(input.prefix, input.object_start)?;
+        let tokens = self.token_prefix(input.prefix, input.object_start, input.reach)?;
         let read = ModelInput { prefix: &tokens, ..*input };
         let out = match &self.layout {
             Layout::Dual(dual) => dual.forward(&read, rng)?,
@@ -931,22 +947,33 @@ impl Model {
         self.add_prefix_residual(out, input.prefix)
     }
 
-    /// The prefix the denoiser reads as tokens: the prefix itself, or with the start frame in
-    /// the prefix (`ModelConfig::start_in_prefix`) the prefix whose first frame is the rows at
-    /// the first frame of the prompt in force. Why: an object put back after a hold longer
-    /// than the prefix is put down where nothing in the window says it stood; as a token, where
-    /// it stood can be read by attention the way the prefix's frames are. The prefix-residual
-    /// head and the object start from the prefix still read the real last prefix frame.
+    /// The prefix the denoiser reads as tokens: the prefix itself, or the prefix whose first
+    /// frame is the rows at the first frame of the prompt in force (the start frame in the
+    /// prefix, `ModelConfig::start_in_prefix`) or at the frame each stream's object was
+    /// reached (the reach frame in the prefix, `ModelConfig::reach_in_prefix`). Why: an object
+    /// put back after a hold longer than the prefix is put down where nothing in the window
+    /// says it stood; as a token, where it stood (or the arm that took it there) can be read by
+    /// attention the way the prefix's frames are. The prefix-residual head and the object start
+    /// from the prefix still read the real last prefix frame.
     ///
     /// # Shapes
-    /// - `prefix`: `[batch, 2, T_p, D]`; `start`: `[batch, 2, D]`; returns `prefix`'s shape
-    pub(crate) fn token_prefix(&self, prefix: &Tensor, start: Option<&Tensor>) -> Result<Tensor> {
-        if !self.config.start_in_prefix {
+    /// - `prefix`: `[batch, 2, T_p, D]`; `start`, `reach`: `[batch, 2, D]`; returns `prefix`'s
+    ///   shape
+    pub(crate) fn token_prefix(
+        &self,
+        prefix: &Tensor,
+        start: Option<&Tensor>,
+        reach: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let first = if self.config.start_in_prefix {
+            required(start, "object_start", "the rows at each prompt's first frame")?
+        } else if self.config.reach_in_prefix {
+            required(reach, "reach", "the rows at the frame each object was reached")?
+        } else {
             return Ok(prefix.clone());
-        }
-        let start = required(start, "object_start", "the rows at each prompt's first frame")?;
+        };
         let rest = prefix.narrow(2, 1, self.config.prefix_frames - 1)?;
-        Ok(Tensor::cat(&[&start.to_dtype(prefix.dtype())?.unsqueeze(2)?, &rest], 2)?)
+        Ok(Tensor::cat(&[&first.to_dtype(prefix.dtype())?.unsqueeze(2)?, &rest], 2)?)
     }
 
     /// The head's output as clean frames: with a prefix-residual [`Prediction`] the last

@@ -236,8 +236,11 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
     let single = ModelConfig { stream_layout: StreamLayout::Single, ..settled.clone() };
     let start_token = ModelConfig { start_in_prefix: true, ..settled.clone() };
     let start_token_single = ModelConfig { start_in_prefix: true, ..single.clone() };
+    let reach_token = ModelConfig { reach_in_prefix: true, ..settled.clone() };
+    let reach_token_single = ModelConfig { reach_in_prefix: true, ..single.clone() };
     let variants = variants().into_iter().chain([clocked, absolute, from_prefix, settled, single]);
-    for cfg in variants.chain([start_token, start_token_single]) {
+    let tokens = [start_token, start_token_single, reach_token, reach_token_single];
+    for cfg in variants.chain(tokens) {
         let vars = SeededVarMap::new(0);
         let model = Model::new(&cfg, vars.builder(DType::F32, &Device::Cpu)).unwrap();
         vars.randomise_zero_parameters(9).unwrap();
@@ -255,6 +258,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
         let elapsed = Tensor::new(&[0f32, 37.0, 500.0], &Device::Cpu).unwrap();
         let start = random(&[batch, 2, d], &mut rng);
         let settled = Tensor::new(&[[1f32, 0.0], [0.0, 0.0], [1.0, 1.0]], &Device::Cpu).unwrap();
+        let reach = random(&[batch, 2, d], &mut rng);
         let input = ModelInput {
             noisy: &noisy,
             prefix: &prefix,
@@ -266,6 +270,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             elapsed: cfg.prompt_clock.then_some(&elapsed),
             object_start: (!cfg.object_start.is_off() || cfg.start_in_prefix).then_some(&start),
             settled: cfg.settled_objects.then_some(&settled),
+            reach: cfg.reach_in_prefix.then_some(&reach),
         };
         let expected = model.forward(&input, None).unwrap();
         let scale = expected.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
@@ -274,6 +279,7 @@ fn the_inference_model_equals_the_composite_forward_for_every_variant() {
             elapsed: input.elapsed,
             object_start: input.object_start,
             settled: input.settled,
+            reach: input.reach,
         };
         let condition = inference.prepare(&text, &bps, &presence, prompt, &prefix).unwrap();
         let got = inference.forward(&prefix, &noisy, &timesteps, &condition).unwrap();
@@ -336,6 +342,7 @@ fn other_dtypes_run_the_composite_model() {
         elapsed: None,
         object_start: None,
         settled: None,
+        reach: None,
     };
     let expected = model.forward(&input, None).unwrap();
     let difference = (got - expected).unwrap().abs().unwrap().max_all().unwrap();

@@ -100,6 +100,7 @@ impl Inputs {
             elapsed: Some(&self.elapsed),
             object_start: Some(&self.start),
             settled: Some(&self.settled),
+            reach: None,
         }
     }
 }
@@ -640,27 +641,31 @@ fn the_object_start_from_the_prefix_is_the_start_less_the_last_prefix_frame() {
     }
 }
 
-/// With the start frame in the prefix the network is the same, reading a prefix whose first
-/// frame is the rows at the prompt's first frame: to the bit the plain model (the same weights)
+/// With the start (or reach) frame in the prefix the network is the same, reading a prefix
+/// whose first frame is the rows given for it: to the bit the plain model (the same weights)
 /// given that prefix, while the prefix-residual head still adds the real last prefix frame.
 #[test]
-fn the_start_frame_in_the_prefix_is_the_first_prefix_token() {
-    for stream_layout in LAYOUTS {
+fn the_start_or_reach_frame_in_the_prefix_is_the_first_prefix_token() {
+    for (stream_layout, reach) in LAYOUTS.into_iter().flat_map(|l| [(l, false), (l, true)]) {
         let plain = ModelConfig { stream_layout, ..ModelConfig::tiny() };
-        let cfg = ModelConfig { start_in_prefix: true, ..plain.clone() };
+        let cfg = ModelConfig { start_in_prefix: !reach, reach_in_prefix: reach, ..plain.clone() };
         assert!(cfg.prediction.adds_prefix(), "the residual head is part of what is checked");
         let [(model, vars), (reference, reference_vars)] =
             [&cfg, &plain].map(|c| build(c, 3, DType::F32));
         randomise(&vars, 11);
         randomise(&reference_vars, 11);
         let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
-        let error = model
-            .forward(&ModelInput { object_start: None, ..inputs.view() }, None)
-            .unwrap_err()
-            .to_string();
-        assert!(error.contains("object_start"), "{stream_layout:?}: required: {error}");
+        // The token's rows: the object start's for the start frame, their own for the reach.
+        let (view, without, name) = if reach {
+            let view = ModelInput { object_start: None, reach: Some(&inputs.start), ..inputs.view() };
+            (view, ModelInput { reach: None, ..view }, "reach")
+        } else {
+            (inputs.view(), ModelInput { object_start: None, ..inputs.view() }, "object_start")
+        };
+        let error = model.forward(&without, None).unwrap_err().to_string();
+        assert!(error.contains(name), "{stream_layout:?}: required: {error}");
         let tp = cfg.prefix_frames;
-        let with_start = Tensor::cat(
+        let with_token = Tensor::cat(
             &[&inputs.start.unsqueeze(2).unwrap(), &inputs.prefix.narrow(2, 1, tp - 1).unwrap()],
             2,
         )
@@ -668,23 +673,34 @@ fn the_start_frame_in_the_prefix_is_the_first_prefix_token() {
         let difference = |a: &Tensor, b: &Tensor| {
             (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
         };
-        let got = model.forward(&inputs.view(), None).unwrap();
-        let read =
-            reference.forward(&ModelInput { prefix: &with_start, ..inputs.view() }, None).unwrap();
+        let got = model.forward(&view, None).unwrap();
+        let read = reference.forward(&ModelInput { prefix: &with_token, ..view }, None).unwrap();
         // The residual head adds the last frame, the same in both prefixes.
-        assert_eq!(difference(&got, &read), 0.0, "{stream_layout:?}");
-        let plain_out = reference.forward(&inputs.view(), None).unwrap();
-        assert!(difference(&got, &plain_out) > 1e-4, "{stream_layout:?}: the start is read");
+        assert_eq!(difference(&got, &read), 0.0, "{stream_layout:?} {name}");
+        let plain_out = reference.forward(&view, None).unwrap();
+        assert!(difference(&got, &plain_out) > 1e-4, "{stream_layout:?}: the {name} is read");
     }
-    // The first prefix frame is the start, the last the frame the window continues.
-    let one = ModelConfig { start_in_prefix: true, prefix_frames: 1, ..ModelConfig::tiny() };
-    let error = one.validate().unwrap_err().to_string();
-    assert!(error.contains("prefix_frames"), "{error}");
+    // The first prefix frame is the token, the last the frame the window continues.
+    for reach in [false, true] {
+        let one = ModelConfig {
+            start_in_prefix: !reach,
+            reach_in_prefix: reach,
+            prefix_frames: 1,
+            ..ModelConfig::tiny()
+        };
+        let error = one.validate().unwrap_err().to_string();
+        assert!(error.contains("prefix_frames"), "{error}");
+    }
+    // One token at a time.
+    let both = ModelConfig { start_in_prefix: true, reach_in_prefix: true, ..ModelConfig::tiny() };
+    let error = both.validate().unwrap_err().to_string();
+    assert!(error.contains("reach_in_prefix"), "{error}");
     // Left out of a configuration when off; absent reads as off.
     let written = serde_json::to_string(&ModelConfig::tiny()).unwrap();
     assert!(!written.contains("start_in_prefix"), "{written}");
+    assert!(!written.contains("reach_in_prefix"), "{written}");
     let read: ModelConfig = serde_json::from_str(&written).unwrap();
-    assert!(!read.start_in_prefix);
+    assert!(!read.start_in_prefix && !read.reach_in_prefix);
 }
 
 #[test]

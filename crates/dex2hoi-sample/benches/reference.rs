@@ -46,6 +46,7 @@ fn main() {
             elapsed: None,
             object_start: None,
             settled: None,
+            reach: None,
         };
         let output = model.forward(&input, None).expect("a forward pass");
         let mut tensors: HashMap<String, Tensor> = HashMap::new();

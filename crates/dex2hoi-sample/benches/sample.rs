@@ -109,6 +109,7 @@ fn main() {
             elapsed: None,
             object_start: None,
             settled: None,
+            reach: None,
         };
         reset_peak_memory();
         let window = median(runs, || {

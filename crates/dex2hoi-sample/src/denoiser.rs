@@ -29,6 +29,9 @@ pub struct WindowCondition {
     /// Whether each object has been moved and set down again since the prompt in force began,
     /// `[B, 2]` (read by a model with the memory of set-down objects).
     pub settled: Option<Tensor>,
+    /// Both streams' normalised rows at the frame each stream's object was reached, `[B, 2,
+    /// D]` (read by a model with the reach frame in the prefix).
+    pub reach: Option<Tensor>,
 }
 
 /// The model as a [`Denoiser`] for one window. Rows beyond the condition's batch repeat it
@@ -75,10 +78,12 @@ impl<'a> ModelDenoiser<'a> {
         let object_start =
             self.condition.object_start.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
         let settled = self.condition.settled.as_ref().map(|s| repeat_rows(s, times)).transpose()?;
+        let reach = self.condition.reach.as_ref().map(|r| repeat_rows(r, times)).transpose()?;
         let prompt = PromptState {
             elapsed: elapsed.as_ref(),
             object_start: object_start.as_ref(),
             settled: settled.as_ref(),
+            reach: reach.as_ref(),
         };
         let prefix = repeat_rows(&self.condition.prefix, times)?;
         let prepared = self

@@ -165,9 +165,9 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     // the first prompt the initial prefix's first frame, as a training window at the start of
     // its sequence reads its frame 0), with the start frame of the prompt they belong to.
     let mut start: Option<(usize, Tensor)> = None;
-    // The memory of set-down objects: one tracker per batch row over every frame of the
-    // prompt in force, from the same first frame as the object start.
-    let mut set_down: Vec<SettledObjects> = Vec::new();
+    // The memory of set-down objects (and the reach frames): one tracker per batch row over
+    // every frame of the prompt in force, from the same first frame as the object start.
+    let mut memory = PromptMemory::new(batch, c.layout().stream_width(), c.reach_in_prefix);
     while produced < frames {
         // The timeline starts at frame 0 (checked above), so a prompt is always in force.
         let prompt = in_force(&request.timeline, |t| t.start_frame, produced)
@@ -175,17 +175,19 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
         if start.as_ref().is_none_or(|(of, _)| *of != prompt.start_frame) {
             let prefix = history.narrow(2, history.dims()[2] - tp, tp)?;
             start = Some((prompt.start_frame, prefix.narrow(2, 0, 1)?.squeeze(2)?));
-            set_down = vec![SettledObjects::new(); batch];
-            follow_objects(&mut set_down, &request.normaliser.denormalise(&prefix)?, c.layout())?;
+            memory = PromptMemory::new(batch, c.layout().stream_width(), c.reach_in_prefix);
+            memory.follow(&prefix, request.normaliser, c.layout())?;
         }
-        let flags: Vec<f32> = set_down.iter().flat_map(SettledObjects::flags).collect();
+        let flags: Vec<f32> = memory.trackers.iter().flat_map(SettledObjects::flags).collect();
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
         // prompt applies from its first frame, so a window whose prefix ends at generated frame
         // `produced` starts `produced - start_frame` frames into its prompt.
         let elapsed = (produced - prompt.start_frame) as f32;
         let length = history.dims()[2];
+        let prefix = history.narrow(2, length - tp, tp)?;
         let condition = WindowCondition {
-            prefix: history.narrow(2, length - tp, tp)?,
+            reach: memory.reach(&prefix)?,
+            prefix,
             text: prompt.embedding.to_dtype(request.model.dtype())?,
             bps: request.bps.to_dtype(request.model.dtype())?,
             presence: request.presence.to_dtype(request.model.dtype())?,
@@ -216,7 +218,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             )?;
             window = request.normaliser.normalise(&settled)?;
         }
-        follow_objects(&mut set_down, &request.normaliser.denormalise(&window)?, c.layout())?;
+        memory.follow(&window, request.normaliser, c.layout())?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -241,30 +243,91 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
     Ok(request.normaliser.denormalise(&Tensor::cat(&windows, 2)?)?)
 }
 
-/// Feeds each batch row's tracker the objects' world positions on every frame of `frames`
-/// (their global-position channels, Eq. 2).
-///
-/// # Shapes
-/// - `frames`: `[B, 2, T, D]` (unnormalised); `trackers`: `[B]`
-fn follow_objects(
-    trackers: &mut [SettledObjects],
-    frames: &Tensor,
-    layout: dex2hoi_data::FeatureLayout,
-) -> Result<()> {
-    let positions = layout
-        .object_of(frames)?
-        .narrow(3, GLOBAL_POSITION_RANGE.start, GLOBAL_POSITION_RANGE.len())?
-        .to_dtype(DType::F32)?;
-    let length = positions.dim(2)?;
-    let positions: Vec<f32> = positions.flatten_all()?.to_vec1()?;
-    for (b, tracker) in trackers.iter_mut().enumerate() {
-        for t in 0..length {
-            tracker.push(std::array::from_fn(|s| {
-                Vec3::from_slice(&positions[((b * MAX_OBJECTS + s) * length + t) * 3..])
-            }));
+/// What the sampler follows of the prompt in force, per batch row, from the same first frame
+/// as the object start: whether each object has been set down again
+/// ([`SettledObjects`]), and with the reach frame in the prefix each stream's normalised rows
+/// at the last frame before its object first moved (`dex2hoi_data::settled::reach_frames`, as
+/// the training batch reads the ground truth).
+struct PromptMemory {
+    trackers: Vec<SettledObjects>,
+    /// `[B, 2, D]`: each stream's rows at the last frame followed while its object had not
+    /// moved; `None` without the reach frame in the prefix.
+    still_rows: Option<Vec<f32>>,
+    width: usize,
+}
+
+impl PromptMemory {
+    fn new(batch: usize, width: usize, reach: bool) -> Self {
+        Self {
+            trackers: vec![SettledObjects::new(); batch],
+            still_rows: reach.then(|| vec![0.0; batch * MAX_OBJECTS * width]),
+            width,
         }
     }
-    Ok(())
+
+    /// Follows the next frames of every batch row: the objects' world positions (their
+    /// global-position channels, Eq. 2) and, with the reach frame, the rows themselves.
+    ///
+    /// # Shapes
+    /// - `frames`: `[B, 2, T, D]` (normalised)
+    fn follow(
+        &mut self,
+        frames: &Tensor,
+        normaliser: &Normaliser,
+        layout: dex2hoi_data::FeatureLayout,
+    ) -> Result<()> {
+        let positions = layout
+            .object_of(&normaliser.denormalise(frames)?)?
+            .narrow(3, GLOBAL_POSITION_RANGE.start, GLOBAL_POSITION_RANGE.len())?
+            .to_dtype(DType::F32)?;
+        let length = positions.dim(2)?;
+        let positions: Vec<f32> = positions.flatten_all()?.to_vec1()?;
+        let rows: Option<Vec<f32>> = match self.still_rows {
+            Some(_) => Some(frames.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?),
+            None => None,
+        };
+        let width = self.width;
+        for (b, tracker) in self.trackers.iter_mut().enumerate() {
+            for t in 0..length {
+                tracker.push(std::array::from_fn(|s| {
+                    Vec3::from_slice(&positions[((b * MAX_OBJECTS + s) * length + t) * 3..])
+                }));
+                let (Some(still), Some(rows)) = (&mut self.still_rows, &rows) else { continue };
+                for (s, left) in tracker.left_at().iter().enumerate() {
+                    if left.is_none() {
+                        let row = (b * MAX_OBJECTS + s) * width;
+                        still[row..row + width].copy_from_slice(
+                            &rows[((b * MAX_OBJECTS + s) * length + t) * width..][..width],
+                        );
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The first prefix token with the reach frame in the prefix, for a window whose prefix is
+    /// the last `T_p` frames followed: per stream, the rows at the last frame before its object
+    /// first moved when that lies before the prefix, otherwise the prefix's first frame.
+    ///
+    /// # Shapes
+    /// - `prefix`: `[B, 2, T_p, D]` (normalised); returns `[B, 2, D]`
+    fn reach(&self, prefix: &Tensor) -> Result<Option<Tensor>> {
+        let Some(still) = &self.still_rows else { return Ok(None) };
+        let tp = prefix.dim(2)?;
+        let first = prefix.narrow(2, 0, 1)?.squeeze(2)?;
+        let mut rows: Vec<f32> = first.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        for (b, tracker) in self.trackers.iter().enumerate() {
+            let first_prefix_frame = tracker.frames_read().saturating_sub(tp);
+            for (s, left) in tracker.left_at().iter().enumerate() {
+                if left.is_some_and(|left| left <= first_prefix_frame) {
+                    let row = (b * MAX_OBJECTS + s) * self.width;
+                    rows[row..row + self.width].copy_from_slice(&still[row..row + self.width]);
+                }
+            }
+        }
+        Ok(Some(Tensor::from_vec(rows, first.dims(), first.device())?.to_dtype(first.dtype())?))
+    }
 }
 
 /// What a generation is conditioned on besides the model.
@@ -389,4 +452,83 @@ pub fn generate_motion(
         decoding,
     )?;
     Ok(GeneratedMotion { motion, features, seconds: started.elapsed().as_secs_f64() })
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::Device;
+    use dex2hoi_data::FeatureLayout;
+    use dex2hoi_data::settled::reach_frames;
+
+    use super::*;
+
+    /// Where an object stands on frame `t` of batch row `b`: row 0's first object rises 2 cm
+    /// a frame from frame 25 (counted as moved on frame 28), row 1's second slides 2 cm a frame
+    /// from frame 12 (moved on frame 18); the others stand still.
+    fn position(b: usize, t: usize, slot: usize) -> Vec3 {
+        let from = |start: usize| 0.02 * t.saturating_sub(start) as f32;
+        match (b, slot) {
+            (0, 0) => Vec3::new(0.3, 0.8 + from(25), 0.4),
+            (1, 1) => Vec3::new(-0.2 + from(12), 0.8, 0.5),
+            _ => Vec3::new(0.1 * slot as f32, 0.8, 0.4),
+        }
+    }
+
+    /// The sampler follows generated windows as the training batch reads a sequence: each
+    /// window's reach rows are the rows of the frames [`reach_frames`] gives for its prefix.
+    #[test]
+    fn the_sampler_reaches_objects_on_the_frames_the_training_batch_does() {
+        let layout = FeatureLayout::new(3);
+        let d = layout.stream_width();
+        let (batch, frames, tp, tf) = (2, 80, 10, 15);
+        let global = layout.object_part_range(GLOBAL_POSITION_RANGE);
+        let mut values = vec![0f32; batch * MAX_OBJECTS * frames * d];
+        for b in 0..batch {
+            for s in 0..MAX_OBJECTS {
+                for t in 0..frames {
+                    let row = &mut values[((b * MAX_OBJECTS + s) * frames + t) * d..][..d];
+                    // Every row tells its batch row, stream and frame apart.
+                    row.iter_mut().enumerate().for_each(|(k, v)| {
+                        *v = (b * 100_000 + s * 10_000 + t * 10 + k % 7) as f32;
+                    });
+                    row[global.clone()].copy_from_slice(&position(b, t, s).to_array());
+                }
+            }
+        }
+        let device = Device::Cpu;
+        let all = Tensor::from_vec(values, (batch, MAX_OBJECTS, frames, d), &device).unwrap();
+        let normaliser = Normaliser {
+            mean: Tensor::zeros(d, DType::F32, &device).unwrap(),
+            std: Tensor::ones(d, DType::F32, &device).unwrap(),
+        };
+        let mut memory = PromptMemory::new(batch, d, true);
+        memory.follow(&all.narrow(2, 0, tp).unwrap(), &normaliser, layout).unwrap();
+        let mut end = tp;
+        let mut seen_reached = [false; 2];
+        while end + tp <= frames {
+            let prefix = all.narrow(2, end - tp, tp).unwrap();
+            let got = memory.reach(&prefix).unwrap().unwrap();
+            for b in 0..batch {
+                let reached = reach_frames(end - tp, end, |t| {
+                    std::array::from_fn(|s| position(b, t, s))
+                });
+                for (s, &frame) in reached.iter().enumerate() {
+                    seen_reached[b] |= frame < end - tp;
+                    let expected = all.get(b).unwrap().get(s).unwrap().get(frame).unwrap();
+                    let row = got.get(b).unwrap().get(s).unwrap();
+                    let difference = (row - expected).unwrap().abs().unwrap();
+                    let difference = difference.max_all().unwrap().to_scalar::<f32>().unwrap();
+                    assert_eq!(difference, 0.0, "row {b}, stream {s}, prefix ending {end}");
+                }
+            }
+            let next = tf.min(frames - end);
+            memory.follow(&all.narrow(2, end, next).unwrap(), &normaliser, layout).unwrap();
+            end += next;
+        }
+        // Both moving objects were reached before a later prefix began: the rows read back
+        // are the reach frames', not only each prefix's own first frame.
+        assert_eq!(seen_reached, [true, true]);
+        // Without the reach frame nothing is kept.
+        assert!(PromptMemory::new(batch, d, false).reach(&all.narrow(2, 0, tp).unwrap()).unwrap().is_none());
+    }
 }

@@ -49,8 +49,8 @@ fn tiny_model_of(cfg: &ModelConfig) -> InferenceModel {
 }
 
 /// The tiny model, and the same with the prompt clock, the object start and the memory of
-/// set-down objects, and with the start frame in the prefix alone (which a generation must
-/// feed each window, or the model refuses it).
+/// set-down objects, and with the start or the reach frame in the prefix alone (which a
+/// generation must feed each window, or the model refuses it).
 #[test]
 fn generation_runs_window_by_window_with_a_timeline() {
     let from_prefix = ModelConfig {
@@ -60,7 +60,8 @@ fn generation_runs_window_by_window_with_a_timeline() {
         ..ModelConfig::tiny()
     };
     let start_token = ModelConfig { start_in_prefix: true, ..ModelConfig::tiny() };
-    for cfg in [ModelConfig::tiny(), from_prefix, start_token] {
+    let reach_token = ModelConfig { reach_in_prefix: true, ..ModelConfig::tiny() };
+    for cfg in [ModelConfig::tiny(), from_prefix, start_token, reach_token] {
         runs_window_by_window_with_a_timeline(&tiny_model_of(&cfg));
     }
 }

@@ -11,7 +11,7 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::augment::{mirror, swap_streams};
 use dex2hoi_data::dataset::{Dataset, FeatureStats, Split};
 use dex2hoi_data::features::{ObjectAsset, ProcessedSequence};
-use dex2hoi_data::settled::settled_after;
+use dex2hoi_data::settled::{reach_frames, settled_after};
 use dex2hoi_data::window::{Window, WindowConfig, windows};
 use dex2hoi_repr::Skeleton;
 
@@ -104,6 +104,11 @@ pub struct Batch {
     /// ([`dex2hoi_data::settled`]; swapped with the window), 1 or 0, `[B, 2]`: what the
     /// memory of set-down objects reads.
     pub settled: Tensor,
+    /// Both streams' normalised rows at the frame each stream's object was reached
+    /// ([`reach_frames`]: the last frame before it first moved, or the window's first frame
+    /// while that is earlier; swapped and mirrored with the window), `[B, 2, D]`: the first
+    /// prefix token with the reach frame in the prefix.
+    pub reach: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Whether each hand holds an object at some time of the window's whole sequence
@@ -247,6 +252,7 @@ impl TrainingSet {
         let mut elapsed = Vec::with_capacity(b);
         let mut start = vec![0.0f32; b * 2 * width];
         let mut settled = Vec::with_capacity(b * 2);
+        let mut reach = vec![0.0f32; b * 2 * width];
         let mut hands = Vec::with_capacity(b * 2);
         let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
@@ -297,6 +303,17 @@ impl TrainingSet {
             let [a, b_settled] = settled_after(window.frame(tp - 1) + 1, position);
             let (a, b_settled) = if swap { (b_settled, a) } else { (a, b_settled) };
             settled.extend([f32::from(u8::from(a)), f32::from(u8::from(b_settled))]);
+            // Each source slot's reach frame, cut and augmented as the window; the stream it
+            // lands in after the swap shows it.
+            let reached = reach_frames(window.frame(0), window.frame(tp - 1) + 1, position);
+            for (slot, &frame) in reached.iter().enumerate() {
+                let at = Window { sequence: window.sequence, start: frame, valid_frames: 1 };
+                let cut = augmented(at.cut(source, 1));
+                let stream = if swap { 1 - slot } else { slot };
+                let row = &mut reach[(i * 2 + stream) * width..][..width];
+                layout.write_stream_row(&cut.body, &cut.objects, 0, stream, row);
+                self.stats.normalise_row(row);
+            }
             for (of, out) in [(&self.hands_of, &mut hands), (&self.sides_of, &mut sides)] {
                 let [left, right] = of[window.sequence];
                 let (left, right) = if mirrored { (right, left) } else { (left, right) };
@@ -360,6 +377,7 @@ impl TrainingSet {
             elapsed: tensor(elapsed, &[b])?,
             object_start: tensor(start, &[b, 2, width])?,
             settled: tensor(settled, &[b, 2])?,
+            reach: tensor(reach, &[b, 2, width])?,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,

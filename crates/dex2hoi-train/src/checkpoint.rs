@@ -162,8 +162,8 @@ impl Trainer {
         // Dropout is how the network trains, not what it is.
         stored.model.dropout = self.config.model.dropout;
         // A run may add the prompt clock, the object start or the memory of set-down objects
-        // (each starts with no effect), or the start frame in the prefix (no parameters of its
-        // own; the network learns to read its first prefix token anew).
+        // (each starts with no effect), or the start or reach frame in the prefix (no parameters
+        // of its own; the network learns to read its first prefix token anew).
         let gains_clock = !stored.model.prompt_clock && self.config.model.prompt_clock;
         if gains_clock {
             stored.model.prompt_clock = true;
@@ -178,6 +178,7 @@ impl Trainer {
             stored.model.settled_objects = true;
         }
         stored.model.start_in_prefix |= self.config.model.start_in_prefix;
+        stored.model.reach_in_prefix |= self.config.model.reach_in_prefix;
         for (section, model, run) in [
             (
                 "[model]",

@@ -288,6 +288,7 @@ impl Trainer {
             elapsed: Some(&batch.elapsed),
             object_start: Some(&batch.object_start),
             settled: Some(&batch.settled),
+            reach: Some(&batch.reach),
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -340,6 +341,7 @@ impl Trainer {
                 let elapsed = input.elapsed.map(rows).transpose()?;
                 let object_start = input.object_start.map(rows).transpose()?;
                 let settled = input.settled.map(rows).transpose()?;
+                let reach = input.reach.map(rows).transpose()?;
                 let group = ModelInput {
                     noisy: &rows(input.noisy)?,
                     prefix: &rows(input.prefix)?,
@@ -351,6 +353,7 @@ impl Trainer {
                     elapsed: elapsed.as_ref(),
                     object_start: object_start.as_ref(),
                     settled: settled.as_ref(),
+                    reach: reach.as_ref(),
                 };
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 Ok(model.forward(&group, Some(&mut rng))?)

@@ -69,6 +69,7 @@ fn input<'a>(t: &[&'a Tensor]) -> ModelInput<'a> {
         elapsed: None,
         object_start: None,
         settled: None,
+        reach: None,
     }
 }
 

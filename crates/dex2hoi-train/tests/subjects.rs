@@ -5,13 +5,13 @@
 
 use std::path::Path;
 
-use candle_core::{DType, Device};
+use candle_core::{DType, Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::dataset::Split;
 use dex2hoi_data::features::ObjectDecoding;
-use dex2hoi_data::settled::{STILL_FRAMES, STILL_M};
+use dex2hoi_data::settled::{MOVED_RISE_M, MOVED_TRAVEL_M, STILL_FRAMES, STILL_M};
 use dex2hoi_repr::object_repr::GLOBAL_POSITION_RANGE;
 use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
@@ -266,6 +266,42 @@ fn the_start_rows_are_each_sequences_first_frame_swapped_and_mirrored_with_the_w
     let later = anywhere.iter().filter(|(_, start)| *start > 0.0).count();
     let elsewhere = anywhere.iter().filter(|(same, _)| !same).count();
     assert!(later > 16 && elsewhere == later, "{elsewhere} of {later} later windows");
+}
+
+/// The reach rows: a window at the start of its sequence, or whose object has not left where it
+/// stood before the prefix, shows its own first frame; in windows from anywhere, some show an
+/// earlier frame, on which the object (in the stream the window's swap puts it in) still stands
+/// where it started (within the tracker's rule for a move).
+#[test]
+fn the_reach_rows_show_the_last_frame_before_each_object_moved() {
+    let trainer = tiny_trainer_with_stride_5();
+    let stats = trainer.training_set().stats();
+    let layout = dex2hoi_data::FeatureLayout::new(trainer.config().model.joints);
+    let d = layout.stream_width();
+    let position = layout.object_part_range(GLOBAL_POSITION_RANGE);
+    let rows = |t: &Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
+    let first_windows = swapped_and_mirrored_batch(&trainer, 32, 1.0, 8);
+    let frame_zero = first_windows.features.narrow(2, 0, 1).unwrap().squeeze(2).unwrap();
+    assert_eq!(rows(&first_windows.reach), rows(&frame_zero));
+    let anywhere = swapped_and_mirrored_batch(&trainer, 64, 0.0, 8);
+    let first = rows(&anywhere.features.narrow(2, 0, 1).unwrap().squeeze(2).unwrap());
+    let (reach, start) = (rows(&anywhere.reach), rows(&anywhere.object_start));
+    let mut earlier = 0;
+    for k in 0..reach.len() / d {
+        let row = |v: &[f32]| v[k * d..(k + 1) * d].to_vec();
+        if row(&reach) == row(&first) {
+            continue;
+        }
+        earlier += 1;
+        let world = |v: &[f32]| -> Vec<f32> {
+            position.clone().map(|c| v[k * d + c] * stats.std[c] + stats.mean[c]).collect()
+        };
+        let (at, from) = (world(&reach), world(&start));
+        let travel: f32 = at.iter().zip(&from).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+        assert!(travel <= MOVED_TRAVEL_M + 1e-4, "row {k}: {travel} m from where it stood");
+        assert!(at[1] - from[1] <= MOVED_RISE_M + 1e-4, "row {k}: risen {}", at[1] - from[1]);
+    }
+    assert!(earlier >= 8, "{earlier} of 128 reach rows show an earlier frame");
 }
 
 /// The memory of set-down objects' flags: none in windows at the start of their sequences

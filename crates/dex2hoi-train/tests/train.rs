@@ -552,21 +552,24 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
         assert_eq!(row(&new_rows, new_id), expected, "{word}");
     }
     // A configuration that adds the prompt clock, one that adds the object start too, one
-    // that adds the memory of set-down objects as well, and one that adds the start frame in
-    // the prefix too (no parameters of its own): what they add starts at its initialisation,
-    // its output layers zero, everything else from the model.
+    // that adds the memory of set-down objects as well, and ones that add the start or the
+    // reach frame in the prefix too (no parameters of their own): what they add starts at its
+    // initialisation, its output layers zero, everything else from the model.
+    let all = ["clock_", "object_start_", "settled_"].as_slice();
     let adding = [
-        (ObjectStart::Off, false, false, ["clock_"].as_slice()),
-        (ObjectStart::FromPrefix, false, false, &["clock_", "object_start_"]),
-        (ObjectStart::FromPrefix, true, false, &["clock_", "object_start_", "settled_"]),
-        (ObjectStart::FromPrefix, true, true, &["clock_", "object_start_", "settled_"]),
+        (ObjectStart::Off, false, (false, false), ["clock_"].as_slice()),
+        (ObjectStart::FromPrefix, false, (false, false), &["clock_", "object_start_"]),
+        (ObjectStart::FromPrefix, true, (false, false), all),
+        (ObjectStart::FromPrefix, true, (true, false), all),
+        (ObjectStart::FromPrefix, true, (false, true), all),
     ];
-    for (object_start, settled_objects, start_in_prefix, added) in adding {
+    for (object_start, settled_objects, (start_in_prefix, reach_in_prefix), added) in adding {
         let mut gaining = tuned.clone();
         gaining.model.prompt_clock = true;
         gaining.model.object_start = object_start;
         gaining.model.settled_objects = settled_objects;
         gaining.model.start_in_prefix = start_in_prefix;
+        gaining.model.reach_in_prefix = reach_in_prefix;
         let mut trainer = Trainer::new(gaining, &data, Path::new("d"), &Device::Cpu).unwrap();
         let bridged = trainer.initialise_from(&packed).unwrap();
         assert_eq!(bridged.kept.len(), 4 * added.len(), "{:?}", bridged.kept);

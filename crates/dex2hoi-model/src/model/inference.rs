@@ -363,6 +363,7 @@ pub struct PreparedCondition {
     elapsed: Option<Tensor>,
     object_start: Option<Tensor>,
     settled: Option<Tensor>,
+    reach: Option<Tensor>,
     /// The timestep-independent part of the condition embedding: `[2 batch, latent]` in the
     /// dual layout (stream A first), `[batch, latent]` in the single one.
     fixed: Tensor,
@@ -391,6 +392,7 @@ impl PreparedCondition {
                 .map(|s| s.narrow(0, start, len))
                 .transpose()?,
             settled: self.settled.as_ref().map(|s| s.narrow(0, start, len)).transpose()?,
+            reach: self.reach.as_ref().map(|r| r.narrow(0, start, len)).transpose()?,
             fixed: self
                 .fixed
                 .reshape((streams, batch, latent))?
@@ -466,8 +468,8 @@ impl InferenceModel {
     /// # Shapes
     /// - `text`: `[batch, text_embedding]` (zero rows are the null condition); `bps`:
     ///   `[batch, 2, bps_points * 3]`; `presence`: `[batch, 2]`; `prompt`: `[batch]` and
-    ///   `[batch, 2, D]` and `[batch, 2]` (see [`ModelInput::elapsed`],
-    ///   [`ModelInput::object_start`] and [`ModelInput::settled`]);
+    ///   `[batch, 2, D]` and `[batch, 2]` and `[batch, 2, D]` (see [`ModelInput::elapsed`],
+    ///   [`ModelInput::object_start`], [`ModelInput::settled`] and [`ModelInput::reach`]);
     ///   `prefix`: `[batch, 2, T_p, D]`, the prefix the window's steps will see (read by an
     ///   object start from the prefix)
     pub fn prepare(
@@ -494,6 +496,7 @@ impl InferenceModel {
             elapsed: prompt.elapsed.map(Tensor::detach),
             object_start: prompt.object_start.map(Tensor::detach),
             settled: prompt.settled.map(Tensor::detach),
+            reach: prompt.reach.map(Tensor::detach),
             fixed: fixed.detach(),
         })
     }
@@ -560,6 +563,7 @@ impl InferenceModel {
             elapsed: condition.elapsed.as_ref(),
             object_start: condition.object_start.as_ref(),
             settled: condition.settled.as_ref(),
+            reach: condition.reach.as_ref(),
         }
     }
 
@@ -574,7 +578,11 @@ impl InferenceModel {
         let input = self.input(prefix, noisy, timesteps, condition);
         let dtype = self.model.dtype();
         let Some(fast) = &self.fast else { return self.model.forward(&input, None) };
-        let tokens = self.model.token_prefix(prefix, condition.object_start.as_ref())?;
+        let tokens = self.model.token_prefix(
+            prefix,
+            condition.object_start.as_ref(),
+            condition.reach.as_ref(),
+        )?;
         let time_in = |x: &Tensor| fast.time_in.forward(x);
         let time_out = |x: &Tensor| fast.time_out.forward(x);
         let head = match (&fast.layout, &self.model.layout) {
