@@ -657,7 +657,8 @@ fn the_start_or_reach_frame_in_the_prefix_is_the_first_prefix_token() {
         let inputs = Inputs::random(&cfg, 2, DType::F32, 4);
         // The token's rows: the object start's for the start frame, their own for the reach.
         let (view, without, name) = if reach {
-            let view = ModelInput { object_start: None, reach: Some(&inputs.start), ..inputs.view() };
+            let view =
+                ModelInput { object_start: None, reach: Some(&inputs.start), ..inputs.view() };
             (view, ModelInput { reach: None, ..view }, "reach")
         } else {
             (inputs.view(), ModelInput { object_start: None, ..inputs.view() }, "object_start")

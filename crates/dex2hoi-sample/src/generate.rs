@@ -176,7 +176,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             let prefix = history.narrow(2, history.dims()[2] - tp, tp)?;
             start = Some((prompt.start_frame, prefix.narrow(2, 0, 1)?.squeeze(2)?));
             memory = PromptMemory::new(batch, c.layout().stream_width(), c.reach_in_prefix);
-            memory.follow(&prefix, request.normaliser, c.layout())?;
+            memory.follow(&prefix, &prefix, request.normaliser, c.layout())?;
         }
         let flags: Vec<f32> = memory.trackers.iter().flat_map(SettledObjects::flags).collect();
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
@@ -218,7 +218,17 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             )?;
             window = request.normaliser.normalise(&settled)?;
         }
-        memory.follow(&window, request.normaliser, c.layout())?;
+        // The reach rows as the prefix will show them: rebuilt, so that their object branches
+        // agree as the data's do.
+        let rows = match (&request.prefix_encoding, c.reach_in_prefix) {
+            (Some(encoding), true) => {
+                let rebuilt =
+                    encoding.rebuild(&request.normaliser.denormalise(&window)?, c.layout())?;
+                request.normaliser.normalise(&rebuilt)?
+            }
+            _ => window.clone(),
+        };
+        memory.follow(&window, &rows, request.normaliser, c.layout())?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -266,13 +276,15 @@ impl PromptMemory {
     }
 
     /// Follows the next frames of every batch row: the objects' world positions (their
-    /// global-position channels, Eq. 2) and, with the reach frame, the rows themselves.
+    /// global-position channels, Eq. 2) and, with the reach frame, the frames' `rows` (the
+    /// same frames, as a prefix would show them).
     ///
     /// # Shapes
-    /// - `frames`: `[B, 2, T, D]` (normalised)
+    /// - `frames`, `rows`: `[B, 2, T, D]` (normalised)
     fn follow(
         &mut self,
         frames: &Tensor,
+        rows: &Tensor,
         normaliser: &Normaliser,
         layout: dex2hoi_data::FeatureLayout,
     ) -> Result<()> {
@@ -283,7 +295,7 @@ impl PromptMemory {
         let length = positions.dim(2)?;
         let positions: Vec<f32> = positions.flatten_all()?.to_vec1()?;
         let rows: Option<Vec<f32>> = match self.still_rows {
-            Some(_) => Some(frames.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?),
+            Some(_) => Some(rows.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?),
             None => None,
         };
         let width = self.width;
@@ -502,16 +514,16 @@ mod tests {
             std: Tensor::ones(d, DType::F32, &device).unwrap(),
         };
         let mut memory = PromptMemory::new(batch, d, true);
-        memory.follow(&all.narrow(2, 0, tp).unwrap(), &normaliser, layout).unwrap();
+        let first = all.narrow(2, 0, tp).unwrap();
+        memory.follow(&first, &first, &normaliser, layout).unwrap();
         let mut end = tp;
         let mut seen_reached = [false; 2];
         while end + tp <= frames {
             let prefix = all.narrow(2, end - tp, tp).unwrap();
             let got = memory.reach(&prefix).unwrap().unwrap();
             for b in 0..batch {
-                let reached = reach_frames(end - tp, end, |t| {
-                    std::array::from_fn(|s| position(b, t, s))
-                });
+                let reached =
+                    reach_frames(end - tp, end, |t| std::array::from_fn(|s| position(b, t, s)));
                 for (s, &frame) in reached.iter().enumerate() {
                     seen_reached[b] |= frame < end - tp;
                     let expected = all.get(b).unwrap().get(s).unwrap().get(frame).unwrap();
@@ -522,13 +534,19 @@ mod tests {
                 }
             }
             let next = tf.min(frames - end);
-            memory.follow(&all.narrow(2, end, next).unwrap(), &normaliser, layout).unwrap();
+            let frames = all.narrow(2, end, next).unwrap();
+            memory.follow(&frames, &frames, &normaliser, layout).unwrap();
             end += next;
         }
         // Both moving objects were reached before a later prefix began: the rows read back
         // are the reach frames', not only each prefix's own first frame.
         assert_eq!(seen_reached, [true, true]);
         // Without the reach frame nothing is kept.
-        assert!(PromptMemory::new(batch, d, false).reach(&all.narrow(2, 0, tp).unwrap()).unwrap().is_none());
+        assert!(
+            PromptMemory::new(batch, d, false)
+                .reach(&all.narrow(2, 0, tp).unwrap())
+                .unwrap()
+                .is_none()
+        );
     }
 }

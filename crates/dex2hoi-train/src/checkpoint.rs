@@ -192,15 +192,22 @@ impl Trainer {
             }
             let (model, run) =
                 (model.expect("a config serialises"), run.expect("a config serialises"));
-            let differing: Vec<String> = run
-                .as_object()
+            // Both ways: a key the model has and the run leaves out (an option it has on,
+            // off in the run) differs as much as one the run sets otherwise.
+            let keys: std::collections::BTreeSet<&String> = [&model, &run]
+                .iter()
+                .filter_map(|v| v.as_object())
+                .flat_map(|o| o.keys())
+                .collect();
+            let shown =
+                |v: Option<&serde_json::Value>| v.map_or("nothing".into(), |v| v.to_string());
+            let differing: Vec<String> = keys
                 .into_iter()
-                .flatten()
-                .filter(|(key, value)| model.get(key.as_str()) != Some(value))
-                .map(|(key, value)| {
-                    let theirs =
-                        model.get(key.as_str()).map_or("nothing".into(), |v| v.to_string());
-                    format!("{key} = {theirs} (this run: {value})")
+                .filter(|key| model.get(key.as_str()) != run.get(key.as_str()))
+                .map(|key| {
+                    let (theirs, ours) =
+                        (shown(model.get(key.as_str())), shown(run.get(key.as_str())));
+                    format!("{key} = {theirs} (this run: {ours})")
                 })
                 .collect();
             if !differing.is_empty() {

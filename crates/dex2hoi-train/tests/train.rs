@@ -586,6 +586,23 @@ fn a_run_initialised_from_a_packed_model_starts_from_its_ema_weights() {
             }
         }
     }
+    // A model with a first prefix token does not lose it, nor swap it for the other, silently.
+    let mut reaching = tuned.clone();
+    reaching.model.reach_in_prefix = true;
+    reaching.training.steps = 1;
+    let reach_run = dir.join("reach");
+    let start = RunStart::InitialisedFrom(&packed, Fresh::Nothing);
+    train(&reach_run, reaching, &data, Path::new("d"), options(start), &mut |_, _| {}).unwrap();
+    let mut starting = tuned.clone();
+    starting.model.start_in_prefix = true;
+    for (run, refused) in [(tuned.clone(), "reach_in_prefix"), (starting, "reach_in_prefix")] {
+        let mut trainer = Trainer::new(run, &data, Path::new("d"), &Device::Cpu).unwrap();
+        let error = trainer
+            .initialise_from(&reach_run.join("checkpoint.safetensors"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains(&format!("{refused} = true (this run: nothing)")), "{error}");
+    }
     // A run's own checkpoint is a starting point too (its EMA weights).
     let mut trainer = Trainer::new(config, &data, Path::new("d"), &Device::Cpu).unwrap();
     trainer.initialise_from(&base.join("checkpoint.safetensors")).unwrap();
