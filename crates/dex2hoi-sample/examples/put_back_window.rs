@@ -1,0 +1,176 @@
+//! Where a model puts an object back when the window before it is the ground truth's own:
+//! for each inspection of a dataset's test split (lift, look, put back where it stood), the
+//! window whose prefix ends `--lead` frames before the ground truth starts to lower the object
+//! is sampled from that sequence's own prefix, condition and memory (prompt clock, object
+//! start, set-down flags and reach rows, as the training batch reads them), and the object's
+//! place at the window's last frame (decoded by the mixture, Eq. 4) is compared with the ground
+//! truth's, in the plane of the table. Long generations add their own drift to this; a miss
+//! here is the model's from the data's context.
+//!
+//! ```sh
+//! cargo run --release -p dex2hoi-sample --example put_back_window -- \
+//!     --data /work/runs/test9-even-2000 RUN [RUN ...]
+//! ```
+//!
+//! `--ground-truth` decodes the ground truth's own window instead of a sample (every miss 0:
+//! the check of the measure).
+
+use std::path::PathBuf;
+
+use candle_core::{Device, Tensor};
+use clap::Parser;
+use glam::Vec3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use dex2hoi_data::MAX_OBJECTS;
+use dex2hoi_data::dataset::{Dataset, Split};
+use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
+use dex2hoi_data::layout::slot_bps;
+use dex2hoi_data::settled::{reach_frames, settled_after};
+use dex2hoi_diffusion::{CosineSchedule, DEFAULT_GUIDANCE, SamplerConfig};
+use dex2hoi_sample::{TrainedRun, Weights, WindowCondition, sample_window};
+
+#[derive(Parser)]
+struct Args {
+    /// A procedural dataset directory (`dex2hoi data synth`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Frames between the window's last prefix frame and the ground truth's first lowered one.
+    #[arg(long, default_value_t = 5)]
+    lead: usize,
+    /// Samples per inspection (rows of one window's batch, seed 0).
+    #[arg(long, default_value_t = 4)]
+    samples: usize,
+    /// Classifier-free guidance scale (0: none).
+    #[arg(long, default_value_t = DEFAULT_GUIDANCE)]
+    guidance: f64,
+    /// Condition on the empty prompt instead of the sequence's first description.
+    #[arg(long)]
+    null_text: bool,
+    /// Decode the ground truth's window instead of sampling one.
+    #[arg(long)]
+    ground_truth: bool,
+    /// Runs or packed models.
+    #[arg(required = true)]
+    runs: Vec<PathBuf>,
+}
+
+/// How far below the held height the object counts as lowered (metres).
+const LOWERED_M: f32 = 0.02;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args = Args::parse();
+    let data = Dataset::load(&args.data)?;
+    let inspections: Vec<&ProcessedSequence> = data.splits[&Split::Test]
+        .iter()
+        .filter(|s| s.action.as_deref() == Some("inspect"))
+        .collect();
+    println!("{} inspections in {}", inspections.len(), args.data.display());
+    let device = Device::Cpu;
+    let batch = args.samples;
+    let repeat = |t: Tensor| Tensor::cat(&vec![t; batch], 0);
+    for run_path in &args.runs {
+        let run = TrainedRun::load(run_path, Weights::Ema, &device)?;
+        let c = run.config.model.clone();
+        let (tp, tf, d) = (c.prefix_frames, c.predicted_frames, c.stream_features());
+        let normaliser = run.normaliser()?;
+        let schedule = CosineSchedule::new(run.config.diffusion_steps)?;
+        let sampler = SamplerConfig {
+            guidance: (args.guidance != 0.0).then_some(args.guidance),
+            ..SamplerConfig::default()
+        };
+        let mut misses = Vec::new();
+        for seq in &inspections {
+            let position = |t: usize| -> [Vec3; MAX_OBJECTS] {
+                std::array::from_fn(|s| {
+                    Vec3::from_slice(&seq.object_positions[(t * MAX_OBJECTS + s) * 3..])
+                })
+            };
+            // The frame the held object starts down: the first below its highest by LOWERED_M
+            // after it first reached that height.
+            let height: Vec<f32> =
+                (0..seq.frames).map(|t| position(t)[0].y - position(0)[0].y).collect();
+            let top = height.iter().copied().fold(0.0, f32::max);
+            let reached = height.iter().position(|&h| h > top - 0.01).unwrap_or(0);
+            let Some(lowered) = (reached..seq.frames).find(|&t| height[t] < top - LOWERED_M) else {
+                continue;
+            };
+            let f = lowered.saturating_sub(args.lead);
+            if f < tp || f + tf > seq.frames {
+                println!("{}: the window does not fit in the sequence", seq.source_id);
+                continue;
+            }
+            let rows =
+                |frames: std::ops::Range<usize>| -> Result<Tensor, Box<dyn std::error::Error>> {
+                    let n = frames.len();
+                    let t = Tensor::from_vec(seq.stream_features(frames)?, (1, 2, n, d), &device)?;
+                    Ok(normaliser.normalise(&t)?)
+                };
+            let reach = reach_frames(f - tp, f, position);
+            let reach_rows = (0..MAX_OBJECTS)
+                .map(|s| Ok(rows(reach[s]..reach[s] + 1)?.narrow(1, s, 1)?))
+                .collect::<Result<Vec<_>, Box<dyn std::error::Error>>>()?;
+            let settled = settled_after(f, position).map(|b| f32::from(u8::from(b)));
+            let text = run.text.encode(&[seq.texts[0].as_str()])?;
+            let text = if args.null_text { text.zeros_like()? } else { text };
+            let bps = slot_bps(&data.objects, data.slot_assets(seq)?, c.bps_points)?;
+            let presence = seq.object_present.map(|p| f32::from(u8::from(p)));
+            let condition = WindowCondition {
+                prefix: repeat(rows(f - tp..f)?)?,
+                text: repeat(text)?,
+                bps: repeat(Tensor::from_vec(bps, (1, 2, c.bps_points * 3), &device)?)?,
+                presence: repeat(Tensor::from_vec(presence.to_vec(), (1, 2), &device)?)?,
+                elapsed: Some(Tensor::full((f - tp) as f32, batch, &device)?),
+                object_start: Some(repeat(rows(0..1)?.squeeze(2)?)?),
+                settled: Some(repeat(Tensor::from_vec(settled.to_vec(), (1, 2), &device)?)?),
+                reach: Some(repeat(Tensor::cat(&reach_rows, 1)?.squeeze(2)?)?),
+            };
+            let window = if args.ground_truth {
+                repeat(Tensor::from_vec(seq.stream_features(f..f + tf)?, (1, 2, tf, d), &device)?)?
+            } else {
+                let mut rng = ChaCha8Rng::seed_from_u64(0);
+                normaliser.denormalise(&sample_window(
+                    &run.inference,
+                    &schedule,
+                    &condition,
+                    &sampler,
+                    &mut rng,
+                )?)?
+            };
+            let truth = position(f + tf - 1)[0];
+            let mut row = Vec::with_capacity(batch);
+            for b in 0..batch {
+                let features: Vec<f32> = window.get(b)?.flatten_all()?.to_vec1()?;
+                let (body, objects) = c.layout().streams_to_frames(&features)?;
+                let motion = decode_features(
+                    &run.skeleton,
+                    &body,
+                    &objects,
+                    seq.object_present,
+                    seq.root_start,
+                    ObjectDecoding::Mixture,
+                )?;
+                let Some((_, places)) = &motion.objects[0] else { continue };
+                row.push((places[tf - 1] - truth).with_y(0.0).length() * 100.0);
+            }
+            let held = (position(f - 1)[0] - position(0)[0]).with_y(0.0).length() * 100.0;
+            let shown: Vec<String> = row.iter().map(|m| format!("{m:.1}")).collect();
+            println!(
+                "{} held {held:.1} cm from its place: misses {} cm",
+                seq.source_id,
+                shown.join(" ")
+            );
+            misses.extend(row);
+        }
+        misses.sort_by(f32::total_cmp);
+        let within = misses.iter().filter(|&&m| m <= 5.0).count();
+        println!(
+            "{}: median miss {:.1} cm, within 5 cm {within} of {}",
+            run_path.display(),
+            misses.get(misses.len() / 2).copied().unwrap_or(f32::NAN),
+            misses.len()
+        );
+    }
+    Ok(())
+}
