@@ -57,6 +57,15 @@ impl SettledObjects {
         Self::default()
     }
 
+    /// A tracker that has read `frames` frames of `position(frame)` from frame 0.
+    pub fn after(frames: usize, position: impl Fn(usize) -> [Vec3; MAX_OBJECTS]) -> Self {
+        let mut tracker = Self::new();
+        for t in 0..frames {
+            tracker.push(position(t));
+        }
+        tracker
+    }
+
     /// Reads the objects' positions on the next frame (the first is where they stood when the
     /// prompt began).
     pub fn push(&mut self, positions: [Vec3; MAX_OBJECTS]) {
@@ -111,11 +120,7 @@ pub fn settled_after(
     frames: usize,
     position: impl Fn(usize) -> [Vec3; MAX_OBJECTS],
 ) -> [bool; MAX_OBJECTS] {
-    let mut tracker = SettledObjects::new();
-    for t in 0..frames {
-        tracker.push(position(t));
-    }
-    tracker.settled()
+    SettledObjects::after(frames, position).settled()
 }
 
 /// The frame each object was reached, as the first prefix token of a window with the reach frame
@@ -128,11 +133,7 @@ pub fn reach_frames(
     prefix_end: usize,
     position: impl Fn(usize) -> [Vec3; MAX_OBJECTS],
 ) -> [usize; MAX_OBJECTS] {
-    let mut tracker = SettledObjects::new();
-    for t in 0..prefix_end {
-        tracker.push(position(t));
-    }
-    tracker.left_at().map(|left| match left {
+    SettledObjects::after(prefix_end, position).left_at().map(|left| match left {
         Some(left) => (left - 1).min(first_prefix_frame),
         None => first_prefix_frame,
     })
