@@ -109,6 +109,18 @@ impl SettledObjects {
         self.read
     }
 
+    /// The frame each object was reached, as the first prefix token of a window whose prefix
+    /// starts at `first_prefix_frame` and ends at the last frame read shows it: the last frame
+    /// before the object first moved, when that is before `first_prefix_frame`, otherwise
+    /// `first_prefix_frame` itself (the prefix still shows the object where it stood, or
+    /// leaving it).
+    pub fn reach_frames(&self, first_prefix_frame: usize) -> [usize; MAX_OBJECTS] {
+        self.left_at.map(|left| match left {
+            Some(left) => (left - 1).min(first_prefix_frame),
+            None => first_prefix_frame,
+        })
+    }
+
     /// [`Self::settled`] as the condition reads it: 1 or 0 per slot.
     pub fn flags(&self) -> [f32; MAX_OBJECTS] {
         self.settled().map(|s| f32::from(u8::from(s)))
@@ -123,20 +135,14 @@ pub fn settled_after(
     SettledObjects::after(frames, position).settled()
 }
 
-/// The frame each object was reached, as the first prefix token of a window with the reach frame
-/// in the prefix shows it: the last frame before the object first moved, when that is before
-/// `first_prefix_frame`, otherwise `first_prefix_frame` itself (the prefix still shows the
-/// object where it stood, or leaving it). Reads `position(frame)` from frame 0 up to, not
-/// including, `prefix_end`, as [`SettledObjects`] does frame by frame.
+/// [`SettledObjects::reach_frames`] after reading `position(frame)` from frame 0 up to, not
+/// including, `prefix_end`.
 pub fn reach_frames(
     first_prefix_frame: usize,
     prefix_end: usize,
     position: impl Fn(usize) -> [Vec3; MAX_OBJECTS],
 ) -> [usize; MAX_OBJECTS] {
-    SettledObjects::after(prefix_end, position).left_at().map(|left| match left {
-        Some(left) => (left - 1).min(first_prefix_frame),
-        None => first_prefix_frame,
-    })
+    SettledObjects::after(prefix_end, position).reach_frames(first_prefix_frame)
 }
 
 #[cfg(test)]

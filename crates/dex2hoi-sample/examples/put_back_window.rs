@@ -27,7 +27,7 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
 use dex2hoi_data::layout::slot_bps;
-use dex2hoi_data::settled::{reach_frames, settled_after};
+use dex2hoi_data::settled::SettledObjects;
 use dex2hoi_diffusion::{CosineSchedule, DEFAULT_GUIDANCE, SamplerConfig};
 use dex2hoi_sample::{TrainedRun, Weights, WindowCondition, sample_window};
 
@@ -107,11 +107,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let t = Tensor::from_vec(seq.stream_features(frames)?, (1, 2, n, d), &device)?;
                     Ok(normaliser.normalise(&t)?)
                 };
-            let reach = reach_frames(f - tp, f, position);
+            let tracker = SettledObjects::after(f, position);
+            let reach = tracker.reach_frames(f - tp);
             let reach_rows = (0..MAX_OBJECTS)
                 .map(|s| Ok(rows(reach[s]..reach[s] + 1)?.narrow(1, s, 1)?))
                 .collect::<Result<Vec<_>, Box<dyn std::error::Error>>>()?;
-            let settled = settled_after(f, position).map(|b| f32::from(u8::from(b)));
+            let settled = tracker.flags();
             let text = run.text.encode(&[seq.texts[0].as_str()])?;
             let text = if args.null_text { text.zeros_like()? } else { text };
             let bps = slot_bps(&data.objects, data.slot_assets(seq)?, c.bps_points)?;

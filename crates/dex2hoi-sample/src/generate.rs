@@ -176,7 +176,7 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
             let prefix = history.narrow(2, history.dims()[2] - tp, tp)?;
             start = Some((prompt.start_frame, prefix.narrow(2, 0, 1)?.squeeze(2)?));
             memory = PromptMemory::new(batch, c.layout().stream_width(), c.reach_in_prefix);
-            memory.follow(&prefix, &prefix, request.normaliser, c.layout())?;
+            memory.follow(&request.normaliser.denormalise(&prefix)?, &prefix, c.layout())?;
         }
         let flags: Vec<f32> = memory.trackers.iter().flat_map(SettledObjects::flags).collect();
         // The initial prefix stands for the frames just before frame 0 of a sequence whose
@@ -220,15 +220,14 @@ pub fn generate(request: &Generation<'_>, rng: &mut ChaCha8Rng) -> Result<Tensor
         }
         // The reach rows as the prefix will show them: rebuilt, so that their object branches
         // agree as the data's do.
+        let plain = request.normaliser.denormalise(&window)?;
         let rows = match (&request.prefix_encoding, c.reach_in_prefix) {
             (Some(encoding), true) => {
-                let rebuilt =
-                    encoding.rebuild(&request.normaliser.denormalise(&window)?, c.layout())?;
-                request.normaliser.normalise(&rebuilt)?
+                request.normaliser.normalise(&encoding.rebuild(&plain, c.layout())?)?
             }
             _ => window.clone(),
         };
-        memory.follow(&window, &rows, request.normaliser, c.layout())?;
+        memory.follow(&plain, &rows, c.layout())?;
         history = Tensor::cat(&[&history.narrow(2, length - tp, tp)?, &window], 2)?;
         windows.push(window);
         produced += keep;
@@ -275,21 +274,20 @@ impl PromptMemory {
         }
     }
 
-    /// Follows the next frames of every batch row: the objects' world positions (their
-    /// global-position channels, Eq. 2) and, with the reach frame, the frames' `rows` (the
-    /// same frames, as a prefix would show them).
+    /// Follows the next frames of every batch row: the objects' world positions (the
+    /// global-position channels of `frames`, Eq. 2) and, with the reach frame, the frames'
+    /// normalised `rows` (the same frames, as a prefix would show them).
     ///
     /// # Shapes
-    /// - `frames`, `rows`: `[B, 2, T, D]` (normalised)
+    /// - `frames` (unnormalised), `rows` (normalised): `[B, 2, T, D]`
     fn follow(
         &mut self,
         frames: &Tensor,
         rows: &Tensor,
-        normaliser: &Normaliser,
         layout: dex2hoi_data::FeatureLayout,
     ) -> Result<()> {
         let positions = layout
-            .object_of(&normaliser.denormalise(frames)?)?
+            .object_of(frames)?
             .narrow(3, GLOBAL_POSITION_RANGE.start, GLOBAL_POSITION_RANGE.len())?
             .to_dtype(DType::F32)?;
         let length = positions.dim(2)?;
@@ -331,8 +329,8 @@ impl PromptMemory {
         let mut rows: Vec<f32> = first.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         for (b, tracker) in self.trackers.iter().enumerate() {
             let first_prefix_frame = tracker.frames_read().saturating_sub(tp);
-            for (s, left) in tracker.left_at().iter().enumerate() {
-                if left.is_some_and(|left| left <= first_prefix_frame) {
+            for (s, &frame) in tracker.reach_frames(first_prefix_frame).iter().enumerate() {
+                if frame < first_prefix_frame {
                     let row = (b * MAX_OBJECTS + s) * self.width;
                     rows[row..row + self.width].copy_from_slice(&still[row..row + self.width]);
                 }
@@ -509,13 +507,10 @@ mod tests {
         }
         let device = Device::Cpu;
         let all = Tensor::from_vec(values, (batch, MAX_OBJECTS, frames, d), &device).unwrap();
-        let normaliser = Normaliser {
-            mean: Tensor::zeros(d, DType::F32, &device).unwrap(),
-            std: Tensor::ones(d, DType::F32, &device).unwrap(),
-        };
+        // The frames stand for both the unnormalised and the normalised ones (statistics 0, 1).
         let mut memory = PromptMemory::new(batch, d, true);
         let first = all.narrow(2, 0, tp).unwrap();
-        memory.follow(&first, &first, &normaliser, layout).unwrap();
+        memory.follow(&first, &first, layout).unwrap();
         let mut end = tp;
         let mut seen_reached = [false; 2];
         while end + tp <= frames {
@@ -535,7 +530,7 @@ mod tests {
             }
             let next = tf.min(frames - end);
             let frames = all.narrow(2, end, next).unwrap();
-            memory.follow(&frames, &frames, &normaliser, layout).unwrap();
+            memory.follow(&frames, &frames, layout).unwrap();
             end += next;
         }
         // Both moving objects were reached before a later prefix began: the rows read back

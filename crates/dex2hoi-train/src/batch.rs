@@ -11,7 +11,7 @@ use dex2hoi_data::MAX_OBJECTS;
 use dex2hoi_data::augment::{mirror, swap_streams};
 use dex2hoi_data::dataset::{Dataset, FeatureStats, Split};
 use dex2hoi_data::features::{ObjectAsset, ProcessedSequence};
-use dex2hoi_data::settled::{reach_frames, settled_after};
+use dex2hoi_data::settled::SettledObjects;
 use dex2hoi_data::window::{Window, WindowConfig, windows};
 use dex2hoi_repr::Skeleton;
 
@@ -105,9 +105,9 @@ pub struct Batch {
     /// memory of set-down objects reads.
     pub settled: Tensor,
     /// Both streams' normalised rows at the frame each stream's object was reached
-    /// ([`reach_frames`]: the last frame before it first moved, or the window's first frame
-    /// while that is earlier; swapped and mirrored with the window), `[B, 2, D]`: the first
-    /// prefix token with the reach frame in the prefix.
+    /// ([`SettledObjects::reach_frames`]: the last frame before it first moved, or the
+    /// window's first frame while that is earlier; swapped and mirrored with the window),
+    /// `[B, 2, D]`: the first prefix token with the reach frame in the prefix.
     pub reach: Tensor,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
@@ -300,12 +300,15 @@ impl TrainingSet {
                     Vec3::from_slice(&source.object_positions[p..p + 3])
                 })
             };
-            let [a, b_settled] = settled_after(window.frame(tp - 1) + 1, position);
+            // One tracker over the sequence up to the window's last prefix frame serves the
+            // set-down flags and the reach frames.
+            let tracker = SettledObjects::after(window.frame(tp - 1) + 1, position);
+            let [a, b_settled] = tracker.settled();
             let (a, b_settled) = if swap { (b_settled, a) } else { (a, b_settled) };
             settled.extend([f32::from(u8::from(a)), f32::from(u8::from(b_settled))]);
             // Each source slot's reach frame, cut and augmented as the window; the stream it
             // lands in after the swap shows it.
-            let reached = reach_frames(window.frame(0), window.frame(tp - 1) + 1, position);
+            let reached = tracker.reach_frames(window.frame(0));
             for (slot, &frame) in reached.iter().enumerate() {
                 let at = Window { sequence: window.sequence, start: frame, valid_frames: 1 };
                 let cut = augmented(at.cut(source, 1));
