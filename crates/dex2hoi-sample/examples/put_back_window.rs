@@ -1,5 +1,5 @@
 //! Where a model puts an object back when the window before it is the ground truth's own:
-//! for each inspection of a dataset's test split (lift, look, put back where it stood), the
+//! for each inspection of a dataset's split (lift, look, put back where it stood), the
 //! window whose prefix ends `--lead` frames before the ground truth starts to lower the object
 //! is sampled from that sequence's own prefix, condition and memory (prompt clock, object
 //! start, set-down flags and reach rows, as the training batch reads them), and the object's
@@ -13,7 +13,8 @@
 //! ```
 //!
 //! `--ground-truth` decodes the ground truth's own window instead of a sample (every miss 0:
-//! the check of the measure).
+//! the check of the measure). `--one-step T` decodes the model's single prediction of the
+//! clean window from the ground truth noised to step `T`, as the training objective sees it.
 
 use std::path::PathBuf;
 
@@ -28,14 +29,21 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
 use dex2hoi_data::layout::slot_bps;
 use dex2hoi_data::settled::SettledObjects;
-use dex2hoi_diffusion::{CosineSchedule, DEFAULT_GUIDANCE, SamplerConfig};
-use dex2hoi_sample::{TrainedRun, Weights, WindowCondition, sample_window};
+use dex2hoi_diffusion::{CosineSchedule, DEFAULT_GUIDANCE, Denoiser, SamplerConfig, gaussian};
+use dex2hoi_sample::{ModelDenoiser, TrainedRun, Weights, WindowCondition, sample_window};
 
 #[derive(Parser)]
 struct Args {
     /// A procedural dataset directory (`dex2hoi data synth`).
     #[arg(long)]
     data: PathBuf,
+    /// The split whose inspections are sampled: `test` for what the model makes of sequences
+    /// it never saw, `train` for how closely it fits those it learned from.
+    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
+    split: SplitArg,
+    /// At most this many inspections, the split's first.
+    #[arg(long, default_value_t = 25)]
+    limit: usize,
     /// Frames between the window's last prefix frame and the ground truth's first lowered one.
     #[arg(long, default_value_t = 5)]
     lead: usize,
@@ -51,9 +59,20 @@ struct Args {
     /// Decode the ground truth's window instead of sampling one.
     #[arg(long)]
     ground_truth: bool,
+    /// Instead of sampling, noise the ground truth's window to this diffusion step (seed 0)
+    /// and decode the model's one prediction of the clean window from it, conditioned, without
+    /// guidance: what the training objective measures at that step.
+    #[arg(long, conflicts_with = "ground_truth")]
+    one_step: Option<usize>,
     /// Runs or packed models.
     #[arg(required = true)]
     runs: Vec<PathBuf>,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum SplitArg {
+    Train,
+    Test,
 }
 
 /// How far below the held height the object counts as lowered (metres).
@@ -62,9 +81,14 @@ const LOWERED_M: f32 = 0.02;
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args = Args::parse();
     let data = Dataset::load(&args.data)?;
-    let inspections: Vec<&ProcessedSequence> = data.splits[&Split::Test]
+    let split = match args.split {
+        SplitArg::Train => Split::Train,
+        SplitArg::Test => Split::Test,
+    };
+    let inspections: Vec<&ProcessedSequence> = data.splits[&split]
         .iter()
         .filter(|s| s.action.as_deref() == Some("inspect"))
+        .take(args.limit)
         .collect();
     println!("{} inspections in {}", inspections.len(), args.data.display());
     let device = Device::Cpu;
@@ -129,6 +153,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             };
             let window = if args.ground_truth {
                 repeat(Tensor::from_vec(seq.stream_features(f..f + tf)?, (1, 2, tf, d), &device)?)?
+            } else if let Some(step) = args.one_step {
+                let mut rng = ChaCha8Rng::seed_from_u64(0);
+                let clean = repeat(rows(f..f + tf)?)?;
+                let noise = gaussian(clean.dims(), &mut rng, clean.dtype(), &device)?;
+                let noisy = schedule.add_noise(&clean, &noise, &vec![step; batch])?;
+                let steps = CosineSchedule::timestep_tensor(&vec![step; batch], &device)?;
+                let denoiser = ModelDenoiser::new(&run.inference, &condition);
+                normaliser.denormalise(&denoiser.predict_x0(
+                    &noisy,
+                    &steps,
+                    &vec![false; batch],
+                )?)?
             } else {
                 let mut rng = ChaCha8Rng::seed_from_u64(0);
                 normaliser.denormalise(&sample_window(

@@ -41,6 +41,11 @@ pub struct TrainingSet {
     windows: Vec<Window>,
     /// Indices into `windows` of each sequence's first window (starting at frame 0).
     first_windows: Vec<usize>,
+    /// Per window and source slot, whether the object is set down within the window's
+    /// predicted frames ([`Batch::put_down`] before the swap).
+    put_down_of: Vec<[bool; MAX_OBJECTS]>,
+    /// Indices into `windows` of the windows that set some object down.
+    put_down_windows: Vec<usize>,
     window: WindowConfig,
     /// Per sequence and slot, the index of the object asset.
     assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
@@ -109,6 +114,11 @@ pub struct Batch {
     /// window's first frame while that is earlier; swapped and mirrored with the window),
     /// `[B, 2, D]`: the first prefix token with the reach frame in the prefix.
     pub reach: Tensor,
+    /// Per window and slot, whether the object is set down within the window's predicted
+    /// frames: moved and set down again by the window's last real frame
+    /// ([`dex2hoi_data::settled`]) but not yet by its last prefix frame (swapped with the
+    /// window). Where these objects end is what the `put_down` term measures.
+    pub put_down: Vec<[bool; MAX_OBJECTS]>,
     /// Per window and slot, the index of the object's surface cloud.
     pub clouds: Vec<[Option<usize>; MAX_OBJECTS]>,
     /// Whether each hand holds an object at some time of the window's whole sequence
@@ -139,6 +149,41 @@ pub fn hands_holding(sequence: &ProcessedSequence) -> [bool; 2] {
     frames.map(|count| count >= HOLDING_FRAMES)
 }
 
+/// Per window and slot, whether the object is set down within the window's predicted frames:
+/// the tracker of [`dex2hoi_data::settled`], following the window's sequence from its first
+/// frame, counts it as set down after the window's last real frame but not after its last
+/// prefix frame. One pass of the tracker per sequence.
+fn put_downs(
+    sequences: &[ProcessedSequence],
+    windows: &[Window],
+    config: &WindowConfig,
+) -> Vec<[bool; MAX_OBJECTS]> {
+    let settled_by_frame: Vec<Vec<[bool; MAX_OBJECTS]>> = sequences
+        .iter()
+        .map(|sequence| {
+            let mut tracker = SettledObjects::new();
+            (0..sequence.frames)
+                .map(|t| {
+                    tracker.push(std::array::from_fn(|s| {
+                        let p = (t * MAX_OBJECTS + s) * 3;
+                        Vec3::from_slice(&sequence.object_positions[p..p + 3])
+                    }));
+                    tracker.settled()
+                })
+                .collect()
+        })
+        .collect();
+    let (tp, t_all) = (config.prefix_frames, config.prefix_frames + config.predicted_frames);
+    windows
+        .iter()
+        .map(|window| {
+            let settled = &settled_by_frame[window.sequence];
+            let (before, after) = (settled[window.frame(tp - 1)], settled[window.frame(t_all - 1)]);
+            std::array::from_fn(|s| after[s] && !before[s])
+        })
+        .collect()
+}
+
 /// How a batch is drawn.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BatchOptions {
@@ -151,6 +196,9 @@ pub struct BatchOptions {
     /// Share of windows drawn from the first windows of sequences
     /// ([`crate::LoopConfig::first_window_share`]).
     pub first_window_share: f64,
+    /// Share of the other windows drawn from those that set an object down
+    /// ([`crate::LoopConfig::put_down_share`]).
+    pub put_down_share: f64,
 }
 
 impl TrainingSet {
@@ -169,6 +217,9 @@ impl TrainingSet {
         let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
         let windows = windows(&counts, &window)?;
         let first_windows = (0..windows.len()).filter(|&i| windows[i].start == 0).collect();
+        let put_down_of = put_downs(&sequences, &windows, &window);
+        let put_down_windows =
+            (0..windows.len()).filter(|&i| put_down_of[i].iter().any(|&p| p)).collect();
         let assets_of = sequences
             .iter()
             .map(|s| dataset.slot_assets(s))
@@ -183,6 +234,8 @@ impl TrainingSet {
             sequences,
             windows,
             first_windows,
+            put_down_of,
+            put_down_windows,
             window,
             assets_of,
             hands_of,
@@ -203,6 +256,12 @@ impl TrainingSet {
     /// The windows.
     pub fn windows(&self) -> &[Window] {
         &self.windows
+    }
+
+    /// Indices into [`Self::windows`] of the windows that set some object down within their
+    /// predicted frames ([`Batch::put_down`]).
+    pub fn put_down_windows(&self) -> &[usize] {
+        &self.put_down_windows
     }
 
     /// The training sequences.
@@ -253,18 +312,19 @@ impl TrainingSet {
         let mut start = vec![0.0f32; b * 2 * width];
         let mut settled = Vec::with_capacity(b * 2);
         let mut reach = vec![0.0f32; b * 2 * width];
+        let mut put_down = Vec::with_capacity(b);
         let mut hands = Vec::with_capacity(b * 2);
         let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
-            // No draw for the share when it is 0, so that such runs keep their random stream.
-            let first = options.first_window_share > 0.0
-                && !self.first_windows.is_empty()
-                && rng.random_bool(options.first_window_share);
-            let window = if first {
-                self.windows[self.first_windows[rng.random_range(0..self.first_windows.len())]]
-            } else {
-                self.windows[rng.random_range(0..self.windows.len())]
+            // No draw for a share when it is 0, so that such runs keep their random stream.
+            let drawn_from = |share: f64, from: &[usize], rng: &mut ChaCha8Rng| {
+                (share > 0.0 && !from.is_empty() && rng.random_bool(share))
+                    .then(|| from[rng.random_range(0..from.len())])
             };
+            let index = drawn_from(options.first_window_share, &self.first_windows, rng)
+                .or_else(|| drawn_from(options.put_down_share, &self.put_down_windows, rng))
+                .unwrap_or_else(|| rng.random_range(0..self.windows.len()));
+            let window = self.windows[index];
             elapsed.push(window.start as f32);
             let source = &self.sequences[window.sequence];
             let text = source.texts[rng.random_range(0..source.texts.len())].clone();
@@ -303,9 +363,14 @@ impl TrainingSet {
             // One tracker over the sequence up to the window's last prefix frame serves the
             // set-down flags and the reach frames.
             let tracker = SettledObjects::after(window.frame(tp - 1) + 1, position);
-            let [a, b_settled] = tracker.settled();
-            let (a, b_settled) = if swap { (b_settled, a) } else { (a, b_settled) };
+            let [mut a, mut b_settled] = tracker.settled();
+            let mut put = self.put_down_of[index];
+            if swap {
+                (a, b_settled) = (b_settled, a);
+                put.swap(0, 1);
+            }
             settled.extend([f32::from(u8::from(a)), f32::from(u8::from(b_settled))]);
+            put_down.push(put);
             // Each source slot's reach frame, cut and augmented as the window; the stream it
             // lands in after the swap shows it.
             let reached = tracker.reach_frames(window.frame(0));
@@ -381,6 +446,7 @@ impl TrainingSet {
             object_start: tensor(start, &[b, 2, width])?,
             settled: tensor(settled, &[b, 2])?,
             reach: tensor(reach, &[b, 2, width])?,
+            put_down,
             rest_offsets: tensor(rest_offsets, &[b, joints, 3])?,
             clouds,
             hands: tensor(hands, &[b, 2])?,

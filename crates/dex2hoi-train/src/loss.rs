@@ -4,7 +4,8 @@
 //! lambda_o L_off + lambda_p L_dist` (Eq. 12; the velocity, foot and penetration terms are the
 //! "geometry regularization losses" the paper takes from InterGen, CoDA and HOIDiNi), plus,
 //! beyond the paper and off by default, `lambda_g` times the global branch's error (the
-//! `global` term, [`LossConfig::global`]) and logistic losses on the hands and the side the
+//! `global` term, [`LossConfig::global`]), the error of where objects set down in the window
+//! end (the `put_down` term, [`LossConfig::put_down`]) and logistic losses on the hands and the side the
 //! text names, read from its embedding (the `text_hands` and `text_sides` terms,
 //! [`LossConfig::text_hands`], [`LossConfig::text_sides`]). Every term
 //! is a masked mean over what exists: predicted frames that are real (not padding, not the
@@ -86,6 +87,9 @@ pub enum Term {
     /// The global branch against the object's position (beyond the paper, see
     /// [`LossConfig::global`]).
     Global,
+    /// Where the objects set down within the window end, against the data (beyond the paper,
+    /// see [`LossConfig::put_down`]).
+    PutDown,
     /// `L_dist` (Eq. 11).
     Distance,
     /// The hands the text names, read from its embedding (beyond the paper, see
@@ -98,7 +102,7 @@ pub enum Term {
 
 impl Term {
     /// Every term, in reporting order.
-    pub const ALL: [Term; 12] = [
+    pub const ALL: [Term; 13] = [
         Term::Diffusion,
         Term::FeatureVelocity,
         Term::JointVelocity,
@@ -108,6 +112,7 @@ impl Term {
         Term::Translation,
         Term::Offset,
         Term::Global,
+        Term::PutDown,
         Term::Distance,
         Term::TextHands,
         Term::TextSides,
@@ -125,6 +130,7 @@ impl Term {
             Term::Translation => "translation",
             Term::Offset => "offset",
             Term::Global => "global",
+            Term::PutDown => "put_down",
             Term::Distance => "distance",
             Term::TextHands => "text_hands",
             Term::TextSides => "text_sides",
@@ -155,6 +161,7 @@ impl Term {
             Term::Translation => config.translation,
             Term::Offset => config.offset,
             Term::Global => config.global,
+            Term::PutDown => config.put_down,
             Term::Distance => config.distance,
             Term::TextHands => config.text_hands,
             Term::TextSides => config.text_sides,
@@ -437,6 +444,7 @@ impl LossContext {
             terms.push((Term::Global, slots.mean(&error.sqr()?, cm2)?));
         }
         let needs_position = self.active(Term::Translation)
+            || self.active(Term::PutDown)
             || self.active(Term::Penetration)
             || self.active(Term::Distance);
         if !needs_position {
@@ -447,6 +455,13 @@ impl LossContext {
             let error =
                 (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
             terms.push((Term::Translation, gated_slots.mean(&error.sqr()?, cm2)?));
+        }
+        if self.active(Term::PutDown) {
+            // Every diffusion step: where a put-down ends is decided at the noisy ones.
+            let error =
+                (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
+            let ends = Mask::new(window, window.put_down_ends(), &[b, 2, tf, 1], 1)?;
+            terms.push((Term::PutDown, ends.mean(&error.sqr()?, cm2)?));
         }
         if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
             return Ok(());
@@ -781,6 +796,24 @@ impl<'a> Window<'a> {
             }
         }
         frames
+    }
+
+    /// `[B, 2, T_f]`: 1 on the last real predicted frame of each object set down within the
+    /// window ([`Batch::put_down`]), 0 elsewhere.
+    fn put_down_ends(&self) -> Vec<f32> {
+        let tf = self.tf;
+        let mut ends = vec![0.0f32; self.batch * 2 * tf];
+        for i in 0..self.batch {
+            let Some(last) = (0..tf).rev().find(|&k| self.frame_valid(i, k) > 0.0) else {
+                continue;
+            };
+            for s in 0..MAX_OBJECTS {
+                if self.batch_data.put_down[i][s] && self.batch_data.presence_values[i][s] {
+                    ends[(i * 2 + s) * tf + last] = 1.0;
+                }
+            }
+        }
+        ends
     }
 
     /// [`Window::slot_frames`] as a mask over `[B, 2, T_f, 1]`.

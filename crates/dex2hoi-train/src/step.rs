@@ -267,6 +267,7 @@ impl Trainer {
             swap_probability: c.training.swap_probability,
             mirror_probability: c.training.mirror_probability,
             first_window_share: c.training.first_window_share,
+            put_down_share: c.training.put_down_share,
         };
         let batch = self.data.batch(&options, rng, &self.device)?;
         let (embedding, text) = self.encode_text(&batch.texts, rng)?;

@@ -35,11 +35,13 @@ impl Setup {
             swap_probability: 0.5,
             mirror_probability: 0.5,
             first_window_share: 0.0,
+            put_down_share: 0.0,
         };
         let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
         // The batch of the first seed from 3 on whose windows the contact terms measure
-        // something: windows of the person at rest before or after the task have no contact,
-        // and a term that measures nothing has no gradient to check.
+        // something (and the put-down term, when it is on): windows of the person at rest
+        // before or after the task have no contact, and a term that measures nothing has no
+        // gradient to check.
         for seed in 3..64 {
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             let batch = trainer.training_set().batch(&options, &mut rng, &device).unwrap();
@@ -55,7 +57,8 @@ impl Setup {
             let measured = |term: Term| {
                 terms.iter().any(|(t, v)| *t == term && v.to_scalar::<f64>().unwrap() > 0.0)
             };
-            if measured(Term::Penetration) && measured(Term::Distance) {
+            let put_down = config.loss.put_down == 0.0 || measured(Term::PutDown);
+            if measured(Term::Penetration) && measured(Term::Distance) && put_down {
                 return Self { config, trainer, batch, target, start, rng };
             }
         }
@@ -65,11 +68,13 @@ impl Setup {
 
 #[test]
 fn every_term_has_the_gradient_of_its_finite_differences() {
-    // The global branch's term is off by default; on here so that every term is checked. The
-    // contact terms reach the object rotations too, so that their whole gradient is checked.
+    // The global branch's and the put-down terms are off by default; on here so that every
+    // term is checked. The contact terms reach the object rotations too, so that their whole
+    // gradient is checked.
     check_finite_differences(
         |config| {
             config.loss.global = 0.01;
+            config.loss.put_down = 0.01;
             config.loss.contact_turns_objects = true;
         },
         |_| true,
@@ -81,6 +86,7 @@ fn the_velocity_terms_across_the_seam_have_the_gradient_of_their_finite_differen
     check_finite_differences(
         |config| {
             config.loss.global = 0.01;
+            config.loss.put_down = 0.01;
             config.loss.velocity_across_the_seam = true;
         },
         |term| matches!(term, Term::FeatureVelocity | Term::JointVelocity),
@@ -88,7 +94,8 @@ fn the_velocity_terms_across_the_seam_have_the_gradient_of_their_finite_differen
 }
 
 /// Checks the gradient of every term `checked` picks, with the settings `adjust` makes, against
-/// central differences at 40 random entries of the prediction.
+/// central differences at 40 random entries of the prediction and 20 more on its last frame
+/// (the only one the put-down term reads).
 fn check_finite_differences(adjust: impl Fn(&mut TrainConfig), checked: impl Fn(&Term) -> bool) {
     let Setup { config, trainer, batch, start, mut rng, .. } = Setup::new(adjust);
     let device = Device::Cpu;
@@ -106,9 +113,9 @@ fn check_finite_differences(adjust: impl Fn(&mut TrainConfig), checked: impl Fn(
     let body = 6 * config.model.joints + 3;
     // Entries: rotations, the root and every part of the object features of both slots.
     let mut entries = Vec::new();
-    for _ in 0..40 {
-        let (i, s, k) =
-            (rng.random_range(0..shape[0]), rng.random_range(0..2), rng.random_range(0..tf));
+    for n in 0..60 {
+        let k = if n < 40 { rng.random_range(0..tf) } else { tf - 1 };
+        let (i, s) = (rng.random_range(0..shape[0]), rng.random_range(0..2));
         let channel = match rng.random_range(0..3) {
             0 => rng.random_range(0..6 * config.model.joints),
             1 => rng.random_range(6 * config.model.joints..body),

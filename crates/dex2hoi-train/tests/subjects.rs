@@ -11,7 +11,9 @@ use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::dataset::Split;
 use dex2hoi_data::features::ObjectDecoding;
-use dex2hoi_data::settled::{MOVED_RISE_M, MOVED_TRAVEL_M, STILL_FRAMES, STILL_M};
+use dex2hoi_data::settled::{
+    MOVED_RISE_M, MOVED_TRAVEL_M, SET_DOWN_HEIGHT_M, STILL_FRAMES, STILL_M,
+};
 use dex2hoi_repr::object_repr::GLOBAL_POSITION_RANGE;
 use dex2hoi_train::batch::BatchOptions;
 use dex2hoi_train::{Term, TrainConfig, Trainer};
@@ -40,6 +42,7 @@ fn the_ground_truth_has_no_joint_error_on_its_own_body() {
         swap_probability: 0.5,
         mirror_probability: 0.5,
         first_window_share: 0.0,
+        put_down_share: 0.0,
     };
     let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
     let (tp, tf) = (config.model.prefix_frames, config.model.predicted_frames);
@@ -68,6 +71,7 @@ fn a_share_of_windows_comes_from_the_first_windows() {
             swap_probability: 0.5,
             mirror_probability: 0.5,
             first_window_share: share,
+            put_down_share: 0.0,
         };
         let batch = trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap();
         batch.elapsed.to_vec1::<f32>().unwrap()
@@ -99,6 +103,7 @@ fn unmirrored_and_mirrored(trainer: &Trainer, size: usize) -> [dex2hoi_train::ba
             swap_probability: 0.5,
             mirror_probability,
             first_window_share: 0.0,
+            put_down_share: 0.0,
         };
         trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
     })
@@ -239,6 +244,7 @@ fn swapped_and_mirrored_batch(
         swap_probability: 0.5,
         mirror_probability: 0.5,
         first_window_share: share,
+        put_down_share: 0.0,
     };
     trainer.training_set().batch(&options, &mut rng, &Device::Cpu).unwrap()
 }
@@ -344,4 +350,70 @@ fn the_settled_flags_are_set_only_after_a_move_on_a_still_object() {
             }
         }
     }
+}
+
+/// The put-down flags: some windows from anywhere set an object down within their predicted
+/// frames; each flagged object is not yet set down by the prefix's last frame (its memory flag
+/// is 0), and on the window's last frames (up to `STILL_FRAMES`) it stands still at the height
+/// it started at, in the slot the window's swap puts it in.
+#[test]
+fn the_put_down_flags_mark_objects_set_down_within_the_predicted_frames() {
+    let trainer = tiny_trainer_with_stride_5();
+    let batch = swapped_and_mirrored_batch(&trainer, 128, 0.0, 9);
+    let settled = batch.settled.to_vec2::<f32>().unwrap();
+    let stats = trainer.training_set().stats();
+    let layout = dex2hoi_data::FeatureLayout::new(trainer.config().model.joints);
+    let d = layout.stream_width();
+    let t_all = batch.features.dims()[2];
+    let features: Vec<f32> = batch.features.flatten_all().unwrap().to_vec1().unwrap();
+    let start: Vec<f32> = batch.object_start.flatten_all().unwrap().to_vec1().unwrap();
+    let position = layout.object_part_range(GLOBAL_POSITION_RANGE);
+    let world = |row: &[f32]| -> Vec<f32> {
+        position.clone().map(|c| row[c] * stats.std[c] + stats.mean[c]).collect()
+    };
+    let mut flagged = 0;
+    for (i, window) in batch.put_down.iter().enumerate() {
+        for (slot, &put) in window.iter().enumerate() {
+            if !put {
+                continue;
+            }
+            flagged += 1;
+            assert!(batch.presence_values[i][slot], "window {i}, slot {slot}: no object");
+            assert_eq!(settled[i][slot], 0.0, "window {i}, slot {slot}: set down before");
+            let at = |t: usize| world(&features[((i * 2 + slot) * t_all + t) * d..][..d]);
+            let last = at(t_all - 1);
+            for t in t_all.saturating_sub(STILL_FRAMES)..t_all {
+                let moved: f32 =
+                    at(t).iter().zip(&last).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+                assert!(moved <= STILL_M + 1e-4, "window {i}, slot {slot}, frame {t}: {moved}");
+            }
+            let from = world(&start[(i * 2 + slot) * d..][..d]);
+            let height = (last[1] - from[1]).abs();
+            assert!(height <= SET_DOWN_HEIGHT_M + 1e-4, "window {i}, slot {slot}: {height} m");
+        }
+    }
+    assert!(flagged >= 4, "{flagged} put-downs in 128 windows");
+}
+
+/// `put_down_share`: at 1 every window of a batch sets an object down within its predicted
+/// frames; such windows are a minority of all, and a share of 0 is left out of a written
+/// configuration.
+#[test]
+fn a_share_of_windows_comes_from_those_that_set_an_object_down() {
+    let trainer = tiny_trainer_with_stride_5();
+    let set = trainer.training_set();
+    let (put_down, all) = (set.put_down_windows().len(), set.windows().len());
+    assert!(put_down > 0 && put_down * 2 < all, "{put_down} of {all} windows set an object down");
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let options = BatchOptions {
+        size: 64,
+        swap_probability: 0.5,
+        mirror_probability: 0.5,
+        first_window_share: 0.0,
+        put_down_share: 1.0,
+    };
+    let batch = set.batch(&options, &mut rng, &Device::Cpu).unwrap();
+    assert!(batch.put_down.iter().all(|slots| slots.iter().any(|&p| p)));
+    let toml = toml::to_string(trainer.config()).unwrap();
+    assert!(!toml.contains("put_down"), "{toml}");
 }
