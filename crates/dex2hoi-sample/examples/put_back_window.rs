@@ -14,7 +14,8 @@
 //!
 //! `--ground-truth` decodes the ground truth's own window instead of a sample (every miss 0:
 //! the check of the measure). `--one-step T` decodes the model's single prediction of the
-//! clean window from the ground truth noised to step `T`, as the training objective sees it.
+//! clean window from the ground truth noised to step `T`, as the training objective sees it;
+//! `--trace` follows that prediction through the sampler's steps.
 
 use std::path::PathBuf;
 
@@ -29,7 +30,9 @@ use dex2hoi_data::dataset::{Dataset, Split};
 use dex2hoi_data::features::{ObjectDecoding, ProcessedSequence, decode_features};
 use dex2hoi_data::layout::slot_bps;
 use dex2hoi_data::settled::SettledObjects;
-use dex2hoi_diffusion::{CosineSchedule, DEFAULT_GUIDANCE, Denoiser, SamplerConfig, gaussian};
+use dex2hoi_diffusion::{
+    CosineSchedule, DEFAULT_GUIDANCE, Denoiser, SamplerConfig, gaussian, sample,
+};
 use dex2hoi_sample::{ModelDenoiser, TrainedRun, Weights, WindowCondition, sample_window};
 
 #[derive(Parser)]
@@ -64,9 +67,37 @@ struct Args {
     /// guidance: what the training objective measures at that step.
     #[arg(long, conflicts_with = "ground_truth")]
     one_step: Option<usize>,
+    /// While sampling, also decode the model's conditional prediction of the clean window at
+    /// every step of the sampler and print, per step, the median miss over all inspections:
+    /// where along the way the put-down's end moves.
+    #[arg(long, conflicts_with_all = ["ground_truth", "one_step"])]
+    trace: bool,
     /// Runs or packed models.
     #[arg(required = true)]
     runs: Vec<PathBuf>,
+}
+
+/// The model as the sampler sees it, keeping each step's conditional predictions.
+struct Tracing<'a> {
+    inner: ModelDenoiser<'a>,
+    /// Per call: the diffusion step and the conditional rows' prediction (normalised).
+    steps: std::sync::Mutex<Vec<(u32, Tensor)>>,
+}
+
+impl Denoiser for Tracing<'_> {
+    fn predict_x0(
+        &self,
+        noisy: &Tensor,
+        timesteps: &Tensor,
+        null_condition: &[bool],
+    ) -> dex2hoi_diffusion::Result<Tensor> {
+        let x0 = self.inner.predict_x0(noisy, timesteps, null_condition)?;
+        let conditional = null_condition.iter().take_while(|&&null| !null).count();
+        let step = timesteps.get(0)?.to_scalar::<u32>()?;
+        let mut steps = self.steps.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        steps.push((step, x0.narrow(0, 0, conditional)?));
+        Ok(x0)
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -105,6 +136,34 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ..SamplerConfig::default()
         };
         let mut misses = Vec::new();
+        // Per sampler step (with --trace): the step and every sample's miss at it.
+        let mut trace: Vec<(u32, Vec<f32>)> = Vec::new();
+        // How far, in the plane of the table, each row's object ends from the ground truth's
+        // place on the window's last frame, the window being `[rows, 2, T_f, D]` denormalised
+        // and starting at the window's first frame `f`.
+        let misses_of = |window: &Tensor,
+                         seq: &ProcessedSequence,
+                         f: usize|
+         -> Result<Vec<f32>, Box<dyn std::error::Error>> {
+            let p = ((f + tf - 1) * MAX_OBJECTS) * 3;
+            let truth = Vec3::from_slice(&seq.object_positions[p..p + 3]);
+            let mut row = Vec::with_capacity(window.dims()[0]);
+            for b in 0..window.dims()[0] {
+                let features: Vec<f32> = window.get(b)?.flatten_all()?.to_vec1()?;
+                let (body, objects) = c.layout().streams_to_frames(&features)?;
+                let motion = decode_features(
+                    &run.skeleton,
+                    &body,
+                    &objects,
+                    seq.object_present,
+                    seq.root_start,
+                    ObjectDecoding::Mixture,
+                )?;
+                let Some((_, places)) = &motion.objects[0] else { continue };
+                row.push((places[tf - 1] - truth).with_y(0.0).length() * 100.0);
+            }
+            Ok(row)
+        };
         for seq in &inspections {
             let position = |t: usize| -> [Vec3; MAX_OBJECTS] {
                 std::array::from_fn(|s| {
@@ -165,6 +224,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     &steps,
                     &vec![false; batch],
                 )?)?
+            } else if args.trace {
+                let mut rng = ChaCha8Rng::seed_from_u64(0);
+                let denoiser = Tracing {
+                    inner: ModelDenoiser::new(&run.inference, &condition),
+                    steps: Default::default(),
+                };
+                let shape = [batch, 2, tf, d];
+                let dtype = run.inference.dtype();
+                let x = sample(&schedule, &denoiser, &shape, &sampler, &mut rng, dtype, &device)?;
+                let steps = denoiser.steps.into_inner().unwrap_or_else(|e| e.into_inner());
+                for (k, (step, x0)) in steps.iter().enumerate() {
+                    let x0 = normaliser.denormalise(x0)?;
+                    if trace.len() <= k {
+                        trace.push((*step, Vec::new()));
+                    }
+                    trace[k].1.extend(misses_of(&x0, seq, f)?);
+                }
+                normaliser.denormalise(&x)?
             } else {
                 let mut rng = ChaCha8Rng::seed_from_u64(0);
                 normaliser.denormalise(&sample_window(
@@ -175,22 +252,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     &mut rng,
                 )?)?
             };
-            let truth = position(f + tf - 1)[0];
-            let mut row = Vec::with_capacity(batch);
-            for b in 0..batch {
-                let features: Vec<f32> = window.get(b)?.flatten_all()?.to_vec1()?;
-                let (body, objects) = c.layout().streams_to_frames(&features)?;
-                let motion = decode_features(
-                    &run.skeleton,
-                    &body,
-                    &objects,
-                    seq.object_present,
-                    seq.root_start,
-                    ObjectDecoding::Mixture,
-                )?;
-                let Some((_, places)) = &motion.objects[0] else { continue };
-                row.push((places[tf - 1] - truth).with_y(0.0).length() * 100.0);
-            }
+            let row = misses_of(&window, seq, f)?;
             let held = (position(f - 1)[0] - position(0)[0]).with_y(0.0).length() * 100.0;
             let shown: Vec<String> = row.iter().map(|m| format!("{m:.1}")).collect();
             println!(
@@ -199,6 +261,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 shown.join(" ")
             );
             misses.extend(row);
+        }
+        for (step, mut at) in trace {
+            at.sort_by(f32::total_cmp);
+            let within = at.iter().filter(|&&m| m <= 5.0).count();
+            let median = at.get(at.len() / 2).copied().unwrap_or(f32::NAN);
+            println!("step {step:>4}: predicted end {median:.1} cm off, within 5 cm {within} of {}", at.len());
         }
         misses.sort_by(f32::total_cmp);
         let within = misses.iter().filter(|&&m| m <= 5.0).count();
