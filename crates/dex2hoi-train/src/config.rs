@@ -75,7 +75,7 @@ pub struct LossConfig {
     /// weight over every frame. From the data's own context one window before an inspected
     /// object is put back, the model trained without this term predicts from step 999 an end
     /// a median 9 cm from the object's place (2 cm from step 700), and its samples miss by
-    /// 12 cm, on training sequences as on test ones (`docs/results/long-generations.md`, "Where
+    /// 11-13 cm, on training sequences as on test ones (`docs/results/long-generations.md`, "Where
     /// a put-down ends: a term for it").
     #[serde(skip_serializing_if = "is_zero")]
     pub put_down: f64,
