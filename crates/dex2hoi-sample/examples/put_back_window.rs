@@ -266,7 +266,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             at.sort_by(f32::total_cmp);
             let within = at.iter().filter(|&&m| m <= 5.0).count();
             let median = at.get(at.len() / 2).copied().unwrap_or(f32::NAN);
-            println!("step {step:>4}: predicted end {median:.1} cm off, within 5 cm {within} of {}", at.len());
+            println!(
+                "step {step:>4}: predicted end {median:.1} cm off, within 5 cm {within} of {}",
+                at.len()
+            );
         }
         misses.sort_by(f32::total_cmp);
         let within = misses.iter().filter(|&&m| m <= 5.0).count();
