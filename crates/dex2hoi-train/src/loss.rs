@@ -451,17 +451,18 @@ impl LossContext {
             return Ok(());
         }
         let object_positions = self.object_positions(&objects, &body, b, tf)?;
-        if self.active(Term::Translation) {
-            let error =
-                (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
-            terms.push((Term::Translation, gated_slots.mean(&error.sqr()?, cm2)?));
-        }
-        if self.active(Term::PutDown) {
-            // Every diffusion step: where a put-down ends is decided at the noisy ones.
-            let error =
-                (&object_positions - window.batch_data.object_positions.to_dtype(window.dtype)?)?;
-            let ends = Mask::new(window, window.put_down_ends(), &[b, 2, tf, 1], 1)?;
-            terms.push((Term::PutDown, ends.mean(&error.sqr()?, cm2)?));
+        if self.active(Term::Translation) || self.active(Term::PutDown) {
+            let squared_error = (&object_positions
+                - window.batch_data.object_positions.to_dtype(window.dtype)?)?
+            .sqr()?;
+            if self.active(Term::Translation) {
+                terms.push((Term::Translation, gated_slots.mean(&squared_error, cm2)?));
+            }
+            if self.active(Term::PutDown) {
+                // Every diffusion step: where a put-down ends is decided at the noisy ones.
+                let ends = Mask::new(window, window.put_down_ends(), &[b, 2, tf, 1], 1)?;
+                terms.push((Term::PutDown, ends.mean(&squared_error, cm2)?));
+            }
         }
         if !(self.active(Term::Penetration) || self.active(Term::Distance)) {
             return Ok(());
