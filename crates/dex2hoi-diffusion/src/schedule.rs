@@ -98,6 +98,58 @@ impl CosineSchedule {
         Ok((x0.broadcast_mul(&signal)? + noise.broadcast_mul(&scale)?)?)
     }
 
+    /// The deterministic DDIM step (eta 0) from `x_t` to an earlier step `t'` along a
+    /// prediction `x0` of the clean sample, one pair of steps per sample:
+    /// `x_t' = sqrt(alpha_bar_t') x0 + sqrt(1 - alpha_bar_t') eps`, where
+    /// `eps = (x_t - sqrt(alpha_bar_t) x0) / sqrt(1 - alpha_bar_t)` is the noise the prediction
+    /// implies (DDIM, Song et al. 2021, Eq. 12). With the true `x0` it gives the forward
+    /// noising of the same noise at `t'`; with a model's prediction, the input the sampler
+    /// would reach.
+    ///
+    /// # Shapes
+    /// - `x_t`, `x0`: `[batch, ...]`; `from`, `to`: `batch` values, each `to` at most its `from`
+    /// - returns `[batch, ...]`
+    pub fn step_towards(
+        &self,
+        x_t: &Tensor,
+        x0: &Tensor,
+        from: &[usize],
+        to: &[usize],
+    ) -> Result<Tensor> {
+        self.check_timesteps(from)?;
+        self.check_timesteps(to)?;
+        if x_t.dims().first() != Some(&from.len())
+            || x_t.dims() != x0.dims()
+            || to.len() != from.len()
+        {
+            return Err(DiffusionError::invalid(
+                "DDIM step inputs",
+                format!("x_t and x0 of one shape with {} rows, as many target steps", from.len()),
+                format!("{:?}, {:?} and {} target steps", x_t.dims(), x0.dims(), to.len()),
+            ));
+        }
+        if let Some((t, earlier)) = from.iter().zip(to).find(|(t, earlier)| earlier > t) {
+            return Err(DiffusionError::invalid(
+                "DDIM target step",
+                format!("at most the step it starts from, {t}"),
+                earlier,
+            ));
+        }
+        let per_pair = |f: &dyn Fn(f64, f64) -> f64| -> Vec<f64> {
+            from.iter()
+                .zip(to)
+                .map(|(&t, &earlier)| f(self.alpha_bar(t), self.alpha_bar(earlier)))
+                .collect()
+        };
+        // x_t' = a x_t + b x0 with eps substituted: a = sqrt((1 - ab') / (1 - ab)),
+        // b = sqrt(ab') - a sqrt(ab). A step to itself is the identity (a = 1, b = 0).
+        let ratio = |ab: f64, ab_to: f64| ((1.0 - ab_to) / (1.0 - ab)).sqrt();
+        let of_x_t = self.per_sample(per_pair(&ratio), x_t)?;
+        let of_x0 = self
+            .per_sample(per_pair(&|ab, ab_to| ab_to.sqrt() - ratio(ab, ab_to) * ab.sqrt()), x0)?;
+        Ok((x_t.broadcast_mul(&of_x_t)? + x0.broadcast_mul(&of_x0)?)?)
+    }
+
     /// Timesteps as a `[batch]` `u32` tensor, the form denoisers take.
     pub fn timestep_tensor(timesteps: &[usize], device: &Device) -> Result<Tensor> {
         let values: Vec<u32> = timesteps.iter().map(|&t| t as u32).collect();

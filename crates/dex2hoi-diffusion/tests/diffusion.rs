@@ -61,6 +61,43 @@ fn noising_uses_one_timestep_per_sample() {
     );
 }
 
+/// The DDIM step along the true `x0` is the forward noising of the same noise at the earlier
+/// step; along another prediction it moves the sample by `sqrt(alpha_bar_t') - sqrt((1 -
+/// alpha_bar_t') / (1 - alpha_bar_t)) sqrt(alpha_bar_t)` times the difference; a step to itself
+/// changes nothing, and a step forwards is refused.
+#[test]
+fn a_ddim_step_along_the_clean_sample_is_the_noising_of_the_earlier_step() {
+    let schedule = CosineSchedule::new(1000).unwrap();
+    let device = Device::Cpu;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let x0 = gaussian(&[4, 3, 5], &mut rng, DType::F32, &device).unwrap();
+    let noise = gaussian(&[4, 3, 5], &mut rng, DType::F32, &device).unwrap();
+    let (from, to) = ([999, 700, 300, 40], [500, 0, 299, 40]);
+    let x_t = schedule.add_noise(&x0, &noise, &from).unwrap();
+    let stepped = schedule.step_towards(&x_t, &x0, &from, &to).unwrap();
+    let noised = schedule.add_noise(&x0, &noise, &to).unwrap();
+    let largest = |t: Tensor| t.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
+    let error = largest((&stepped - &noised).unwrap()).to_scalar::<f32>().unwrap();
+    assert!(error < 1e-5, "{error}");
+    let shifted = (&x0 + 1.0).unwrap();
+    let moved = schedule.step_towards(&x_t, &shifted, &from, &to).unwrap();
+    let moved = (moved - &stepped).unwrap().to_vec3::<f32>().unwrap();
+    for (row, (&t, &earlier)) in from.iter().zip(&to).enumerate() {
+        let (ab, ab_to) = (schedule.alpha_bar(t), schedule.alpha_bar(earlier));
+        let expected = ab_to.sqrt() - ((1.0 - ab_to) / (1.0 - ab)).sqrt() * ab.sqrt();
+        for value in moved[row].iter().flatten() {
+            assert!(
+                (f64::from(*value) - expected).abs() < 1e-5,
+                "row {row}: {value} vs {expected}"
+            );
+        }
+    }
+    let same = schedule.step_towards(&x_t, &shifted, &from, &from).unwrap();
+    assert!(largest((same - &x_t).unwrap()).to_scalar::<f32>().unwrap() < 1e-6);
+    assert!(schedule.step_towards(&x_t, &x0, &from, &[999, 701, 0, 0]).is_err());
+    assert!(schedule.step_towards(&x_t, &x0, &from[..3], &to[..3]).is_err());
+}
+
 #[test]
 fn respacing_spans_the_chain() {
     let schedule = CosineSchedule::new(1000).unwrap();

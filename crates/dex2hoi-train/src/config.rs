@@ -226,6 +226,18 @@ pub struct LoopConfig {
     /// term it says how often the objective sees where a put-down ends.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub put_down_share: f64,
+    /// Share of a batch's windows whose noisy input comes from the model's own prediction
+    /// rather than from the data alone (default 0: none). Beyond the paper. For such a window
+    /// the model first predicts the clean window from the data's noisy one at the drawn step
+    /// `t` (without dropout or gradient), and its input is the DDIM step from there along that
+    /// prediction to a step `t'` drawn uniformly below `t`
+    /// ([`dex2hoi_diffusion::CosineSchedule::step_towards`]); the target stays the data's
+    /// window and the objective reads `t'`. Sampling reaches every step from the model's own
+    /// earlier predictions, not from the data; this trains the model to pull such an input
+    /// back to the data, where the data alone never shows it one (the put-down that drifts
+    /// along the sampler's steps, docs/results/long-generations.md).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub own_prediction_share: f64,
     /// Steps between log lines in `metrics.jsonl` (default 10).
     #[serde(default = "default_log_every")]
     pub log_every: usize,
@@ -360,6 +372,7 @@ impl TrainConfig {
             ("training.mirror_probability", t.mirror_probability),
             ("training.first_window_share", t.first_window_share),
             ("training.put_down_share", t.put_down_share),
+            ("training.own_prediction_share", t.own_prediction_share),
         ] {
             if !(0.0..=1.0).contains(&p) {
                 return bad(field, "a probability in [0, 1]", &p);

@@ -2,8 +2,9 @@
 //! groups of windows on the CPU), the objective, the backward pass, AdamW and EMA.
 //!
 //! Every random draw of a step comes from a ChaCha8 stream seeded by the run's seed and the
-//! step number (window choice, text choice and dropout, augmentation, timesteps, noise, dropout
-//! masks, in that order; a batch that trains in groups draws one seed per group there instead,
+//! step number (window choice, text choice and dropout, augmentation, timesteps, noise, the
+//! windows noised along the model's own prediction and their steps, dropout masks, in that
+//! order; a batch that trains in groups draws one seed per group there instead,
 //! each group's masks drawn from its own seed), so the generator state of a checkpoint is its
 //! step: a resumed run draws exactly what an uninterrupted one would.
 
@@ -278,7 +279,7 @@ impl Trainer {
         let noisy = self.schedule.add_noise(&x0, &noise, &timesteps)?;
         let prefix = batch.features.narrow(2, 0, tp)?;
         let timestep_tensor = CosineSchedule::timestep_tensor(&timesteps, &self.device)?;
-        let input = ModelInput {
+        let mut input = ModelInput {
             noisy: &noisy,
             prefix: &prefix,
             timesteps: &timestep_tensor,
@@ -293,6 +294,17 @@ impl Trainer {
         };
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
+        let (own_noisy, own_timestep_tensor);
+        let timesteps = match self.along_own_prediction(&input, &timesteps, rng)? {
+            Some((noisy, earlier)) => {
+                own_noisy = noisy;
+                own_timestep_tensor = CosineSchedule::timestep_tensor(&earlier, &self.device)?;
+                input.noisy = &own_noisy;
+                input.timesteps = &own_timestep_tensor;
+                earlier
+            }
+            None => timesteps,
+        };
         let prediction = self.predict(&input, batch.size, rng)?;
         timing.forward = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -302,6 +314,72 @@ impl Trainer {
         }
         timing.objective = clock.elapsed().as_secs_f64();
         Ok((objective, prediction))
+    }
+
+    /// The noisy input of the windows that `training.own_prediction_share` draws, and every
+    /// window's step: for each drawn window at a step `t` above 0, the DDIM step from its noisy
+    /// input along the model's own prediction of it (no dropout, no gradient) to a step drawn
+    /// uniformly below `t`. `None`, with no draw from `rng`, at a share of 0, and when no
+    /// window was drawn.
+    fn along_own_prediction(
+        &self,
+        input: &ModelInput<'_>,
+        timesteps: &[usize],
+        rng: &mut ChaCha8Rng,
+    ) -> Result<Option<(Tensor, Vec<usize>)>> {
+        let share = self.config.training.own_prediction_share;
+        if share == 0.0 {
+            return Ok(None);
+        }
+        let mut earlier = timesteps.to_vec();
+        let mut rows = Vec::new();
+        for (row, &t) in timesteps.iter().enumerate() {
+            if rng.random_bool(share) && t > 0 {
+                earlier[row] = rng.random_range(0..t);
+                rows.push(row);
+            }
+        }
+        if rows.is_empty() {
+            return Ok(None);
+        }
+        let ids: Vec<u32> = rows.iter().map(|&row| row as u32).collect();
+        let ids = Tensor::from_vec(ids, rows.len(), &self.device)?;
+        let pick = |t: &Tensor| t.contiguous()?.index_select(&ids, 0);
+        let pick_some = |t: Option<&Tensor>| t.map(pick).transpose();
+        let (mask, elapsed, object_start, settled, reach) = (
+            pick_some(input.frame_mask)?,
+            pick_some(input.elapsed)?,
+            pick_some(input.object_start)?,
+            pick_some(input.settled)?,
+            pick_some(input.reach)?,
+        );
+        let noisy = pick(input.noisy)?;
+        let drawn = ModelInput {
+            noisy: &noisy,
+            prefix: &pick(input.prefix)?,
+            timesteps: &pick(input.timesteps)?,
+            text: &pick(&input.text.detach())?,
+            bps: &pick(input.bps)?,
+            presence: &pick(input.presence)?,
+            frame_mask: mask.as_ref(),
+            elapsed: elapsed.as_ref(),
+            object_start: object_start.as_ref(),
+            settled: settled.as_ref(),
+            reach: reach.as_ref(),
+        };
+        let predicted = self.model.forward(&drawn, None)?.detach();
+        let from: Vec<usize> = rows.iter().map(|&row| timesteps[row]).collect();
+        let to: Vec<usize> = rows.iter().map(|&row| earlier[row]).collect();
+        let stepped = self.schedule.step_towards(&noisy, &predicted, &from, &to)?;
+        let mut drawn_rows = rows.iter().enumerate().peekable();
+        let mut parts = Vec::with_capacity(timesteps.len());
+        for row in 0..timesteps.len() {
+            match drawn_rows.next_if(|(_, drawn)| **drawn == row) {
+                Some((k, _)) => parts.push(stepped.narrow(0, k, 1)?),
+                None => parts.push(input.noisy.narrow(0, row, 1)?),
+            }
+        }
+        Ok(Some((Tensor::cat(&parts, 0)?, earlier)))
     }
 
     /// The model's prediction for a batch of `windows`: one forward pass, or on the CPU, with
@@ -495,5 +573,98 @@ impl Trainer {
             seconds: started.elapsed().as_secs_f64(),
             timing,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use candle_core::{Device, Tensor};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use dex2hoi_diffusion::{CosineSchedule, gaussian};
+    use dex2hoi_model::ModelInput;
+
+    use super::Trainer;
+    use crate::batch::BatchOptions;
+    use crate::config::TrainConfig;
+
+    fn trainer(share: f64) -> Trainer {
+        let data =
+            dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).expect("a procedural dataset");
+        let mut config = TrainConfig::preset("tiny").unwrap();
+        config.training.own_prediction_share = share;
+        Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap()
+    }
+
+    /// The windows the share draws are noised along the model's own prediction (the DDIM step
+    /// from the data's noisy window to an earlier step), the others keep the data's noisy
+    /// window and step; a window at step 0 has no earlier step; a share of 0 changes nothing
+    /// and draws nothing; a share of a half draws about half the windows.
+    #[test]
+    fn windows_noised_along_the_models_own_prediction() {
+        let trainer = trainer(1.0);
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let options = BatchOptions {
+            size: 6,
+            swap_probability: 0.5,
+            mirror_probability: 0.5,
+            first_window_share: 0.0,
+            put_down_share: 0.0,
+        };
+        let batch = trainer.data.batch(&options, &mut rng, &Device::Cpu).unwrap();
+        let (tp, tf) = (trainer.config.model.prefix_frames, trainer.config.model.predicted_frames);
+        let x0 = batch.features.narrow(2, tp, tf).unwrap();
+        let noise = gaussian(x0.dims(), &mut rng, candle_core::DType::F32, &Device::Cpu).unwrap();
+        let timesteps = [0, 1, 250, 600, 900, 999];
+        let noisy = trainer.schedule.add_noise(&x0, &noise, &timesteps).unwrap();
+        let prefix = batch.features.narrow(2, 0, tp).unwrap();
+        let steps = CosineSchedule::timestep_tensor(&timesteps, &Device::Cpu).unwrap();
+        let (text, _) = trainer.encode_text(&batch.texts, &mut rng).unwrap();
+        let input = ModelInput {
+            noisy: &noisy,
+            prefix: &prefix,
+            timesteps: &steps,
+            text: &text,
+            bps: &batch.bps,
+            presence: &batch.presence,
+            frame_mask: Some(&batch.frame_mask),
+            elapsed: Some(&batch.elapsed),
+            object_start: Some(&batch.object_start),
+            settled: Some(&batch.settled),
+            reach: Some(&batch.reach),
+        };
+        let (stepped, earlier) =
+            trainer.along_own_prediction(&input, &timesteps, &mut rng).unwrap().unwrap();
+        assert_eq!(earlier[0], 0);
+        assert!(earlier.iter().zip(&timesteps).skip(1).all(|(e, t)| e < t), "{earlier:?}");
+        let predicted = trainer.model.forward(&input, None).unwrap();
+        let expected =
+            trainer.schedule.step_towards(&noisy, &predicted, &timesteps, &earlier).unwrap();
+        let largest = |t: Tensor| t.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
+        let scale = largest(expected.clone()).to_scalar::<f32>().unwrap();
+        let error = largest((&stepped - &expected).unwrap()).to_scalar::<f32>().unwrap();
+        assert!(error <= 1e-4 * scale, "{error} against values up to {scale}");
+        let moved = largest((&stepped - &noisy).unwrap().narrow(0, 1, 5).unwrap());
+        assert!(moved.to_scalar::<f32>().unwrap() > 1e-2);
+        let first = (&stepped - &noisy).unwrap().narrow(0, 0, 1).unwrap();
+        assert_eq!(largest(first).to_scalar::<f32>().unwrap(), 0.0);
+
+        let off = self::trainer(0.0);
+        let mut draws = rng.clone();
+        assert!(off.along_own_prediction(&input, &timesteps, &mut draws).unwrap().is_none());
+        assert_eq!(draws.random::<u64>(), rng.random::<u64>());
+
+        let half = self::trainer(0.5);
+        let all = [500; 6];
+        let drawn: usize = (0..20)
+            .map(|_| match half.along_own_prediction(&input, &all, &mut rng).unwrap() {
+                Some((_, earlier)) => earlier.iter().filter(|&&t| t < 500).count(),
+                None => 0,
+            })
+            .sum();
+        assert!((36..=84).contains(&drawn), "{drawn} of 120 windows drawn");
     }
 }
