@@ -25,7 +25,7 @@ use dex2hoi_model::{Model, ModelInput, SeededVarMap};
 use dex2hoi_optim::{AdamW, Ema, Parameter, learning_rate, parameters_of, step_rng};
 use dex2hoi_sample::TextModule;
 
-use crate::batch::{BatchOptions, TrainingSet};
+use crate::batch::{Batch, BatchOptions, TrainingSet};
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::loss::{LossContext, Term};
@@ -279,19 +279,7 @@ impl Trainer {
         let noisy = self.schedule.add_noise(&x0, &noise, &timesteps)?;
         let prefix = batch.features.narrow(2, 0, tp)?;
         let timestep_tensor = CosineSchedule::timestep_tensor(&timesteps, &self.device)?;
-        let mut input = ModelInput {
-            noisy: &noisy,
-            prefix: &prefix,
-            timesteps: &timestep_tensor,
-            text: &text,
-            bps: &batch.bps,
-            presence: &batch.presence,
-            frame_mask: Some(&batch.frame_mask),
-            elapsed: Some(&batch.elapsed),
-            object_start: Some(&batch.object_start),
-            settled: Some(&batch.settled),
-            reach: Some(&batch.reach),
-        };
+        let mut input = batch_input(&batch, &noisy, &prefix, &timestep_tensor, &text);
         timing.batch = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let (own_noisy, own_timestep_tensor);
@@ -576,6 +564,30 @@ impl Trainer {
     }
 }
 
+/// The model's input for a batch's windows: the noisy predicted frames, the clean prefix, the
+/// timesteps and the text embedding given, the rest of the condition from the batch.
+fn batch_input<'a>(
+    batch: &'a Batch,
+    noisy: &'a Tensor,
+    prefix: &'a Tensor,
+    timesteps: &'a Tensor,
+    text: &'a Tensor,
+) -> ModelInput<'a> {
+    ModelInput {
+        noisy,
+        prefix,
+        timesteps,
+        text,
+        bps: &batch.bps,
+        presence: &batch.presence,
+        frame_mask: Some(&batch.frame_mask),
+        elapsed: Some(&batch.elapsed),
+        object_start: Some(&batch.object_start),
+        settled: Some(&batch.settled),
+        reach: Some(&batch.reach),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::path::Path;
@@ -585,9 +597,8 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     use dex2hoi_diffusion::{CosineSchedule, gaussian};
-    use dex2hoi_model::ModelInput;
 
-    use super::Trainer;
+    use super::{Trainer, batch_input};
     use crate::batch::BatchOptions;
     use crate::config::TrainConfig;
 
@@ -623,19 +634,7 @@ mod tests {
         let prefix = batch.features.narrow(2, 0, tp).unwrap();
         let steps = CosineSchedule::timestep_tensor(&timesteps, &Device::Cpu).unwrap();
         let (text, _) = trainer.encode_text(&batch.texts, &mut rng).unwrap();
-        let input = ModelInput {
-            noisy: &noisy,
-            prefix: &prefix,
-            timesteps: &steps,
-            text: &text,
-            bps: &batch.bps,
-            presence: &batch.presence,
-            frame_mask: Some(&batch.frame_mask),
-            elapsed: Some(&batch.elapsed),
-            object_start: Some(&batch.object_start),
-            settled: Some(&batch.settled),
-            reach: Some(&batch.reach),
-        };
+        let input = batch_input(&batch, &noisy, &prefix, &steps, &text);
         let (stepped, earlier) =
             trainer.along_own_prediction(&input, &timesteps, &mut rng).unwrap().unwrap();
         assert_eq!(earlier[0], 0);
