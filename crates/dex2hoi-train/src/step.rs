@@ -332,33 +332,12 @@ impl Trainer {
         }
         let ids: Vec<u32> = rows.iter().map(|&row| row as u32).collect();
         let ids = Tensor::from_vec(ids, rows.len(), &self.device)?;
-        let pick = |t: &Tensor| t.contiguous()?.index_select(&ids, 0);
-        let pick_some = |t: Option<&Tensor>| t.map(pick).transpose();
-        let (mask, elapsed, object_start, settled, reach) = (
-            pick_some(input.frame_mask)?,
-            pick_some(input.elapsed)?,
-            pick_some(input.object_start)?,
-            pick_some(input.settled)?,
-            pick_some(input.reach)?,
-        );
-        let noisy = pick(input.noisy)?;
-        let drawn = ModelInput {
-            noisy: &noisy,
-            prefix: &pick(input.prefix)?,
-            timesteps: &pick(input.timesteps)?,
-            text: &pick(&input.text.detach())?,
-            bps: &pick(input.bps)?,
-            presence: &pick(input.presence)?,
-            frame_mask: mask.as_ref(),
-            elapsed: elapsed.as_ref(),
-            object_start: object_start.as_ref(),
-            settled: settled.as_ref(),
-            reach: reach.as_ref(),
-        };
-        let predicted = self.model.forward(&drawn, None)?.detach();
+        let drawn =
+            InputRows::of(input, &input.text.detach(), |t| t.contiguous()?.index_select(&ids, 0))?;
+        let predicted = self.model.forward(&drawn.input(), None)?.detach();
         let from: Vec<usize> = rows.iter().map(|&row| timesteps[row]).collect();
         let to: Vec<usize> = rows.iter().map(|&row| earlier[row]).collect();
-        let stepped = self.schedule.step_towards(&noisy, &predicted, &from, &to)?;
+        let stepped = self.schedule.step_towards(&drawn.noisy, &predicted, &from, &to)?;
         let mut drawn_rows = rows.iter().enumerate().peekable();
         let mut parts = Vec::with_capacity(timesteps.len());
         for row in 0..timesteps.len() {
@@ -403,27 +382,9 @@ impl Trainer {
             .par_iter()
             .zip(&seeds)
             .map(|(&(start, len), &seed)| -> Result<Tensor> {
-                let rows = |t: &Tensor| t.narrow(0, start, len);
-                let mask = input.frame_mask.map(rows).transpose()?;
-                let elapsed = input.elapsed.map(rows).transpose()?;
-                let object_start = input.object_start.map(rows).transpose()?;
-                let settled = input.settled.map(rows).transpose()?;
-                let reach = input.reach.map(rows).transpose()?;
-                let group = ModelInput {
-                    noisy: &rows(input.noisy)?,
-                    prefix: &rows(input.prefix)?,
-                    timesteps: &rows(input.timesteps)?,
-                    text: &rows(text.as_tensor())?,
-                    bps: &rows(input.bps)?,
-                    presence: &rows(input.presence)?,
-                    frame_mask: mask.as_ref(),
-                    elapsed: elapsed.as_ref(),
-                    object_start: object_start.as_ref(),
-                    settled: settled.as_ref(),
-                    reach: reach.as_ref(),
-                };
+                let group = InputRows::of(input, text.as_tensor(), |t| t.narrow(0, start, len))?;
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
-                Ok(model.forward(&group, Some(&mut rng))?)
+                Ok(model.forward(&group.input(), Some(&mut rng))?)
             })
             .collect::<Result<_>>()?;
         let detached: Vec<Tensor> = outputs.iter().map(Tensor::detach).collect();
@@ -561,6 +522,63 @@ impl Trainer {
             seconds: started.elapsed().as_secs_f64(),
             timing,
         })
+    }
+}
+
+/// Some rows of every tensor of a model input, owned: the groups of a grouped prediction, the
+/// windows noised along the model's own prediction.
+struct InputRows {
+    noisy: Tensor,
+    prefix: Tensor,
+    timesteps: Tensor,
+    text: Tensor,
+    bps: Tensor,
+    presence: Tensor,
+    frame_mask: Option<Tensor>,
+    elapsed: Option<Tensor>,
+    object_start: Option<Tensor>,
+    settled: Option<Tensor>,
+    reach: Option<Tensor>,
+}
+
+impl InputRows {
+    /// The rows `select` takes from each tensor of `input`, the text embedding's from `text`
+    /// (the caller's leaf or detached copy of it).
+    fn of(
+        input: &ModelInput<'_>,
+        text: &Tensor,
+        select: impl Fn(&Tensor) -> candle_core::Result<Tensor>,
+    ) -> Result<Self> {
+        let select_some = |t: Option<&Tensor>| t.map(&select).transpose();
+        Ok(Self {
+            noisy: select(input.noisy)?,
+            prefix: select(input.prefix)?,
+            timesteps: select(input.timesteps)?,
+            text: select(text)?,
+            bps: select(input.bps)?,
+            presence: select(input.presence)?,
+            frame_mask: select_some(input.frame_mask)?,
+            elapsed: select_some(input.elapsed)?,
+            object_start: select_some(input.object_start)?,
+            settled: select_some(input.settled)?,
+            reach: select_some(input.reach)?,
+        })
+    }
+
+    fn input(&self) -> ModelInput<'_> {
+        ModelInput {
+            noisy: &self.noisy,
+            prefix: &self.prefix,
+            timesteps: &self.timesteps,
+            text: &self.text,
+            bps: &self.bps,
+            presence: &self.presence,
+            frame_mask: self.frame_mask.as_ref(),
+            elapsed: self.elapsed.as_ref(),
+            object_start: self.object_start.as_ref(),
+            settled: self.settled.as_ref(),
+            reach: self.reach.as_ref(),
+        }
     }
 }
 
