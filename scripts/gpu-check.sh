@@ -22,7 +22,8 @@
 #      inference mode and compiled, with its training step; `paper`'s sampling;
 #   7. the ratios: dex2hoi's training step and window against PyTorch's, 300 frames against
 #      real time, GPU memory (ratios.txt).
-# Phase limits in seconds: GPU_CHECK_{TESTS,PROFILE,TRAIN,TORCH}_SECONDS. It took about 4 minutes
+# Phase limits in seconds: GPU_CHECK_{TESTS,PROFILE,TRAIN,TORCH,COMPILE}_SECONDS (COMPILE 0: no
+# `torch.compile`). It took about 4 minutes
 # without `torch.compile`; compiling adds up to 3. For a dry run
 # elsewhere: GPU_CHECK_PACK (a folder of gzipped binaries), GPU_CHECK_DEVICE (default cuda).
 set -uo pipefail
@@ -181,8 +182,10 @@ cp "$WORK/sample-300/preview.png" "$OUT/sample-300-gpu.png" 2>/dev/null
 
 phase "PyTorch reference on the GPU"
 # One preset per call: a call stopped at its limit writes nothing. `small` also compiled.
+COMPILE_SECONDS=${GPU_CHECK_COMPILE_SECONDS:-180}
+if [[ $COMPILE_SECONDS == 0 ]]; then compile=(--no-compile); else compile=(--compile-timeout "$COMPILE_SECONDS"); fi
 timeout "${GPU_CHECK_TORCH_SECONDS:-240}" python3 bench/torch_reference.py --device cuda \
-    --presets small --skip-check --compile-timeout 180 --out "$OUT/torch-small.json" 2>&1 | tail -12
+    --presets small --skip-check "${compile[@]}" --out "$OUT/torch-small.json" 2>&1 | tail -12
 timeout 75 python3 bench/torch_reference.py --device cuda --presets paper --skip-check \
     --no-compile --no-train --out "$OUT/torch-paper.json" 2>&1 | tail -8
 
