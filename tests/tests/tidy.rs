@@ -267,11 +267,12 @@ fn no_stubs_or_ignored_tests() {
 /// The files allowed to opt out of the workspace's denial of `unsafe`, each for one reason
 /// (docs/ARCHITECTURE.md, the fused kernels' invariant): setting the variable that keeps
 /// candle's elementwise operations on the calling thread, the GPU's stream and memory pool
-/// settings, raw `gemm` calls, and launching the CUDA kernels of the fused optimiser and of
-/// forward kinematics.
-const UNSAFE_MODULES: [&str; 5] = [
+/// settings, raw `gemm` calls, and launching the CUDA kernels of the fused optimiser, of
+/// forward kinematics and of the row-wise model operations.
+const UNSAFE_MODULES: [&str; 6] = [
     "crates/dex2hoi-model/src/candle_threads.rs",
     "crates/dex2hoi-model/src/cuda_device.rs",
+    "crates/dex2hoi-model/src/differentiable/rows_cuda.rs",
     "crates/dex2hoi-model/src/matmul.rs",
     "crates/dex2hoi-optim/src/fused.rs",
     "crates/dex2hoi-repr/src/fk_cuda.rs",

@@ -5,17 +5,21 @@
 //! zero-filled gradient added into; fused, one node, row-parallel.
 //!
 //! Like the FK's custom operations they run on the CPU in f32 and f64 (the finite-difference
-//! gradient checks run in f64); [`crate::layers`] uses the composite operations on any other
-//! device or dtype. Each is tested equal to its composite (1e-10 in f64) with every gradient
+//! gradient checks run in f64). The row-wise ones, layer norm and the modulation, also run on
+//! a GPU in f32 (`rows.cu`, the CUDA build); [`crate::layers`] uses the composite operations on
+//! any other device or dtype. Each is tested equal to its composite (1e-10 in f64) with every gradient
 //! checked by finite differences (`tests/differentiable.rs`).
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, DType, Layout, Shape, Tensor};
 
 use crate::kernel::{Real, by_dtype, dot, map_rows, mean, normalise, op_error, rows_of, values};
 
 mod attention;
 mod linear;
 mod modulate;
+#[cfg(feature = "cuda")]
+mod rows_cuda;
+mod softmax;
 
 pub use linear::Activation;
 
@@ -51,6 +55,15 @@ impl CustomOp1 for LayerNorm {
         layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         by_dtype!(self.name(), storage, layer_norm_forward(storage, layout))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        storage: &candle_core::CudaStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        rows_cuda::layer_norm_forward(storage, layout)
     }
 
     fn bwd(&self, x: &Tensor, _: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
@@ -111,14 +124,31 @@ impl CustomOp2 for LayerNormBackward {
             layer_norm_backward(x_storage, x_layout, g_storage, g_layout)
         )
     }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        x_storage: &candle_core::CudaStorage,
+        x_layout: &Layout,
+        g_storage: &candle_core::CudaStorage,
+        g_layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        rows_cuda::layer_norm_backward((x_storage, x_layout), (g_storage, g_layout))
+    }
 }
 
 /// Whether the fused operations apply to `x` (the CPU, f32 or f64).
 pub fn applies(x: &Tensor) -> bool {
-    x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+    x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64)
 }
 
-/// Layer norm over the last dimension, fused, with its backward pass (CPU, f32/f64 only).
+/// Whether the row-wise fused operations, [`layer_norm`], [`modulate`] and [`masked_softmax`],
+/// apply to `x`: where [`applies`] says, and on a GPU in f32 in the CUDA build.
+pub fn applies_per_row(x: &Tensor) -> bool {
+    applies(x) || (cfg!(feature = "cuda") && x.device().is_cuda() && x.dtype() == DType::F32)
+}
+
+/// Layer norm over the last dimension, fused, with its backward pass (CPU, f32/f64; GPU, f32).
 pub fn layer_norm(x: &Tensor) -> candle_core::Result<Tensor> {
     x.contiguous()?.apply_op1(LayerNorm)
 }
@@ -149,7 +179,7 @@ pub fn linear(
 }
 
 /// AdaLN, `norm(x) * (1 + scale) + shift` with `(shift, scale)` the halves of each sequence's
-/// modulation, fused, with its backward pass (CPU, f32/f64 only).
+/// modulation, fused, with its backward pass (CPU, f32/f64; GPU, f32).
 ///
 /// # Shapes
 /// - `x`: `[N, T, latent]`; `modulation`: `[N, 2 latent]`; returns `x`'s shape
@@ -176,4 +206,16 @@ pub fn attention(
         &mask,
         attention::Attention { heads },
     )
+}
+
+/// The softmax over the last dimension of attention scores after adding `(mask - 1) 1e9`, the
+/// masked keys' bias, fused, with its backward pass (CPU, f32/f64; GPU, f32): the composite
+/// attention's on a GPU. The mask gets no gradient.
+///
+/// # Shapes
+/// - `scores`: `[N, ..., keys]`; `mask`: `[N, keys]`, 1 = attend, 0 = ignore; returns `scores`'
+///   shape
+pub fn masked_softmax(scores: &Tensor, mask: &Tensor) -> candle_core::Result<Tensor> {
+    let mask = mask.to_dtype(scores.dtype())?.contiguous()?;
+    scores.contiguous()?.apply_op2(&mask, softmax::MaskedSoftmax)
 }

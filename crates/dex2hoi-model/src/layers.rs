@@ -14,12 +14,12 @@ use crate::error::Result;
 pub use crate::kernel::LAYER_NORM_EPS;
 
 /// Layer norm over the last dimension without affine parameters, [`LAYER_NORM_EPS`]: fused with a
-/// hand-written backward pass on the CPU ([`crate::differentiable`]), composed elsewhere.
+/// hand-written backward pass on the CPU and a GPU ([`crate::differentiable`]), composed elsewhere.
 ///
 /// # Shapes
 /// - `x`: `[..., features]`; returns the same shape
 pub fn layer_norm(x: &Tensor) -> Result<Tensor> {
-    if crate::differentiable::applies(x) {
+    if crate::differentiable::applies_per_row(x) {
         return Ok(crate::differentiable::layer_norm(x)?);
     }
     layer_norm_composite(x)
@@ -34,8 +34,8 @@ pub fn layer_norm_composite(x: &Tensor) -> Result<Tensor> {
 }
 
 /// Softmax over the last dimension, composed of candle operations: the composite attention's
-/// (any device but the CPU, whose fused attention has its softmax inside; candle's fused
-/// `softmax_last_dim` has no backward pass).
+/// where [`crate::differentiable::masked_softmax`] does not apply (the CPU's fused attention has
+/// its softmax inside; candle's fused `softmax_last_dim` has no backward pass).
 pub fn softmax(x: &Tensor) -> Result<Tensor> {
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
@@ -146,7 +146,7 @@ impl Modulation {
     pub fn forward(&self, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
         let (_, _, latent) = x.dims3()?;
         let params = self.linear.forward(&emb.silu()?)?;
-        if crate::differentiable::applies(x) {
+        if crate::differentiable::applies_per_row(x) {
             return Ok(crate::differentiable::modulate(x, &params)?);
         }
         let params = params.unsqueeze(1)?;
@@ -202,25 +202,33 @@ impl Attention {
         let head = latent / self.heads;
         let q = self.query.forward(queries)?;
         let key_value = self.key_value.forward(keys)?;
-        if crate::differentiable::applies(&q) {
-            let mask = match key_mask {
+        // The fused operations take a mask always: all ones when none is given.
+        let mask = |like: &Tensor| -> Result<Tensor> {
+            Ok(match key_mask {
                 Some(mask) => mask.clone(),
-                None => Tensor::ones((batch, keys.dims3()?.1), q.dtype(), q.device())?,
-            };
-            let attended = crate::differentiable::attention(&q, &key_value, &mask, self.heads)?;
+                None => Tensor::ones((batch, keys.dims3()?.1), like.dtype(), like.device())?,
+            })
+        };
+        if crate::differentiable::applies(&q) {
+            let attended =
+                crate::differentiable::attention(&q, &key_value, &mask(&q)?, self.heads)?;
             return self.out.forward(&attended);
         }
         let q = self.split_heads(&q)?;
         let k = self.split_heads(&key_value.narrow(2, 0, latent)?)?;
         let v = self.split_heads(&key_value.narrow(2, latent, latent)?)?;
-        let mut scores = (q.matmul(&k.transpose(2, 3)?.contiguous()?)? / (head as f64).sqrt())?;
-        if let Some(mask) = key_mask {
+        let scores = (q.matmul(&k.transpose(2, 3)?.contiguous()?)? / (head as f64).sqrt())?;
+        let weights = if crate::differentiable::applies_per_row(&scores) {
+            crate::differentiable::masked_softmax(&scores, &mask(&scores)?)?
+        } else if let Some(mask) = key_mask {
             // 0 where attended, -1e9 where masked, broadcast over heads and queries.
             let bias =
                 ((mask.to_dtype(scores.dtype())? - 1.0)? * 1e9)?.unsqueeze(1)?.unsqueeze(1)?;
-            scores = scores.broadcast_add(&bias)?;
-        }
-        let attended = softmax(&scores)?.matmul(&v)?;
+            softmax(&scores.broadcast_add(&bias)?)?
+        } else {
+            softmax(&scores)?
+        };
+        let attended = weights.matmul(&v)?;
         let merged =
             attended.transpose(1, 2)?.contiguous()?.reshape((batch, query_frames, latent))?;
         self.out.forward(&merged)

@@ -1,5 +1,5 @@
 //! The fused training operations with hand-written backward passes (layer norm, linear layer,
-//! AdaLN modulation, attention): equal to their composites forward and backward, and their
+//! AdaLN modulation, attention, masked softmax): equal to their composites forward and backward, and their
 //! gradients checked by finite differences (f64).
 
 use candle_core::{DType, Device, Tensor, Var};
@@ -165,12 +165,22 @@ fn composite_attention(x: &[Tensor]) -> Tensor {
     Tensor::cat(&heads, 2).unwrap()
 }
 
+fn fused_masked_softmax(x: &[Tensor]) -> Tensor {
+    differentiable::masked_softmax(&x[0], &x[1]).unwrap()
+}
+/// The composite attention's softmax: the masked keys' bias added, broadcast over heads and
+/// queries.
+fn composite_masked_softmax(x: &[Tensor]) -> Tensor {
+    let bias = ((&x[1] - 1.0).unwrap() * 1e9).unwrap().unsqueeze(1).unwrap().unsqueeze(1).unwrap();
+    softmax(&x[0].broadcast_add(&bias).unwrap()).unwrap()
+}
+
 /// Name, fused, composite, the inputs' shapes for a size `(n, t, latent)`, and how many of the
 /// inputs get a gradient.
 type BlockCase =
     (&'static str, BlockOp, BlockOp, fn(usize, usize, usize) -> Vec<Vec<usize>>, usize);
 
-const BLOCK_OPS: [BlockCase; 4] = [
+const BLOCK_OPS: [BlockCase; 5] = [
     (
         "linear",
         fused_linear,
@@ -199,9 +209,17 @@ const BLOCK_OPS: [BlockCase; 4] = [
         |n, t, l| vec![vec![n, t, l], vec![n, t + 1, 2 * l], vec![n, t + 1]],
         2,
     ),
+    (
+        "masked softmax",
+        fused_masked_softmax,
+        composite_masked_softmax,
+        |n, t, l| vec![vec![n, 2, t, l + 1], vec![n, l + 1]],
+        1,
+    ),
 ];
 
-/// Random inputs for a case; the attention's mask masks each sequence's last key but one.
+/// Random inputs for a case; a mask (the attention's and the softmax's last input) masks each
+/// sequence's last key but one.
 fn block_inputs(
     case: &BlockCase,
     size: (usize, usize, usize),
@@ -209,11 +227,13 @@ fn block_inputs(
 ) -> Vec<Tensor> {
     let shapes = (case.3)(size.0, size.1, size.2);
     let mut inputs: Vec<Tensor> = shapes.iter().map(|s| random(s, 2.0, rng)).collect();
-    if case.0 == "attention" {
-        let (n, keys) = (shapes[2][0], shapes[2][1]);
-        let mask: Vec<f64> =
-            (0..n * keys).map(|i| if i % keys == keys - 2 { 0.0 } else { 1.0 }).collect();
-        inputs[2] = Tensor::from_vec(mask, (n, keys), &Device::Cpu).unwrap();
+    if matches!(case.0, "attention" | "masked softmax") {
+        let last = shapes.len() - 1;
+        let (n, keys) = (shapes[last][0], shapes[last][1]);
+        let mask: Vec<f64> = (0..n * keys)
+            .map(|i| if keys > 1 && i % keys == keys - 2 { 0.0 } else { 1.0 })
+            .collect();
+        inputs[last] = Tensor::from_vec(mask, (n, keys), &Device::Cpu).unwrap();
     }
     inputs
 }
@@ -319,4 +339,6 @@ fn block_operations_refuse_mismatched_shapes() {
     )
     .unwrap_err();
     assert!(error.to_string().contains("a bias of 5"), "{error}");
+    let error = differentiable::masked_softmax(&x, &random(&[2, 3], 1.0, &mut rng)).unwrap_err();
+    assert!(error.to_string().contains("a mask [N, keys]"), "{error}");
 }

@@ -131,6 +131,33 @@ pub struct Batch {
     pub sides: Tensor,
 }
 
+impl Batch {
+    /// The batch with every tensor moved to `device` (a batch drawn on another host thread
+    /// onto the step's device).
+    pub fn to_device(self, device: &Device) -> Result<Self> {
+        let on = |t: Tensor| -> Result<Tensor> { Ok(t.to_device(device)?) };
+        Ok(Self {
+            features: on(self.features)?,
+            frame_mask: on(self.frame_mask)?,
+            bps: on(self.bps)?,
+            presence: on(self.presence)?,
+            joints: on(self.joints)?,
+            object_positions: on(self.object_positions)?,
+            hand_distances: on(self.hand_distances)?,
+            foot_contact: on(self.foot_contact)?,
+            root_start: on(self.root_start)?,
+            rest_offsets: on(self.rest_offsets)?,
+            elapsed: on(self.elapsed)?,
+            object_start: on(self.object_start)?,
+            settled: on(self.settled)?,
+            reach: on(self.reach)?,
+            hands: on(self.hands)?,
+            sides: on(self.sides)?,
+            ..self
+        })
+    }
+}
+
 /// The frames a hand must touch an object for, in a sequence, to count as holding one: a
 /// quarter of a second at 20 fps, so that a brush in passing does not count
 /// (docs/CONVENTIONS.md, "Losses").

@@ -7,8 +7,16 @@
 //! order; a batch that trains in groups draws one seed per group there instead,
 //! each group's masks drawn from its own seed), so the generator state of a checkpoint is its
 //! step: a resumed run draws exactly what an uninterrupted one would.
+//!
+//! On a GPU two things differ. The noise is drawn by the device's generator, seeded from the
+//! stream where the CPU draws it value by value (as the dropout masks are): drawing it on the
+//! host and uploading it took a tenth of a step. And the next step's batch is drawn on another
+//! host thread while this step's backward pass and update are queued
+//! ([`Trainer::prefetch_batches`]): it comes from the next step's own stream, first, so it is the
+//! batch that step would draw itself.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Instant;
 
 use candle_core::backprop::GradStore;
@@ -102,7 +110,7 @@ impl Prediction {
 #[derive(Debug)]
 pub struct Trainer {
     pub(crate) config: TrainConfig,
-    pub(crate) data: TrainingSet,
+    pub(crate) data: Arc<TrainingSet>,
     pub(crate) schedule: CosineSchedule,
     pub(crate) model: Model,
     pub(crate) text: TextModule,
@@ -114,6 +122,21 @@ pub struct Trainer {
     /// Training steps of the model the run started from ([`Trainer::initialise_from`]).
     pub(crate) steps_before: usize,
     pub(crate) device: Device,
+    /// Whether [`Trainer::step`] draws the next step's batch beside its backward pass and
+    /// update ([`Trainer::prefetch_batches`]).
+    pub(crate) prefetch: bool,
+    /// The next step's batch on the host, with the step's random stream after its draws.
+    pub(crate) prefetched: Option<Prefetched>,
+    /// Whether the noise is drawn on the host, value by value ([`Trainer::noise_on_host`]).
+    pub(crate) host_noise: bool,
+}
+
+/// A batch drawn ahead on the host (see the module documentation).
+#[derive(Debug)]
+pub(crate) struct Prefetched {
+    step: usize,
+    batch: Batch,
+    rng: ChaCha8Rng,
 }
 
 impl Trainer {
@@ -161,7 +184,7 @@ impl Trainer {
         let schedule = CosineSchedule::new(config.training.diffusion_steps)?;
         Ok(Self {
             config,
-            data,
+            data: Arc::new(data),
             schedule,
             model,
             text,
@@ -171,8 +194,30 @@ impl Trainer {
             loss,
             step: 0,
             steps_before: 0,
+            prefetch: !device.is_cpu(),
+            prefetched: None,
+            host_noise: device.is_cpu(),
             device,
         })
+    }
+
+    /// Whether the windows' noise is drawn on the host, value by value from the step's stream,
+    /// and uploaded (the CPU's way, and its only one), or by the device's generator seeded from
+    /// the stream (the default on a GPU): the same run then trains on the same noise on either
+    /// device, for comparing them.
+    pub fn noise_on_host(&mut self, host: bool) {
+        self.host_noise = host || self.device.is_cpu();
+    }
+
+    /// Whether each step draws the next step's batch on another host thread while its backward
+    /// pass and update are queued: on by default on a GPU, where the host would otherwise draw
+    /// it while the GPU waits; off on the CPU, whose cores the step's own work keeps busy. The
+    /// batches are the same either way.
+    pub fn prefetch_batches(&mut self, prefetch: bool) {
+        self.prefetch = prefetch;
+        if !prefetch {
+            self.prefetched = None;
+        }
     }
 
     /// The network being trained.
@@ -253,29 +298,59 @@ impl Trainer {
     /// prediction, not at the parameters.
     pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
         let mut rng = step_rng(self.config.training.seed, step);
-        Ok(self.objective(&mut rng, &mut StepTiming::default())?.0)
+        let batch = self.data.batch(&self.batch_options(), &mut rng, &self.device)?;
+        Ok(self.objective(batch, &mut rng, &mut StepTiming::default())?.0)
+    }
+
+    fn batch_options(&self) -> BatchOptions {
+        let t = &self.config.training;
+        BatchOptions {
+            size: t.batch_size,
+            swap_probability: t.swap_probability,
+            mirror_probability: t.mirror_probability,
+            first_window_share: t.first_window_share,
+            put_down_share: t.put_down_share,
+        }
+    }
+
+    /// The batch of this step on the device and the step's stream after its draws: the one
+    /// drawn ahead by the step before, or drawn now.
+    fn step_batch(&mut self) -> Result<(Batch, ChaCha8Rng)> {
+        match self.prefetched.take() {
+            Some(ahead) if ahead.step == self.step => {
+                Ok((ahead.batch.to_device(&self.device)?, ahead.rng))
+            }
+            _ => {
+                let mut rng = step_rng(self.config.training.seed, self.step);
+                let batch = self.data.batch(&self.batch_options(), &mut rng, &self.device)?;
+                Ok((batch, rng))
+            }
+        }
+    }
+
+    /// The noise of a batch's windows: drawn value by value from the step's stream, or by the
+    /// device's generator seeded from it ([`Trainer::noise_on_host`]).
+    fn noise(&self, shape: &[usize], rng: &mut ChaCha8Rng) -> Result<Tensor> {
+        if self.host_noise {
+            return Ok(gaussian(shape, rng, DType::F32, &self.device)?);
+        }
+        self.device.set_seed(rng.random())?;
+        Ok(Tensor::randn(0f32, 1f32, shape, &self.device)?)
     }
 
     fn objective(
         &self,
+        batch: Batch,
         rng: &mut ChaCha8Rng,
         timing: &mut StepTiming,
     ) -> Result<(crate::loss::Objective, Prediction)> {
         let clock = Instant::now();
         let c = &self.config;
-        let options = BatchOptions {
-            size: c.training.batch_size,
-            swap_probability: c.training.swap_probability,
-            mirror_probability: c.training.mirror_probability,
-            first_window_share: c.training.first_window_share,
-            put_down_share: c.training.put_down_share,
-        };
-        let batch = self.data.batch(&options, rng, &self.device)?;
         let (embedding, text) = self.encode_text(&batch.texts, rng)?;
         let timesteps = sample_timesteps(&self.schedule, batch.size, rng);
         let (tp, tf) = (c.model.prefix_frames, c.model.predicted_frames);
         let x0 = batch.features.narrow(2, tp, tf)?;
-        let noise = gaussian(x0.dims(), rng, DType::F32, &self.device)?;
+        let noise = self.noise(x0.dims(), rng)?;
         let noisy = self.schedule.add_noise(&x0, &noise, &timesteps)?;
         let prefix = batch.features.narrow(2, 0, tp)?;
         let timestep_tensor = CosineSchedule::timestep_tensor(&timesteps, &self.device)?;
@@ -456,9 +531,12 @@ impl Trainer {
     /// anything is updated.
     pub fn step(&mut self, last_checkpoint: usize) -> Result<StepReport> {
         let started = Instant::now();
-        let mut rng = step_rng(self.config.training.seed, self.step);
         let mut timing = StepTiming::default();
-        let (objective, prediction) = self.objective(&mut rng, &mut timing)?;
+        let clock = Instant::now();
+        let (batch, mut rng) = self.step_batch()?;
+        let drawn = clock.elapsed().as_secs_f64();
+        let (objective, prediction) = self.objective(batch, &mut rng, &mut timing)?;
+        timing.batch += drawn;
         // The terms and the total in one transfer: on a GPU each read waits for the device.
         let scalars: Vec<Tensor> = objective
             .terms
@@ -490,19 +568,34 @@ impl Trainer {
                 last_checkpoint,
             });
         }
+        let ahead = self.prefetch.then(|| {
+            let (data, options) = (Arc::clone(&self.data), self.batch_options());
+            let (seed, step) = (self.config.training.seed, self.step + 1);
+            std::thread::spawn(move || -> Result<Prefetched> {
+                let mut rng = step_rng(seed, step);
+                let batch = data.batch(&options, &mut rng, &Device::Cpu)?;
+                Ok(Prefetched { step, batch, rng })
+            })
+        });
         let clock = Instant::now();
-        let gradients = self.gradients(&objective.total, prediction)?;
-        timing.backward = clock.elapsed().as_secs_f64();
-        let clock = Instant::now();
-        let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);
-        let ema = (self.config.optimizer.ema_decay, self.step);
-        let update = self.optimizer.update_with_average(
-            &mut self.ema,
-            &self.parameters,
-            &gradients,
-            rate,
-            ema,
-        )?;
+        let update = self.gradients(&objective.total, prediction).and_then(|gradients| {
+            timing.backward = clock.elapsed().as_secs_f64();
+            let rate = learning_rate(&self.config.optimizer, self.step, self.config.training.steps);
+            let ema = (self.config.optimizer.ema_decay, self.step);
+            Ok(self.optimizer.update_with_average(
+                &mut self.ema,
+                &self.parameters,
+                &gradients,
+                rate,
+                ema,
+            )?)
+        });
+        // A batch that failed to draw is drawn again by the next step, which reports the error.
+        self.prefetched = ahead.and_then(|thread| match thread.join() {
+            Ok(drawn) => drawn.ok(),
+            Err(panic) => std::panic::resume_unwind(panic),
+        });
+        let update = update?;
         if !update.gradient_norm.is_finite() {
             return Err(TrainError::NonFinite {
                 step: self.step + 1,
@@ -511,7 +604,7 @@ impl Trainer {
                 last_checkpoint,
             });
         }
-        timing.update = clock.elapsed().as_secs_f64();
+        timing.update = clock.elapsed().as_secs_f64() - timing.backward;
         self.step += 1;
         Ok(StepReport {
             step: self.step,
@@ -683,5 +776,36 @@ mod tests {
             })
             .sum();
         assert!((36..=84).contains(&drawn), "{drawn} of 120 windows drawn");
+    }
+
+    /// Batches drawn ahead on another thread are the ones each step would draw itself: three
+    /// steps with and without end with the same weights, bit for bit; a trainer that stops
+    /// drawing ahead drops what it drew.
+    #[test]
+    fn batches_drawn_ahead_train_as_the_steps_own() {
+        let weights = |prefetch: bool| -> Vec<Vec<f32>> {
+            let mut trainer = trainer(0.5);
+            trainer.prefetch_batches(prefetch);
+            for _ in 0..3 {
+                trainer.step(0).unwrap();
+                assert_eq!(
+                    trainer.prefetched.as_ref().map(|p| p.step),
+                    prefetch.then_some(trainer.step)
+                );
+            }
+            trainer
+                .parameters
+                .iter()
+                .map(|p| p.var.flatten_all().unwrap().to_vec1().unwrap())
+                .collect()
+        };
+        assert!(!trainer(0.0).prefetch, "the CPU trains without drawing ahead by default");
+        assert_eq!(weights(true), weights(false));
+        let mut trainer = trainer(0.0);
+        trainer.prefetch_batches(true);
+        trainer.step(0).unwrap();
+        assert!(trainer.prefetched.is_some());
+        trainer.prefetch_batches(false);
+        assert!(trainer.prefetched.is_none());
     }
 }

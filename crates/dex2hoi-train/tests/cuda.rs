@@ -1,8 +1,9 @@
 //! The CUDA device against the CPU (built with `--features cuda`, run on a machine with an
 //! NVIDIA GPU: `cargo xtask build-cuda` packs these tests): every model variant's forward, one
-//! training step's loss and gradients, forward kinematics and its gradients, dropout, the
-//! surface search, the fused optimiser update, and a checkpoint written on the GPU sampled on
-//! both.
+//! training step's loss and gradients, the GPU's own noise and batches drawn ahead, forward
+//! kinematics and its gradients, layer norm, AdaLN's modulation and the masked softmax with
+//! their gradients, dropout, the surface search, the fused optimiser update, and a checkpoint
+//! written on the GPU sampled on both.
 //! Weights are randomised or trained first: a fresh model's zero-initialised heads output
 //! exact zeros, which would compare equal on any device.
 #![cfg(feature = "cuda")]
@@ -139,6 +140,8 @@ fn a_training_step_on_the_gpu_gives_the_loss_and_gradients_of_the_cpu() {
         .iter()
         .map(|device| Trainer::new(config.clone(), &data, Path::new("procedural"), device).unwrap())
         .collect();
+    // The same noise on both devices: drawn on the host.
+    trainers[1].noise_on_host(true);
     // Three updates first, so that no layer is still at its zero initialisation; each step's
     // loss must agree on the way.
     for _ in 0..3 {
@@ -173,6 +176,32 @@ fn a_training_step_on_the_gpu_gives_the_loss_and_gradients_of_the_cpu() {
             _ => panic!("{}: a gradient on one device only", p_cpu.name),
         }
     }
+}
+
+#[test]
+fn a_gpu_run_draws_its_noise_there_and_its_batches_ahead_as_its_steps_would() {
+    // The GPU's defaults, noise from the device's generator and batches drawn ahead on another
+    // thread, against the same run drawing each batch in its step: the same weights after
+    // three steps; and a different noise from the host's.
+    let data = dataset();
+    let config = TrainConfig::preset("tiny").unwrap();
+    let gpu = gpu();
+    let run = |prefetch: bool, host_noise: bool| -> (f64, Vec<Tensor>) {
+        let mut trainer =
+            Trainer::new(config.clone(), &data, Path::new("procedural"), &gpu).unwrap();
+        trainer.prefetch_batches(prefetch);
+        trainer.noise_on_host(host_noise);
+        let loss = (0..3).map(|_| trainer.step(0).unwrap().loss).last().unwrap();
+        (loss, trainer.parameters().iter().map(|p| p.var.as_tensor().clone()).collect())
+    };
+    let (ahead, in_step, host) = (run(true, false), run(false, false), run(true, true));
+    for (a, b) in ahead.1.iter().zip(&in_step.1) {
+        let difference = relative_difference(a, &b.to_device(&Device::Cpu).unwrap());
+        assert!(difference < 1e-6, "weights differ by {difference}");
+    }
+    eprintln!("losses after three steps: {} (device noise), {} (host noise)", ahead.0, host.0);
+    assert!((ahead.0 - in_step.0).abs() < 1e-6 * ahead.0.abs().max(1.0));
+    assert_ne!(ahead.0, host.0);
 }
 
 #[test]
@@ -253,6 +282,68 @@ fn forward_kinematics_on_the_gpu_computes_and_differentiates_as_on_the_cpu() {
                 eprintln!("FK {joints} joints, per sample {per_sample}: {name} {difference:.1e}");
                 assert!(difference < TOLERANCE, "{name}: {difference}");
             }
+        }
+    }
+}
+
+#[test]
+fn row_operations_on_the_gpu_compute_and_differentiate_as_on_the_cpu() {
+    // The fused row operations (`rows.cu`: layer norm, the modulation, the masked softmax) at
+    // odd sizes: rows narrower than a warp, a width between warps, one wider than a block of
+    // threads; inputs offset from zero as the tokens are; a masked key per sequence. Outputs and
+    // the gradients of a weighted sum against the CPU's operations (themselves checked against
+    // finite differences).
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for (sequences, frames, latent) in [(3, 7, 5), (2, 9, 37), (5, 3, 301)] {
+        let x = random(&[sequences, frames, latent], &mut rng).affine(3.0, 0.5).unwrap();
+        let modulation = random(&[sequences, 2 * latent], &mut rng);
+        let weights = random(&[sequences, frames, latent], &mut rng);
+        let scores = random(&[sequences, 2, frames, latent], &mut rng).affine(4.0, 0.0).unwrap();
+        let mask: Vec<f32> =
+            (0..sequences * latent).map(|i| (i % latent != 1) as u8 as f32).collect();
+        let mask = Tensor::from_vec(mask, (sequences, latent), &Device::Cpu).unwrap();
+        let score_weights = random(&[sequences, 2, frames, latent], &mut rng);
+        let run = |device: &Device| -> [Tensor; 7] {
+            let x = Var::from_tensor(&x.to_device(device).unwrap()).unwrap();
+            let modulation = Var::from_tensor(&modulation.to_device(device).unwrap()).unwrap();
+            let weights = weights.to_device(device).unwrap();
+            let normalised = dex2hoi_model::differentiable::layer_norm(&x).unwrap();
+            let modulated = dex2hoi_model::differentiable::modulate(&x, &modulation).unwrap();
+            let weighted = |t: &Tensor| (t * &weights).unwrap().sum_all().unwrap();
+            let of_norm = weighted(&normalised).backward().unwrap();
+            let of_modulation = weighted(&modulated).backward().unwrap();
+            let scores = Var::from_tensor(&scores.to_device(device).unwrap()).unwrap();
+            let mask = mask.to_device(device).unwrap();
+            let softmax = dex2hoi_model::differentiable::masked_softmax(&scores, &mask).unwrap();
+            let score_weights = score_weights.to_device(device).unwrap();
+            let of_softmax = (&softmax * score_weights).unwrap().sum_all().unwrap().backward();
+            let of_scores = of_softmax.unwrap().get(&scores).unwrap().clone();
+            [
+                normalised,
+                modulated,
+                of_norm.get(&x).unwrap().clone(),
+                of_modulation.get(&x).unwrap().clone(),
+                of_modulation.get(&modulation).unwrap().clone(),
+                softmax,
+                of_scores,
+            ]
+        };
+        let (cpu, on_gpu) = (run(&Device::Cpu), run(&gpu));
+        let names = [
+            "layer norm",
+            "modulation",
+            "layer norm's input gradient",
+            "modulation's token gradient",
+            "modulation's gradient",
+            "masked softmax",
+            "masked softmax's score gradient",
+        ];
+        for (name, (g, c)) in names.iter().zip(on_gpu.iter().zip(&cpu)) {
+            assert!(g.device().is_cuda());
+            let difference = relative_difference(g, c);
+            eprintln!("{sequences} x {frames} x {latent}: {name} {difference:.1e}");
+            assert!(difference < TOLERANCE, "{name}: {difference}");
         }
     }
 }

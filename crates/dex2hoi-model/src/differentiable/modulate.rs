@@ -77,6 +77,18 @@ impl CustomOp2 for Modulate {
         by_dtype!(self.name(), x, forward((x, x_layout), (modulation, modulation_layout)))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        x: &candle_core::CudaStorage,
+        x_layout: &Layout,
+        modulation: &candle_core::CudaStorage,
+        modulation_layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let sizes = sizes(self.name(), x_layout, modulation_layout)?;
+        super::rows_cuda::modulate_forward((x, x_layout), (modulation, modulation_layout), sizes)
+    }
+
     fn bwd(
         &self,
         x: &Tensor,
@@ -178,6 +190,25 @@ impl CustomOp3 for ModulateBackward {
             self.name(),
             x,
             backward((x, x_layout), (modulation, modulation_layout), (grad, grad_layout))
+        )
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        x: &candle_core::CudaStorage,
+        x_layout: &Layout,
+        modulation: &candle_core::CudaStorage,
+        modulation_layout: &Layout,
+        grad: &candle_core::CudaStorage,
+        grad_layout: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let sizes = sizes(self.name(), x_layout, modulation_layout)?;
+        super::rows_cuda::modulate_backward(
+            (x, x_layout),
+            (modulation, modulation_layout),
+            (grad, grad_layout),
+            sizes,
         )
     }
 }
