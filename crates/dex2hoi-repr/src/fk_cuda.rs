@@ -7,15 +7,17 @@
 //! kernel's signature; three launches, each checked by hand (their `SAFETY` comments).
 #![allow(unsafe_code)]
 
-use std::sync::OnceLock;
-
 use candle_core::cuda_backend::WrapErr;
 use candle_core::cuda_backend::cudarc::driver::{
     CudaSlice, CudaView, LaunchArgs, LaunchConfig, PushKernelArg,
 };
 use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, StorageRef, Tensor};
 
-const MODULE: &str = "dex2hoi_fk";
+use crate::cuda_kernel::{KernelSource, contiguous_f32};
+
+static SOURCE: KernelSource = KernelSource::new("dex2hoi_fk", "fk.cu", include_str!("fk.cu"));
+/// The operation as errors name it.
+const FK: &str = "dex2hoi FK";
 const THREADS: u32 = 128;
 
 /// The skeleton and bodies of one FK operation, as the kernels read them.
@@ -57,8 +59,13 @@ impl<'a> Frames<'a> {
         let batch = root_layout.shape().elem_count() / 3;
         Ok(Self {
             device,
-            local: view(local, local_layout, batch * joints * 9, "local rotations")?,
-            root: view(root, root_layout, batch * 3, "root positions")?,
+            local: contiguous_f32(
+                FK,
+                (local, local_layout),
+                batch * joints * 9,
+                "local rotations",
+            )?,
+            root: contiguous_f32(FK, (root, root_layout), batch * 3, "root positions")?,
             parents: parents(device, bodies)?,
             offsets: Offsets::of(device, bodies)?,
             batch,
@@ -96,7 +103,8 @@ pub(crate) fn forward(
     let offsets = frames.offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * width)?;
-    let function = device.get_or_load_custom_func("fk_forward_f32", MODULE, ptx()?)?;
+    let function =
+        device.get_or_load_custom_func("fk_forward_f32", SOURCE.module, SOURCE.ptx()?)?;
     let (width_arg, from) = (width as u32, if width == 3 { 9u32 } else { 0 });
     let mut builder = function.builder();
     frames.push(&offsets, &mut builder);
@@ -125,12 +133,13 @@ pub(crate) fn backward(
     let shape = local.1.shape().clone();
     let frames = Frames::new(bodies, local, root)?;
     let (device, batch, joints) = (frames.device, frames.batch, frames.joints);
-    let grad = view(grad, grad_layout, batch * joints * width, "output gradient")?;
+    let grad = contiguous_f32(FK, (grad, grad_layout), batch * joints * width, "output gradient")?;
     let offsets = frames.offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
-    let function = device.get_or_load_custom_func("fk_backward_f32", MODULE, ptx()?)?;
+    let function =
+        device.get_or_load_custom_func("fk_backward_f32", SOURCE.module, SOURCE.ptx()?)?;
     let width_arg = width as u32;
     let mut builder = function.builder();
     frames.push(&offsets, &mut builder);
@@ -150,9 +159,10 @@ pub(crate) fn sum_over_joints(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &storage.device;
     let (batch, joints, _) = layout.shape().dims3()?;
-    let values = view(storage, layout, batch * joints * 3, "position gradient")?;
+    let values = contiguous_f32(FK, (storage, layout), batch * joints * 3, "position gradient")?;
     let out = device.alloc_zeros::<f32>(batch * 3)?;
-    let function = device.get_or_load_custom_func("fk_sum_over_joints_f32", MODULE, ptx()?)?;
+    let function =
+        device.get_or_load_custom_func("fk_sum_over_joints_f32", SOURCE.module, SOURCE.ptx()?)?;
     let (batch_arg, joints_arg) = (count(batch)?, count(joints)?);
     let mut builder = function.builder();
     builder.arg(&values).arg(&batch_arg).arg(&joints_arg).arg(&out);
@@ -160,25 +170,6 @@ pub(crate) fn sum_over_joints(
     // holds `batch * joints * 3` numbers and `out` `batch * 3`, one thread each.
     unsafe { builder.launch(per_frame(batch * 3)) }.w()?;
     Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), Shape::from((batch, 3))))
-}
-
-/// The contiguous `f32` values of an input, which must number `expected`.
-fn view<'a>(
-    storage: &'a CudaStorage,
-    layout: &Layout,
-    expected: usize,
-    what: &str,
-) -> candle_core::Result<CudaView<'a, f32>> {
-    let Some((start, end)) = layout.contiguous_offsets() else {
-        candle_core::bail!("dex2hoi FK on the GPU: {what} must be contiguous")
-    };
-    if end - start != expected {
-        candle_core::bail!(
-            "dex2hoi FK on the GPU: {what} hold {} values, expected {expected}",
-            end - start
-        )
-    }
-    Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
 }
 
 /// The rest offsets as the kernels read them: the GPU tensor where it is, or an upload.
@@ -207,7 +198,7 @@ impl<'a> Offsets<'a> {
                 let Storage::Cuda(storage) = &**storage else {
                     candle_core::bail!("dex2hoi FK on the GPU: the rest offsets are not on the GPU")
                 };
-                view(storage, layout, *count, "rest offsets")
+                contiguous_f32(FK, (storage, layout), *count, "rest offsets")
             }
             Self::Uploaded(slice) => Ok(slice.slice(..)),
         }
@@ -263,16 +254,4 @@ fn per_frame(threads: usize) -> LaunchConfig {
         block_dim: (THREADS, 1, 1),
         shared_mem_bytes: 0,
     }
-}
-
-/// The kernels' PTX, compiled once per process.
-fn ptx() -> candle_core::Result<&'static str> {
-    static PTX: OnceLock<Result<String, String>> = OnceLock::new();
-    PTX.get_or_init(|| {
-        candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(include_str!("fk.cu"))
-            .map(|ptx| ptx.to_src())
-            .map_err(|e| e.to_string())
-    })
-    .as_deref()
-    .map_err(|e| candle_core::Error::Msg(format!("compiling fk.cu: {e}")))
 }

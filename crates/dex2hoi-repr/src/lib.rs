@@ -11,6 +11,8 @@
 //! is the first two rows (PyTorch3D).
 
 pub mod bps;
+#[cfg(feature = "cuda")]
+pub mod cuda_kernel;
 pub mod error;
 pub mod fk;
 #[cfg(feature = "cuda")]

@@ -7,15 +7,16 @@
 //! kernel's signature; seven launches, each checked by hand (their `SAFETY` comments).
 #![allow(unsafe_code)]
 
-use std::sync::OnceLock;
-
 use candle_core::cuda_backend::WrapErr;
-use candle_core::cuda_backend::cudarc::driver::{CudaView, LaunchConfig, PushKernelArg};
+use candle_core::cuda_backend::cudarc::driver::{LaunchConfig, PushKernelArg};
 use candle_core::{CudaStorage, Layout, Shape};
+use dex2hoi_repr::cuda_kernel::{KernelSource, contiguous_f32};
 
 use crate::kernel::LAYER_NORM_EPS;
 
-const MODULE: &str = "dex2hoi_rows";
+static SOURCE: KernelSource = KernelSource::new("dex2hoi_rows", "rows.cu", include_str!("rows.cu"));
+/// The operations as errors name them.
+const ROWS: &str = "dex2hoi's row operations";
 
 /// A row pass's launch: one block per row, a multiple of 32 threads up to 256, no more than the
 /// row needs.
@@ -41,10 +42,14 @@ pub(super) fn layer_norm_forward(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &x.device;
     let (rows, width) = rows_and_width(layout);
-    let x_view = view(x, layout, rows * width, "layer norm's input")?;
+    let x_view = contiguous_f32(ROWS, (x, layout), rows * width, "layer norm's input")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function = device.get_or_load_custom_func("layer_norm_forward_f32", MODULE, ptx()?)?;
+        let function = device.get_or_load_custom_func(
+            "layer_norm_forward_f32",
+            SOURCE.module,
+            SOURCE.ptx()?,
+        )?;
         let (width_arg, eps) = (count(width, "features")?, LAYER_NORM_EPS as f32);
         let mut builder = function.builder();
         builder.arg(&x_view).arg(&width_arg).arg(&eps).arg(&out);
@@ -62,11 +67,16 @@ pub(super) fn layer_norm_backward(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &x.device;
     let (rows, width) = rows_and_width(x_layout);
-    let x_view = view(x, x_layout, rows * width, "layer norm's input")?;
-    let grad_view = view(grad, grad_layout, rows * width, "layer norm's output gradient")?;
+    let x_view = contiguous_f32(ROWS, (x, x_layout), rows * width, "layer norm's input")?;
+    let grad_view =
+        contiguous_f32(ROWS, (grad, grad_layout), rows * width, "layer norm's output gradient")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function = device.get_or_load_custom_func("layer_norm_backward_f32", MODULE, ptx()?)?;
+        let function = device.get_or_load_custom_func(
+            "layer_norm_backward_f32",
+            SOURCE.module,
+            SOURCE.ptx()?,
+        )?;
         let (width_arg, eps) = (count(width, "features")?, LAYER_NORM_EPS as f32);
         let mut builder = function.builder();
         builder.arg(&x_view).arg(&grad_view).arg(&width_arg).arg(&eps).arg(&out);
@@ -86,12 +96,17 @@ pub(super) fn modulate_forward(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &x.device;
     let rows = sequences * frames;
-    let x_view = view(x, x_layout, rows * latent, "the modulated tokens")?;
-    let modulation_view =
-        view(modulation, modulation_layout, sequences * 2 * latent, "the modulation")?;
+    let x_view = contiguous_f32(ROWS, (x, x_layout), rows * latent, "the modulated tokens")?;
+    let modulation_view = contiguous_f32(
+        ROWS,
+        (modulation, modulation_layout),
+        sequences * 2 * latent,
+        "the modulation",
+    )?;
     let out = device.alloc_zeros::<f32>(rows * latent)?;
     if rows > 0 && latent > 0 {
-        let function = device.get_or_load_custom_func("modulate_forward_f32", MODULE, ptx()?)?;
+        let function =
+            device.get_or_load_custom_func("modulate_forward_f32", SOURCE.module, SOURCE.ptx()?)?;
         let (frames_arg, width_arg) = (count(frames, "frames")?, count(latent, "features")?);
         let eps = LAYER_NORM_EPS as f32;
         let mut builder = function.builder();
@@ -121,10 +136,14 @@ pub(super) fn modulate_backward(
     let device = &x.device;
     let rows = sequences * frames;
     let tokens = rows * latent;
-    let x_view = view(x, x_layout, tokens, "the modulated tokens")?;
-    let modulation_view =
-        view(modulation, modulation_layout, sequences * 2 * latent, "the modulation")?;
-    let grad_view = view(grad, grad_layout, tokens, "the output gradient")?;
+    let x_view = contiguous_f32(ROWS, (x, x_layout), tokens, "the modulated tokens")?;
+    let modulation_view = contiguous_f32(
+        ROWS,
+        (modulation, modulation_layout),
+        sequences * 2 * latent,
+        "the modulation",
+    )?;
+    let grad_view = contiguous_f32(ROWS, (grad, grad_layout), tokens, "the output gradient")?;
     let mut out = device.alloc_zeros::<f32>(tokens + sequences * 2 * latent)?;
     if rows > 0 && latent > 0 {
         let stats = device.alloc_zeros::<f32>(rows * 2)?;
@@ -132,8 +151,11 @@ pub(super) fn modulate_backward(
         let sequences_arg = count(sequences, "sequences")?;
         let eps = LAYER_NORM_EPS as f32;
         let (mut grad_x, mut grad_modulation) = out.split_at_mut(tokens);
-        let function =
-            device.get_or_load_custom_func("modulate_backward_rows_f32", MODULE, ptx()?)?;
+        let function = device.get_or_load_custom_func(
+            "modulate_backward_rows_f32",
+            SOURCE.module,
+            SOURCE.ptx()?,
+        )?;
         let mut builder = function.builder();
         builder
             .arg(&x_view)
@@ -148,8 +170,11 @@ pub(super) fn modulate_backward(
         // the tokens, gradient and `grad_x` hold `sequences * frames` rows of `latent`, the
         // modulation one row of `2 latent` per sequence, `stats` two values per row.
         unsafe { builder.launch(per_row(rows, latent)?) }.w()?;
-        let function =
-            device.get_or_load_custom_func("modulate_backward_columns_f32", MODULE, ptx()?)?;
+        let function = device.get_or_load_custom_func(
+            "modulate_backward_columns_f32",
+            SOURCE.module,
+            SOURCE.ptx()?,
+        )?;
         let mut builder = function.builder();
         builder
             .arg(&x_view)
@@ -184,12 +209,16 @@ pub(super) fn masked_softmax_forward(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &scores.device;
     let rows = sequences * rows_per_sequence;
-    let scores_view = view(scores, scores_layout, rows * keys, "the attention scores")?;
-    let mask_view = view(mask, mask_layout, sequences * keys, "the key mask")?;
+    let scores_view =
+        contiguous_f32(ROWS, (scores, scores_layout), rows * keys, "the attention scores")?;
+    let mask_view = contiguous_f32(ROWS, (mask, mask_layout), sequences * keys, "the key mask")?;
     let out = device.alloc_zeros::<f32>(rows * keys)?;
     if rows > 0 && keys > 0 {
-        let function =
-            device.get_or_load_custom_func("masked_softmax_forward_f32", MODULE, ptx()?)?;
+        let function = device.get_or_load_custom_func(
+            "masked_softmax_forward_f32",
+            SOURCE.module,
+            SOURCE.ptx()?,
+        )?;
         let (per_sequence, width) = (count(rows_per_sequence, "rows")?, count(keys, "keys")?);
         let mut builder = function.builder();
         builder.arg(&scores_view).arg(&mask_view).arg(&per_sequence).arg(&width).arg(&out);
@@ -208,11 +237,13 @@ pub(super) fn softmax_backward(
 ) -> candle_core::Result<(CudaStorage, Shape)> {
     let device = &y.device;
     let (rows, width) = rows_and_width(y_layout);
-    let y_view = view(y, y_layout, rows * width, "the probabilities")?;
-    let grad_view = view(grad, grad_layout, rows * width, "the probabilities' gradient")?;
+    let y_view = contiguous_f32(ROWS, (y, y_layout), rows * width, "the probabilities")?;
+    let grad_view =
+        contiguous_f32(ROWS, (grad, grad_layout), rows * width, "the probabilities' gradient")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function = device.get_or_load_custom_func("softmax_backward_f32", MODULE, ptx()?)?;
+        let function =
+            device.get_or_load_custom_func("softmax_backward_f32", SOURCE.module, SOURCE.ptx()?)?;
         let width_arg = count(width, "keys")?;
         let mut builder = function.builder();
         builder.arg(&y_view).arg(&grad_view).arg(&width_arg).arg(&out);
@@ -223,39 +254,8 @@ pub(super) fn softmax_backward(
     Ok((CudaStorage::wrap_cuda_slice(out, device.clone()), y_layout.shape().clone()))
 }
 
-/// The contiguous `f32` values of an input, which must number `expected`.
-fn view<'a>(
-    storage: &'a CudaStorage,
-    layout: &Layout,
-    expected: usize,
-    what: &str,
-) -> candle_core::Result<CudaView<'a, f32>> {
-    let Some((start, end)) = layout.contiguous_offsets() else {
-        candle_core::bail!("dex2hoi's row operations on the GPU: {what} must be contiguous")
-    };
-    if end - start != expected {
-        candle_core::bail!(
-            "dex2hoi's row operations on the GPU: {what} hold {} values, expected {expected}",
-            end - start
-        )
-    }
-    Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
-}
-
 fn count(n: usize, what: &str) -> candle_core::Result<u32> {
     u32::try_from(n).map_err(|_| {
         candle_core::Error::Msg(format!("dex2hoi's row operations on the GPU: {n} {what}"))
     })
-}
-
-/// The kernels' PTX, compiled once per process.
-fn ptx() -> candle_core::Result<&'static str> {
-    static PTX: OnceLock<Result<String, String>> = OnceLock::new();
-    PTX.get_or_init(|| {
-        candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(include_str!("rows.cu"))
-            .map(|ptx| ptx.to_src())
-            .map_err(|e| e.to_string())
-    })
-    .as_deref()
-    .map_err(|e| candle_core::Error::Msg(format!("compiling rows.cu: {e}")))
 }
