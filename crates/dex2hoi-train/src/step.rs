@@ -8,12 +8,12 @@
 //! each group's masks drawn from its own seed), so the generator state of a checkpoint is its
 //! step: a resumed run draws exactly what an uninterrupted one would.
 //!
-//! On a GPU two things differ. The noise is drawn by the device's generator, seeded from the
-//! stream where the CPU draws it value by value (as the dropout masks are): drawing it on the
-//! host and uploading it took a tenth of a step. And the next step's batch is drawn on another
-//! host thread while this step's backward pass and update are queued
-//! ([`Trainer::prefetch_batches`]): it comes from the next step's own stream, first, so it is the
-//! batch that step would draw itself.
+//! On a GPU two things differ, so that the GPU does not wait for the host. The noise is drawn
+//! by the device's generator, seeded from the stream where the CPU draws it value by value (as
+//! the dropout masks are). And the next step's batch is drawn on another host thread while this
+//! step's backward pass and update are queued ([`Trainer::prefetch_batches`]): it comes from the
+//! next step's own stream, first, so it is the batch that step would draw itself. Together they
+//! took the batch's part of a `small` step on an H200 from 13 to 2 ms (docs/GPU.md).
 
 use std::path::Path;
 use std::sync::Arc;
