@@ -131,6 +131,20 @@ pub struct Trainer {
     pub(crate) host_noise: bool,
 }
 
+/// The batch of `step` from the step's own random stream, and the stream after its draws: what
+/// the step draws itself, ahead of it on another thread, or for [`Trainer::objective_at`].
+fn draw_batch(
+    data: &TrainingSet,
+    options: &BatchOptions,
+    seed: u64,
+    step: usize,
+    device: &Device,
+) -> Result<(Batch, ChaCha8Rng)> {
+    let mut rng = step_rng(seed, step);
+    let batch = data.batch(options, &mut rng, device)?;
+    Ok((batch, rng))
+}
+
 /// A batch drawn ahead on the host (see the module documentation).
 #[derive(Debug)]
 pub(crate) struct Prefetched {
@@ -297,8 +311,9 @@ impl Trainer {
     /// that trains in groups (`training.group_windows`) the total's graph ends at the joined
     /// prediction, not at the parameters.
     pub fn objective_at(&self, step: usize) -> Result<crate::loss::Objective> {
-        let mut rng = step_rng(self.config.training.seed, step);
-        let batch = self.data.batch(&self.batch_options(), &mut rng, &self.device)?;
+        let seed = self.config.training.seed;
+        let (batch, mut rng) =
+            draw_batch(&self.data, &self.batch_options(), seed, step, &self.device)?;
         Ok(self.objective(batch, &mut rng, &mut StepTiming::default())?.0)
     }
 
@@ -321,9 +336,8 @@ impl Trainer {
                 Ok((ahead.batch.to_device(&self.device)?, ahead.rng))
             }
             _ => {
-                let mut rng = step_rng(self.config.training.seed, self.step);
-                let batch = self.data.batch(&self.batch_options(), &mut rng, &self.device)?;
-                Ok((batch, rng))
+                let seed = self.config.training.seed;
+                draw_batch(&self.data, &self.batch_options(), seed, self.step, &self.device)
             }
         }
     }
@@ -572,8 +586,7 @@ impl Trainer {
             let (data, options) = (Arc::clone(&self.data), self.batch_options());
             let (seed, step) = (self.config.training.seed, self.step + 1);
             std::thread::spawn(move || -> Result<Prefetched> {
-                let mut rng = step_rng(seed, step);
-                let batch = data.batch(&options, &mut rng, &Device::Cpu)?;
+                let (batch, rng) = draw_batch(&data, &options, seed, step, &Device::Cpu)?;
                 Ok(Prefetched { step, batch, rng })
             })
         });
