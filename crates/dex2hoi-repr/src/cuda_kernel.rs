@@ -4,8 +4,10 @@
 
 use std::sync::OnceLock;
 
-use candle_core::cuda_backend::cudarc::driver::CudaView;
-use candle_core::{CudaStorage, Layout};
+use std::sync::Arc;
+
+use candle_core::cuda_backend::cudarc::driver::{CudaFunction, CudaStream, CudaView, LaunchArgs};
+use candle_core::{CudaDevice, CudaStorage, Layout};
 
 /// A CUDA source file of dex2hoi, compiled at its first use.
 pub struct KernelSource {
@@ -32,6 +34,27 @@ impl KernelSource {
             })
             .as_deref()
             .map_err(|e| candle_core::Error::Msg(format!("compiling {}: {e}", self.file)))
+    }
+
+    /// The kernel `name` of this source on `device`'s stream, the module loaded at its first use
+    /// (candle keeps it per device).
+    pub fn function(&self, device: &CudaDevice, name: &str) -> candle_core::Result<Kernel> {
+        let function = device.get_or_load_custom_func(name, self.module, self.ptx()?)?;
+        Ok(Kernel { function: function.into_cuda_function(), stream: device.cuda_stream() })
+    }
+}
+
+/// One kernel of a [`KernelSource`], bound to the stream it launches on.
+pub struct Kernel {
+    function: CudaFunction,
+    stream: Arc<CudaStream>,
+}
+
+impl Kernel {
+    /// A launch of the kernel on its stream; the caller pushes the arguments in the kernel's
+    /// order and launches (unsafe: the arguments are not checked against the source).
+    pub fn builder(&self) -> LaunchArgs<'_> {
+        self.stream.launch_builder(&self.function)
     }
 }
 

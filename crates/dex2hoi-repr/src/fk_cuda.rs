@@ -103,8 +103,7 @@ pub(crate) fn forward(
     let offsets = frames.offsets.view()?;
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * width)?;
-    let function =
-        device.get_or_load_custom_func("fk_forward_f32", SOURCE.module, SOURCE.ptx()?)?;
+    let function = SOURCE.function(device, "fk_forward_f32")?;
     let (width_arg, from) = (width as u32, if width == 3 { 9u32 } else { 0 });
     let mut builder = function.builder();
     frames.push(&offsets, &mut builder);
@@ -138,8 +137,7 @@ pub(crate) fn backward(
     let packed = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let state = device.alloc_zeros::<f32>(batch * joints * 12)?;
     let out = device.alloc_zeros::<f32>(batch * joints * 9)?;
-    let function =
-        device.get_or_load_custom_func("fk_backward_f32", SOURCE.module, SOURCE.ptx()?)?;
+    let function = SOURCE.function(device, "fk_backward_f32")?;
     let width_arg = width as u32;
     let mut builder = function.builder();
     frames.push(&offsets, &mut builder);
@@ -161,8 +159,7 @@ pub(crate) fn sum_over_joints(
     let (batch, joints, _) = layout.shape().dims3()?;
     let values = contiguous_f32(FK, (storage, layout), batch * joints * 3, "position gradient")?;
     let out = device.alloc_zeros::<f32>(batch * 3)?;
-    let function =
-        device.get_or_load_custom_func("fk_sum_over_joints_f32", SOURCE.module, SOURCE.ptx()?)?;
+    let function = SOURCE.function(device, "fk_sum_over_joints_f32")?;
     let (batch_arg, joints_arg) = (count(batch)?, count(joints)?);
     let mut builder = function.builder();
     builder.arg(&values).arg(&batch_arg).arg(&joints_arg).arg(&out);

@@ -45,11 +45,7 @@ pub(super) fn layer_norm_forward(
     let x_view = contiguous_f32(ROWS, (x, layout), rows * width, "layer norm's input")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function = device.get_or_load_custom_func(
-            "layer_norm_forward_f32",
-            SOURCE.module,
-            SOURCE.ptx()?,
-        )?;
+        let function = SOURCE.function(device, "layer_norm_forward_f32")?;
         let (width_arg, eps) = (count(width, "features")?, LAYER_NORM_EPS as f32);
         let mut builder = function.builder();
         builder.arg(&x_view).arg(&width_arg).arg(&eps).arg(&out);
@@ -72,11 +68,7 @@ pub(super) fn layer_norm_backward(
         contiguous_f32(ROWS, (grad, grad_layout), rows * width, "layer norm's output gradient")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function = device.get_or_load_custom_func(
-            "layer_norm_backward_f32",
-            SOURCE.module,
-            SOURCE.ptx()?,
-        )?;
+        let function = SOURCE.function(device, "layer_norm_backward_f32")?;
         let (width_arg, eps) = (count(width, "features")?, LAYER_NORM_EPS as f32);
         let mut builder = function.builder();
         builder.arg(&x_view).arg(&grad_view).arg(&width_arg).arg(&eps).arg(&out);
@@ -105,8 +97,7 @@ pub(super) fn modulate_forward(
     )?;
     let out = device.alloc_zeros::<f32>(rows * latent)?;
     if rows > 0 && latent > 0 {
-        let function =
-            device.get_or_load_custom_func("modulate_forward_f32", SOURCE.module, SOURCE.ptx()?)?;
+        let function = SOURCE.function(device, "modulate_forward_f32")?;
         let (frames_arg, width_arg) = (count(frames, "frames")?, count(latent, "features")?);
         let eps = LAYER_NORM_EPS as f32;
         let mut builder = function.builder();
@@ -151,11 +142,7 @@ pub(super) fn modulate_backward(
         let sequences_arg = count(sequences, "sequences")?;
         let eps = LAYER_NORM_EPS as f32;
         let (mut grad_x, mut grad_modulation) = out.split_at_mut(tokens);
-        let function = device.get_or_load_custom_func(
-            "modulate_backward_rows_f32",
-            SOURCE.module,
-            SOURCE.ptx()?,
-        )?;
+        let function = SOURCE.function(device, "modulate_backward_rows_f32")?;
         let mut builder = function.builder();
         builder
             .arg(&x_view)
@@ -170,11 +157,7 @@ pub(super) fn modulate_backward(
         // the tokens, gradient and `grad_x` hold `sequences * frames` rows of `latent`, the
         // modulation one row of `2 latent` per sequence, `stats` two values per row.
         unsafe { builder.launch(per_row(rows, latent)?) }.w()?;
-        let function = device.get_or_load_custom_func(
-            "modulate_backward_columns_f32",
-            SOURCE.module,
-            SOURCE.ptx()?,
-        )?;
+        let function = SOURCE.function(device, "modulate_backward_columns_f32")?;
         let mut builder = function.builder();
         builder
             .arg(&x_view)
@@ -214,11 +197,7 @@ pub(super) fn masked_softmax_forward(
     let mask_view = contiguous_f32(ROWS, (mask, mask_layout), sequences * keys, "the key mask")?;
     let out = device.alloc_zeros::<f32>(rows * keys)?;
     if rows > 0 && keys > 0 {
-        let function = device.get_or_load_custom_func(
-            "masked_softmax_forward_f32",
-            SOURCE.module,
-            SOURCE.ptx()?,
-        )?;
+        let function = SOURCE.function(device, "masked_softmax_forward_f32")?;
         let (per_sequence, width) = (count(rows_per_sequence, "rows")?, count(keys, "keys")?);
         let mut builder = function.builder();
         builder.arg(&scores_view).arg(&mask_view).arg(&per_sequence).arg(&width).arg(&out);
@@ -242,8 +221,7 @@ pub(super) fn softmax_backward(
         contiguous_f32(ROWS, (grad, grad_layout), rows * width, "the probabilities' gradient")?;
     let out = device.alloc_zeros::<f32>(rows * width)?;
     if rows > 0 {
-        let function =
-            device.get_or_load_custom_func("softmax_backward_f32", SOURCE.module, SOURCE.ptx()?)?;
+        let function = SOURCE.function(device, "softmax_backward_f32")?;
         let width_arg = count(width, "keys")?;
         let mut builder = function.builder();
         builder.arg(&y_view).arg(&grad_view).arg(&width_arg).arg(&out);
@@ -255,7 +233,5 @@ pub(super) fn softmax_backward(
 }
 
 fn count(n: usize, what: &str) -> candle_core::Result<u32> {
-    u32::try_from(n).map_err(|_| {
-        candle_core::Error::Msg(format!("dex2hoi's row operations on the GPU: {n} {what}"))
-    })
+    u32::try_from(n).map_err(|_| candle_core::Error::Msg(format!("{ROWS} on the GPU: {n} {what}")))
 }
