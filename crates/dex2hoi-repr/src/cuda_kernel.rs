@@ -1,10 +1,9 @@
 //! What dex2hoi's own CUDA kernels share on the Rust side: their source compiled to PTX by NVRTC
-//! once per process ([`KernelSource`]), and an input checked and viewed as the kernels read it
-//! ([`contiguous_f32`]). Forward kinematics here and the model's row operations use them.
+//! once per process ([`KernelSource`]), an input checked and viewed as the kernels read it
+//! ([`contiguous_f32`]) and a size passed as a kernel's 32-bit count ([`kernel_count`]). Forward
+//! kinematics here and the model's row operations use them.
 
-use std::sync::OnceLock;
-
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use candle_core::cuda_backend::cudarc::driver::{CudaFunction, CudaStream, CudaView, LaunchArgs};
 use candle_core::{CudaDevice, CudaStorage, Layout};
@@ -76,4 +75,11 @@ pub fn contiguous_f32<'a>(
         )
     }
     Ok(storage.as_cuda_slice::<f32>()?.slice(start..end))
+}
+
+/// `n` as the 32-bit count a kernel of the operation `op` takes; `what` names what is counted in
+/// the error when it does not fit.
+pub fn kernel_count(op: &str, n: usize, what: &str) -> candle_core::Result<u32> {
+    u32::try_from(n)
+        .map_err(|_| candle_core::Error::Msg(format!("{op} on the GPU: {n} {what} are too many")))
 }

@@ -13,7 +13,7 @@ use candle_core::cuda_backend::cudarc::driver::{
 };
 use candle_core::{CudaDevice, CudaStorage, Layout, Shape, Storage, StorageRef, Tensor};
 
-use crate::cuda_kernel::{KernelSource, contiguous_f32};
+use crate::cuda_kernel::{KernelSource, contiguous_f32, kernel_count};
 
 static SOURCE: KernelSource = KernelSource::new("dex2hoi_fk", "fk.cu", include_str!("fk.cu"));
 /// The operation as errors name it.
@@ -160,7 +160,7 @@ pub(crate) fn sum_over_joints(
     let values = contiguous_f32(FK, (storage, layout), batch * joints * 3, "position gradient")?;
     let out = device.alloc_zeros::<f32>(batch * 3)?;
     let function = SOURCE.function(device, "fk_sum_over_joints_f32")?;
-    let (batch_arg, joints_arg) = (count(batch)?, count(joints)?);
+    let (batch_arg, joints_arg) = (count(batch, "frames")?, count(joints, "joints")?);
     let mut builder = function.builder();
     builder.arg(&values).arg(&batch_arg).arg(&joints_arg).arg(&out);
     // SAFETY: the arguments are those of `fk_sum_over_joints_f32` in `fk.cu`, in order; `values`
@@ -233,16 +233,16 @@ fn sizes(bodies: &FkBodies<'_>, batch: usize) -> candle_core::Result<(u32, u32, 
                 bodies.frames_per_sample
             )
         }
-        count(bodies.frames_per_sample)?
+        count(bodies.frames_per_sample, "frames per sample")?
     };
     if bodies.parents.iter().enumerate().any(|(j, p)| p.is_some_and(|p| p >= j)) {
         candle_core::bail!("dex2hoi FK on the GPU: a parent must precede its children")
     }
-    Ok((frames_per_sample, count(joints)?, count(batch)?))
+    Ok((frames_per_sample, count(joints, "joints")?, count(batch, "frames")?))
 }
 
-fn count(n: usize) -> candle_core::Result<u32> {
-    u32::try_from(n).map_err(|_| candle_core::Error::Msg(format!("dex2hoi FK: {n} is too many")))
+fn count(n: usize, what: &str) -> candle_core::Result<u32> {
+    kernel_count(FK, n, what)
 }
 
 fn per_frame(threads: usize) -> LaunchConfig {

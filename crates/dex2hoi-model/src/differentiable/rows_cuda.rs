@@ -10,7 +10,7 @@
 use candle_core::cuda_backend::WrapErr;
 use candle_core::cuda_backend::cudarc::driver::{LaunchConfig, PushKernelArg};
 use candle_core::{CudaStorage, Layout, Shape};
-use dex2hoi_repr::cuda_kernel::{KernelSource, contiguous_f32};
+use dex2hoi_repr::cuda_kernel::{KernelSource, contiguous_f32, kernel_count};
 
 use crate::kernel::LAYER_NORM_EPS;
 
@@ -233,5 +233,5 @@ pub(super) fn softmax_backward(
 }
 
 fn count(n: usize, what: &str) -> candle_core::Result<u32> {
-    u32::try_from(n).map_err(|_| candle_core::Error::Msg(format!("{ROWS} on the GPU: {n} {what}")))
+    kernel_count(ROWS, n, what)
 }
