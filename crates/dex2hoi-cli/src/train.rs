@@ -107,6 +107,11 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if let Some(model) = &init_from {
         println!("starting from the EMA weights of {}", model.display());
     }
+    let weights = &config.training.action_weights;
+    if !weights.is_empty() {
+        let listed: Vec<String> = weights.iter().map(|(a, w)| format!("{a} x{w}")).collect();
+        println!("windows drawn by action: {}, every other action x1", listed.join(", "));
+    }
     let start = match (&init_from, args.resume) {
         (Some(model), _) => {
             RunStart::InitialisedFrom(model, args.fresh.map_or(Fresh::Nothing, Fresh::from))

@@ -315,5 +315,34 @@ fn fine_tune_a_packed_model() {
     ]);
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("none.st"));
+
+    // Windows drawn by action: said when training starts; a label the data lacks refused.
+    let weighted = |name: &str, label: &str| {
+        let file = dir.join(format!("{name}.toml"));
+        let text = std::fs::read_to_string(config()).unwrap();
+        std::fs::write(&file, format!("{text}\n[training.action_weights]\n{label} = 3.0\n"))
+            .unwrap();
+        dex2hoi(&[
+            "train",
+            "--init-from",
+            &path("base.st"),
+            "--config",
+            file.to_str().unwrap(),
+            "--data",
+            &path("data"),
+            "--out",
+            &path(name),
+            "--steps",
+            "1",
+        ])
+    };
+    let pours = weighted("pours", "pour");
+    assert!(pours.status.success(), "{}", String::from_utf8_lossy(&pours.stderr));
+    let stdout = String::from_utf8_lossy(&pours.stdout);
+    assert!(stdout.contains("windows drawn by action: pour x3, every other action x1"), "{stdout}");
+    let misspelt = weighted("misspelt", "poor");
+    let stderr = String::from_utf8_lossy(&misspelt.stderr);
+    assert!(!misspelt.status.success());
+    assert!(stderr.contains("training.action_weights.poor") && stderr.contains("pour"), "{stderr}");
     std::fs::remove_dir_all(&dir).ok();
 }

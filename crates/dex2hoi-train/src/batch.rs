@@ -2,8 +2,12 @@
 //! (stream swap, left/right mirror), normalised, with the targets the losses need.
 
 use candle_core::{DType, Device, Tensor};
+use std::collections::BTreeMap;
+
 use glam::Vec3;
 use rand::Rng;
+use rand::distr::Distribution;
+use rand::distr::weighted::WeightedIndex;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_data::FeatureLayout;
@@ -39,13 +43,17 @@ pub struct TrainingSet {
     skeleton: Skeleton,
     sequences: Vec<ProcessedSequence>,
     windows: Vec<Window>,
-    /// Indices into `windows` of each sequence's first window (starting at frame 0).
-    first_windows: Vec<usize>,
+    /// Every window, drawn as [`LoopConfig::action_weights`] says.
+    ///
+    /// [`LoopConfig::action_weights`]: crate::LoopConfig::action_weights
+    all_windows: WindowPool,
+    /// Each sequence's first window (starting at frame 0).
+    first_windows: WindowPool,
     /// Per window and source slot, whether the object is set down within the window's
     /// predicted frames ([`Batch::put_down`] before the swap).
     put_down_of: Vec<[bool; MAX_OBJECTS]>,
-    /// Indices into `windows` of the windows that set some object down.
-    put_down_windows: Vec<usize>,
+    /// The windows that set some object down.
+    put_down_windows: WindowPool,
     window: WindowConfig,
     /// Per sequence and slot, the index of the object asset.
     assets_of: Vec<[Option<usize>; MAX_OBJECTS]>,
@@ -211,6 +219,41 @@ fn put_downs(
         .collect()
 }
 
+/// Some of a training set's windows, each drawn with the weight of its sequence's action.
+#[derive(Debug, Clone)]
+struct WindowPool {
+    /// Indices into [`TrainingSet::windows`].
+    indices: Vec<usize>,
+    /// The windows' weights when some are not 1; absent, the windows are drawn uniformly, with
+    /// the draws of a set without weights.
+    weights: Option<WeightedIndex<f64>>,
+}
+
+impl WindowPool {
+    /// The windows `indices`, drawn uniformly.
+    fn uniform(indices: Vec<usize>) -> Self {
+        Self { indices, weights: None }
+    }
+
+    /// The same windows drawn with `weight_of` each window; `None` when every weight is 0.
+    fn weighted(&self, weight_of: &[f64]) -> Option<Self> {
+        let weights = WeightedIndex::new(self.indices.iter().map(|&i| weight_of[i])).ok()?;
+        Some(Self { indices: self.indices.clone(), weights: Some(weights) })
+    }
+
+    /// One window's index, or `None` for a pool with no window to draw.
+    fn draw(&self, rng: &mut ChaCha8Rng) -> Option<usize> {
+        if self.indices.is_empty() {
+            return None;
+        }
+        let at = match &self.weights {
+            Some(weights) => weights.sample(rng),
+            None => rng.random_range(0..self.indices.len()),
+        };
+        Some(self.indices[at])
+    }
+}
+
 /// How a batch is drawn.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BatchOptions {
@@ -243,10 +286,13 @@ impl TrainingSet {
         }
         let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
         let windows = windows(&counts, &window)?;
-        let first_windows = (0..windows.len()).filter(|&i| windows[i].start == 0).collect();
+        let all_windows = WindowPool::uniform((0..windows.len()).collect());
+        let first_windows =
+            WindowPool::uniform((0..windows.len()).filter(|&i| windows[i].start == 0).collect());
         let put_down_of = put_downs(&sequences, &windows, &window);
-        let put_down_windows =
-            (0..windows.len()).filter(|&i| put_down_of[i].iter().any(|&p| p)).collect();
+        let put_down_windows = WindowPool::uniform(
+            (0..windows.len()).filter(|&i| put_down_of[i].iter().any(|&p| p)).collect(),
+        );
         let assets_of = sequences
             .iter()
             .map(|s| dataset.slot_assets(s))
@@ -260,6 +306,7 @@ impl TrainingSet {
             skeleton,
             sequences,
             windows,
+            all_windows,
             first_windows,
             put_down_of,
             put_down_windows,
@@ -288,7 +335,62 @@ impl TrainingSet {
     /// Indices into [`Self::windows`] of the windows that set some object down within their
     /// predicted frames ([`Batch::put_down`]).
     pub fn put_down_windows(&self) -> &[usize] {
-        &self.put_down_windows
+        &self.put_down_windows.indices
+    }
+
+    /// The set with its windows drawn by the action label of their sequence: a window of a
+    /// sequence labelled with a key of `weights` with that weight, every other window with
+    /// weight 1 ([`crate::LoopConfig::action_weights`], whose labels
+    /// [`crate::TrainConfig::check_dataset`] checks; its error names `source_name`). No weights
+    /// leave the set as it is.
+    ///
+    /// # Errors
+    /// Weights that leave no window to draw.
+    pub fn weighted_by_action(
+        mut self,
+        weights: &BTreeMap<String, f64>,
+        source_name: &str,
+    ) -> Result<Self> {
+        if weights.is_empty() {
+            return Ok(self);
+        }
+        let weight_of: Vec<f64> = self
+            .windows
+            .iter()
+            .map(|w| {
+                let action = self.sequences[w.sequence].action.as_ref();
+                action.and_then(|a| weights.get(a)).copied().unwrap_or(1.0)
+            })
+            .collect();
+        self.all_windows = self.all_windows.weighted(&weight_of).ok_or_else(|| {
+            TrainError::config(
+                source_name,
+                "training.action_weights",
+                "weights that leave some window to draw",
+                "0 for every window",
+            )
+        })?;
+        let empty = || WindowPool::uniform(Vec::new());
+        self.first_windows = self.first_windows.weighted(&weight_of).unwrap_or_else(empty);
+        self.put_down_windows = self.put_down_windows.weighted(&weight_of).unwrap_or_else(empty);
+        Ok(self)
+    }
+
+    /// Draws the index (into [`Self::windows`]) of one window of a batch: with
+    /// `options.first_window_share` from the first windows, else with
+    /// `options.put_down_share` from those that set an object down, else from all, each pool
+    /// as [`Self::weighted_by_action`] weighs it.
+    pub fn draw_window(&self, options: &BatchOptions, rng: &mut ChaCha8Rng) -> usize {
+        // No draw for a share when it is 0, so that such runs keep their random stream.
+        let drawn_from = |share: f64, pool: &WindowPool, rng: &mut ChaCha8Rng| {
+            (share > 0.0 && !pool.indices.is_empty() && rng.random_bool(share))
+                .then(|| pool.draw(rng))
+                .flatten()
+        };
+        drawn_from(options.first_window_share, &self.first_windows, rng)
+            .or_else(|| drawn_from(options.put_down_share, &self.put_down_windows, rng))
+            .or_else(|| self.all_windows.draw(rng))
+            .expect("a training set has at least one window to draw")
     }
 
     /// The training sequences.
@@ -343,14 +445,7 @@ impl TrainingSet {
         let mut hands = Vec::with_capacity(b * 2);
         let mut sides = Vec::with_capacity(b * 2);
         for i in 0..b {
-            // No draw for a share when it is 0, so that such runs keep their random stream.
-            let drawn_from = |share: f64, from: &[usize], rng: &mut ChaCha8Rng| {
-                (share > 0.0 && !from.is_empty() && rng.random_bool(share))
-                    .then(|| from[rng.random_range(0..from.len())])
-            };
-            let index = drawn_from(options.first_window_share, &self.first_windows, rng)
-                .or_else(|| drawn_from(options.put_down_share, &self.put_down_windows, rng))
-                .unwrap_or_else(|| rng.random_range(0..self.windows.len()));
+            let index = self.draw_window(options, rng);
             let window = self.windows[index];
             elapsed.push(window.start as f32);
             let source = &self.sequences[window.sequence];

@@ -170,7 +170,8 @@ impl Trainer {
             predicted_frames: config.model.predicted_frames,
             stride: config.training.window_stride,
         };
-        let data = TrainingSet::new(dataset, window)?;
+        let data = TrainingSet::new(dataset, window)?
+            .weighted_by_action(&config.training.action_weights, "config")?;
         let model_vars = SeededVarMap::new(config.training.seed);
         let model = Model::new(&config.model, model_vars.builder(DType::F32, &device))?;
         let vocabulary = Vocabulary::from_texts(

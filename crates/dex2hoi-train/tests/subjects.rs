@@ -417,3 +417,101 @@ fn a_share_of_windows_comes_from_those_that_set_an_object_down() {
     let toml = toml::to_string(trainer.config()).unwrap();
     assert!(!toml.contains("put_down"), "{toml}");
 }
+
+/// The action label of window `index` of a trainer's set.
+fn action_of(trainer: &Trainer, index: usize) -> &str {
+    let set = trainer.training_set();
+    set.sequences()[set.windows()[index].sequence].action.as_deref().unwrap_or("")
+}
+
+/// A tiny trainer on 16 procedural sequences (two of each task family) whose windows are drawn
+/// with `weights` by action, or its error's message.
+fn trainer_weighted_by_action(weights: &[(&str, f64)]) -> Result<Trainer, String> {
+    let data = dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).unwrap();
+    let mut config = TrainConfig::preset("tiny").unwrap();
+    config.training.window_stride = 5;
+    config.training.action_weights = weights.iter().map(|&(a, w)| (a.to_owned(), w)).collect();
+    Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).map_err(|e| e.to_string())
+}
+
+/// `action_weights`: a listed action's windows are drawn with its weight against 1 for the
+/// others, in every pool (first windows, put-down windows, the rest); without weights the
+/// draws are those of a uniform index, as before the option existed.
+#[test]
+fn windows_are_drawn_by_the_weight_of_their_action() {
+    let options = |first: f64, put_down: f64| BatchOptions {
+        size: 1,
+        swap_probability: 0.5,
+        mirror_probability: 0.5,
+        first_window_share: first,
+        put_down_share: put_down,
+    };
+    let draws = 4000;
+
+    let unweighted = trainer_weighted_by_action(&[]).unwrap();
+    let windows = unweighted.training_set().windows().len();
+    let (mut rng, mut uniform) = (ChaCha8Rng::seed_from_u64(4), ChaCha8Rng::seed_from_u64(4));
+    for _ in 0..200 {
+        let drawn = unweighted.training_set().draw_window(&options(0.0, 0.0), &mut rng);
+        assert_eq!(drawn, rand::Rng::random_range(&mut uniform, 0..windows));
+    }
+
+    let pour = trainer_weighted_by_action(&[("pour", 4.0)]).unwrap();
+    let pours = (0..windows).filter(|&i| action_of(&pour, i) == "pour").count();
+    assert!(pours > 0 && pours * 4 < windows, "{pours} pour windows of {windows}");
+    let expected = 4.0 * pours as f64 / (4.0 * pours as f64 + (windows - pours) as f64);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let drawn = (0..draws)
+        .filter(|_| {
+            let index = pour.training_set().draw_window(&options(0.0, 0.0), &mut rng);
+            action_of(&pour, index) == "pour"
+        })
+        .count();
+    let share = drawn as f64 / draws as f64;
+    // Four binomial standard deviations of 4000 draws at a share near 0.4 are 0.03.
+    assert!((share - expected).abs() < 0.03, "pour drawn {share}, expected {expected}");
+
+    let others = ["handover", "hold_two", "inspect", "lift_both", "move_next_to", "pick_place"];
+    let mut only_swap: Vec<(&str, f64)> = others.iter().map(|&a| (a, 0.0)).collect();
+    only_swap.push(("pour", 0.0));
+    let swap = trainer_weighted_by_action(&only_swap).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    for (first, put_down) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.5, 0.5)] {
+        for _ in 0..200 {
+            let index = swap.training_set().draw_window(&options(first, put_down), &mut rng);
+            assert_eq!(action_of(&swap, index), "swap", "shares {first}, {put_down}");
+        }
+    }
+}
+
+/// The error of a trainer with `weights`.
+fn refusal(weights: &[(&str, f64)]) -> String {
+    match trainer_weighted_by_action(weights) {
+        Ok(_) => panic!("weights {weights:?} accepted"),
+        Err(error) => error,
+    }
+}
+
+/// `action_weights` is checked: a label no training sequence has (the known ones named), a
+/// negative weight, weights that leave no window; it survives the written configuration and
+/// is left out of it when empty.
+#[test]
+fn action_weights_are_checked_and_written() {
+    let error = refusal(&[("poor", 2.0)]);
+    assert!(error.contains("training.action_weights.poor") && error.contains("pour"), "{error}");
+    let error = refusal(&[("pour", -1.0)]);
+    assert!(error.contains("non-negative"), "{error}");
+    let labels = ["handover", "hold_two", "inspect", "lift_both", "move_next_to", "pick_place"];
+    let mut zero: Vec<(&str, f64)> = labels.iter().map(|&a| (a, 0.0)).collect();
+    zero.extend([("pour", 0.0), ("swap", 0.0)]);
+    let error = refusal(&zero);
+    assert!(error.contains("0 for every window"), "{error}");
+
+    let trainer = trainer_weighted_by_action(&[("pour", 3.0), ("swap", 2.5)]).unwrap();
+    let toml = trainer.config().to_toml().unwrap();
+    let read = TrainConfig::from_toml(&toml, "written").unwrap();
+    assert_eq!(&read, trainer.config());
+    assert_eq!(read.training.action_weights.get("swap"), Some(&2.5));
+    let plain = TrainConfig::preset("tiny").unwrap().to_toml().unwrap();
+    assert!(!plain.contains("action_weights"), "{plain}");
+}
