@@ -1,9 +1,9 @@
 //! Training batches: windows of `T_p + T_f` frames cut from the training split, augmented
 //! (stream swap, left/right mirror), normalised, with the targets the losses need.
 
-use candle_core::{DType, Device, Tensor};
 use std::collections::BTreeMap;
 
+use candle_core::{DType, Device, Tensor};
 use glam::Vec3;
 use rand::Rng;
 use rand::distr::Distribution;
@@ -241,16 +241,13 @@ impl WindowPool {
         Some(Self { indices: self.indices.clone(), weights: Some(weights) })
     }
 
-    /// One window's index, or `None` for a pool with no window to draw.
-    fn draw(&self, rng: &mut ChaCha8Rng) -> Option<usize> {
-        if self.indices.is_empty() {
-            return None;
-        }
+    /// One window's index, from a pool with some window to draw.
+    fn draw(&self, rng: &mut ChaCha8Rng) -> usize {
         let at = match &self.weights {
             Some(weights) => weights.sample(rng),
             None => rng.random_range(0..self.indices.len()),
         };
-        Some(self.indices[at])
+        self.indices[at]
     }
 }
 
@@ -286,6 +283,14 @@ impl TrainingSet {
         }
         let counts: Vec<usize> = sequences.iter().map(|s| s.frames).collect();
         let windows = windows(&counts, &window)?;
+        if windows.is_empty() {
+            return Err(TrainError::config(
+                "dataset",
+                "training split",
+                "a sequence with at least one frame",
+                "only empty sequences",
+            ));
+        }
         let all_windows = WindowPool::uniform((0..windows.len()).collect());
         let first_windows =
             WindowPool::uniform((0..windows.len()).filter(|&i| windows[i].start == 0).collect());
@@ -385,12 +390,12 @@ impl TrainingSet {
         let drawn_from = |share: f64, pool: &WindowPool, rng: &mut ChaCha8Rng| {
             (share > 0.0 && !pool.indices.is_empty() && rng.random_bool(share))
                 .then(|| pool.draw(rng))
-                .flatten()
         };
+        // Every window is drawable: `TrainingSet::new` has at least one, and
+        // `weighted_by_action` refuses weights that leave none.
         drawn_from(options.first_window_share, &self.first_windows, rng)
             .or_else(|| drawn_from(options.put_down_share, &self.put_down_windows, rng))
-            .or_else(|| self.all_windows.draw(rng))
-            .expect("a training set has at least one window to draw")
+            .unwrap_or_else(|| self.all_windows.draw(rng))
     }
 
     /// The training sequences.
