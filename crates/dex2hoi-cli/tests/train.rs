@@ -344,5 +344,41 @@ fn fine_tune_a_packed_model() {
     let stderr = String::from_utf8_lossy(&misspelt.stderr);
     assert!(!misspelt.status.success());
     assert!(stderr.contains("training.action_weights.poor") && stderr.contains("pour"), "{stderr}");
+
+    // Windows along the model's guided prediction: trained, and refused with none to guide.
+    let along = |name: &str, share: f64| {
+        let file = dir.join(format!("{name}.toml"));
+        let text = std::fs::read_to_string(config()).unwrap().replacen(
+            "[training]\n",
+            &format!("[training]\nown_prediction_share = {share}\nown_prediction_guidance = 2.0\n"),
+            1,
+        );
+        std::fs::write(&file, text).unwrap();
+        let trained = dex2hoi(&[
+            "train",
+            "--init-from",
+            &path("base.st"),
+            "--config",
+            file.to_str().unwrap(),
+            "--data",
+            &path("data"),
+            "--out",
+            &path(name),
+            "--steps",
+            "1",
+        ]);
+        (trained, file)
+    };
+    let (guided, _) = along("guided", 1.0);
+    assert!(guided.status.success(), "{}", String::from_utf8_lossy(&guided.stderr));
+    let written = std::fs::read_to_string(dir.join("guided/config.toml")).unwrap();
+    assert!(written.contains("own_prediction_guidance = 2.0"), "{written}");
+    let (unguided, file) = along("nothing-to-guide", 0.0);
+    let stderr = String::from_utf8_lossy(&unguided.stderr);
+    assert!(!unguided.status.success());
+    assert!(
+        stderr.contains(file.to_str().unwrap()) && stderr.contains("own_prediction_guidance"),
+        "{stderr}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -14,6 +14,7 @@ mod schedule;
 
 pub use error::{DiffusionError, Result};
 pub use sampler::{
-    DEFAULT_GUIDANCE, Denoiser, SamplerConfig, SamplerKind, gaussian, sample, sample_timesteps,
+    DEFAULT_GUIDANCE, Denoiser, SamplerConfig, SamplerKind, gaussian, guided, sample,
+    sample_timesteps,
 };
 pub use schedule::{CosineSchedule, DEFAULT_DIFFUSION_STEPS};

@@ -122,13 +122,18 @@ fn guided_x0(
         });
     }
     match guidance {
-        Some(scale) => {
-            let conditional = x0.narrow(0, 0, batch)?;
-            let unconditional = x0.narrow(0, batch, batch)?;
-            Ok((&unconditional + ((conditional - &unconditional)? * scale)?)?)
-        }
+        Some(scale) => guided(&x0.narrow(0, 0, batch)?, &x0.narrow(0, batch, batch)?, scale),
         None => Ok(x0),
     }
+}
+
+/// The classifier-free guided prediction `x0_null + s (x0_cond - x0_null)` at scale `s`: the
+/// conditional prediction at `s = 1`, the null one at `s = 0`.
+///
+/// # Shapes
+/// - `conditional`, `unconditional`: one shape; returns that shape
+pub fn guided(conditional: &Tensor, unconditional: &Tensor, scale: f64) -> Result<Tensor> {
+    Ok((unconditional + ((conditional - unconditional)? * scale)?)?)
 }
 
 /// Samples from pure noise of `shape` down to `x0`, calling the denoiser once per respaced step.

@@ -8,7 +8,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use dex2hoi_diffusion::{
-    CosineSchedule, Denoiser, DiffusionError, SamplerConfig, SamplerKind, gaussian, sample,
+    CosineSchedule, Denoiser, DiffusionError, SamplerConfig, SamplerKind, gaussian, guided, sample,
     sample_timesteps,
 };
 
@@ -204,6 +204,20 @@ fn guidance_extrapolates_from_the_null_condition_in_one_batch() {
     let null = model.last_null.borrow();
     assert_eq!(null.len(), 512);
     assert!(null[..256].iter().all(|n| !n) && null[256..].iter().all(|n| *n));
+}
+
+/// The guided prediction is the null one at scale 0, the conditional one at 1, and extrapolates
+/// past the conditional one beyond 1.
+#[test]
+fn guided_prediction_interpolates_and_extrapolates() {
+    let conditional = Tensor::new(&[[1.0f32, -2.0], [0.5, 4.0]], &Device::Cpu).unwrap();
+    let unconditional = Tensor::new(&[[0.0f32, 1.0], [0.5, -4.0]], &Device::Cpu).unwrap();
+    let at = |scale: f64| -> Vec<Vec<f32>> {
+        guided(&conditional, &unconditional, scale).unwrap().to_vec2().unwrap()
+    };
+    assert_eq!(at(0.0), unconditional.to_vec2::<f32>().unwrap());
+    assert_eq!(at(1.0), conditional.to_vec2::<f32>().unwrap());
+    assert_eq!(at(2.0), vec![vec![2.0, -5.0], vec![0.5, 12.0]]);
 }
 
 #[test]

@@ -239,6 +239,15 @@ pub struct LoopConfig {
     /// along the sampler's steps, docs/results/long-generations.md).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub own_prediction_share: f64,
+    /// The classifier-free guidance scale of the prediction that the windows of
+    /// `own_prediction_share` step along (default: none, the conditional prediction). With a
+    /// scale `s` they step along `x0_null + s (x0_cond - x0_null)`
+    /// ([`dex2hoi_diffusion::guided`]), the null prediction made from the same rows with the
+    /// text embedding zeroed: the prediction the sampler steps along at guidance `s` (2.0 by
+    /// default, [`dex2hoi_diffusion::DEFAULT_GUIDANCE`]), where the conditional one is not.
+    /// Beyond the paper; one more forward pass of those windows. Needs a share above 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub own_prediction_guidance: Option<f64>,
     /// How often windows are drawn by the action label of their sequence (a task family of the
     /// procedural data, a GRAB intent): a window of a sequence whose label is listed is drawn
     /// with that weight, every other window with weight 1 (default: none listed, so uniformly).
@@ -383,6 +392,18 @@ impl TrainConfig {
         ] {
             if !(0.0..=1.0).contains(&p) {
                 return bad(field, "a probability in [0, 1]", &p);
+            }
+        }
+        if let Some(scale) = t.own_prediction_guidance {
+            if !scale.is_finite() {
+                return bad("training.own_prediction_guidance", "a finite scale", &scale);
+            }
+            if t.own_prediction_share == 0.0 {
+                return bad(
+                    "training.own_prediction_guidance",
+                    "no scale while training.own_prediction_share is 0 (it guides nothing)",
+                    &scale,
+                );
             }
         }
         for (action, &weight) in &t.action_weights {

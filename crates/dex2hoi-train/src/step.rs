@@ -27,7 +27,7 @@ use rayon::prelude::*;
 
 use dex2hoi_data::dataset::Dataset;
 use dex2hoi_data::window::WindowConfig;
-use dex2hoi_diffusion::{CosineSchedule, gaussian, sample_timesteps};
+use dex2hoi_diffusion::{CosineSchedule, gaussian, guided, sample_timesteps};
 use dex2hoi_model::text::{UNKNOWN, Vocabulary};
 use dex2hoi_model::{Model, ModelInput, SeededVarMap};
 use dex2hoi_optim::{AdamW, Ema, Parameter, learning_rate, parameters_of, step_rng};
@@ -396,8 +396,8 @@ impl Trainer {
 
     /// The noisy input of the windows that `training.own_prediction_share` draws, and every
     /// window's step: for each drawn window at a step `t` above 0, the DDIM step from its noisy
-    /// input along the model's own prediction of it (no dropout, no gradient) to a step drawn
-    /// uniformly below `t`. `None`, with no draw from `rng`, at a share of 0, and when no
+    /// input along the model's own prediction of it (no dropout, no gradient; guided at
+    /// `training.own_prediction_guidance` when set) to a step drawn uniformly below `t`. `None`, with no draw from `rng`, at a share of 0, and when no
     /// window was drawn.
     fn along_own_prediction(
         &self,
@@ -425,6 +425,15 @@ impl Trainer {
         let drawn =
             InputRows::of(input, &input.text.detach(), |t| t.contiguous()?.index_select(&ids, 0))?;
         let predicted = self.model.forward(&drawn.input(), None)?.detach();
+        let predicted = match self.config.training.own_prediction_guidance {
+            Some(scale) => {
+                let null_text = drawn.text.zeros_like()?;
+                let null = ModelInput { text: &null_text, ..drawn.input() };
+                let unconditional = self.model.forward(&null, None)?.detach();
+                guided(&predicted, &unconditional, scale)?
+            }
+            None => predicted,
+        };
         let from: Vec<usize> = rows.iter().map(|&row| timesteps[row]).collect();
         let to: Vec<usize> = rows.iter().map(|&row| earlier[row]).collect();
         let stepped = self.schedule.step_towards(&drawn.noisy, &predicted, &from, &to)?;
@@ -722,26 +731,28 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     use dex2hoi_diffusion::{CosineSchedule, gaussian};
+    use dex2hoi_model::ModelInput;
 
     use super::{Trainer, batch_input};
-    use crate::batch::BatchOptions;
+    use crate::batch::{Batch, BatchOptions};
     use crate::config::TrainConfig;
 
     fn trainer(share: f64) -> Trainer {
+        trainer_with(|config| config.training.own_prediction_share = share)
+    }
+
+    /// A trainer of the `tiny` preset, as `change` leaves it, on a small procedural dataset.
+    fn trainer_with(change: impl FnOnce(&mut TrainConfig)) -> Trainer {
         let data =
             dex2hoi_synth::build_dataset(16, 5, 20.0, &|_| {}).expect("a procedural dataset");
         let mut config = TrainConfig::preset("tiny").unwrap();
-        config.training.own_prediction_share = share;
+        change(&mut config);
         Trainer::new(config, &data, Path::new("procedural"), &Device::Cpu).unwrap()
     }
 
-    /// The windows the share draws are noised along the model's own prediction (the DDIM step
-    /// from the data's noisy window to an earlier step), the others keep the data's noisy
-    /// window and step; a window at step 0 has no earlier step; a share of 0 changes nothing
-    /// and draws nothing; a share of a half draws about half the windows.
-    #[test]
-    fn windows_noised_along_the_models_own_prediction() {
-        let trainer = trainer(1.0);
+    /// The model's input for a batch of six windows at steps 0 to 999, with the data's noisy
+    /// window, and the generator after drawing it.
+    fn noisy_input(trainer: &Trainer) -> (Batch, Tensor, Tensor, [usize; 6], ChaCha8Rng) {
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         let options = BatchOptions {
             size: 6,
@@ -757,6 +768,21 @@ mod tests {
         let timesteps = [0, 1, 250, 600, 900, 999];
         let noisy = trainer.schedule.add_noise(&x0, &noise, &timesteps).unwrap();
         let prefix = batch.features.narrow(2, 0, tp).unwrap();
+        (batch, noisy, prefix, timesteps, rng)
+    }
+
+    fn largest(t: Tensor) -> f32 {
+        t.abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+    }
+
+    /// The windows the share draws are noised along the model's own prediction (the DDIM step
+    /// from the data's noisy window to an earlier step), the others keep the data's noisy
+    /// window and step; a window at step 0 has no earlier step; a share of 0 changes nothing
+    /// and draws nothing; a share of a half draws about half the windows.
+    #[test]
+    fn windows_noised_along_the_models_own_prediction() {
+        let trainer = trainer(1.0);
+        let (batch, noisy, prefix, timesteps, mut rng) = noisy_input(&trainer);
         let steps = CosineSchedule::timestep_tensor(&timesteps, &Device::Cpu).unwrap();
         let (text, _) = trainer.encode_text(&batch.texts, &mut rng).unwrap();
         let input = batch_input(&batch, &noisy, &prefix, &steps, &text);
@@ -767,14 +793,13 @@ mod tests {
         let predicted = trainer.model.forward(&input, None).unwrap();
         let expected =
             trainer.schedule.step_towards(&noisy, &predicted, &timesteps, &earlier).unwrap();
-        let largest = |t: Tensor| t.abs().unwrap().flatten_all().unwrap().max(0).unwrap();
-        let scale = largest(expected.clone()).to_scalar::<f32>().unwrap();
-        let error = largest((&stepped - &expected).unwrap()).to_scalar::<f32>().unwrap();
+        let scale = largest(expected.clone());
+        let error = largest((&stepped - &expected).unwrap());
         assert!(error <= 1e-4 * scale, "{error} against values up to {scale}");
         let moved = largest((&stepped - &noisy).unwrap().narrow(0, 1, 5).unwrap());
-        assert!(moved.to_scalar::<f32>().unwrap() > 1e-2);
+        assert!(moved > 1e-2);
         let first = (&stepped - &noisy).unwrap().narrow(0, 0, 1).unwrap();
-        assert_eq!(largest(first).to_scalar::<f32>().unwrap(), 0.0);
+        assert_eq!(largest(first), 0.0);
 
         let off = self::trainer(0.0);
         let mut draws = rng.clone();
@@ -790,6 +815,66 @@ mod tests {
             })
             .sum();
         assert!((36..=84).contains(&drawn), "{drawn} of 120 windows drawn");
+    }
+
+    /// With `own_prediction_guidance` the windows step along the guided prediction, the null
+    /// one made with the text embedding zeroed, as the sampler guides; at scale 1 that is the
+    /// conditional prediction. The scale is written to the configuration only when set, and
+    /// refused when not finite or with no windows to guide.
+    #[test]
+    fn own_prediction_guided_as_the_sampler_guides() {
+        let mut trainer = trainer_with(|config| {
+            config.training.own_prediction_share = 1.0;
+            config.training.own_prediction_guidance = Some(2.0);
+            config.optimizer.learning_rate = 1e-2;
+            config.optimizer.warmup_steps = 0;
+        });
+        // The text's path starts at zero: a few large steps give the text a say.
+        for _ in 0..3 {
+            trainer.step(0).unwrap();
+        }
+        let (batch, noisy, prefix, timesteps, mut rng) = noisy_input(&trainer);
+        let steps = CosineSchedule::timestep_tensor(&timesteps, &Device::Cpu).unwrap();
+        let (text, _) = trainer.encode_text(&batch.texts, &mut rng).unwrap();
+        let input = batch_input(&batch, &noisy, &prefix, &steps, &text);
+        let mut draws = rng.clone();
+        let (stepped, earlier) =
+            trainer.along_own_prediction(&input, &timesteps, &mut draws).unwrap().unwrap();
+        let conditional = trainer.model.forward(&input, None).unwrap();
+        let null_text = text.zeros_like().unwrap();
+        let null = trainer.model.forward(&ModelInput { text: &null_text, ..input }, None).unwrap();
+        let predicted = (&null + ((&conditional - &null).unwrap() * 2.0).unwrap()).unwrap();
+        let expected =
+            trainer.schedule.step_towards(&noisy, &predicted, &timesteps, &earlier).unwrap();
+        let scale = largest(expected.clone());
+        let error = largest((&stepped - &expected).unwrap());
+        assert!(error <= 1e-4 * scale, "{error} against values up to {scale}");
+        let along_conditional =
+            trainer.schedule.step_towards(&noisy, &conditional, &timesteps, &earlier).unwrap();
+        let guidance_moved = largest((&stepped - &along_conditional).unwrap());
+        assert!(guidance_moved > 1e-3 * scale, "guidance moved the windows by {guidance_moved}");
+
+        let written = trainer.config.to_toml().unwrap();
+        assert!(written.contains("own_prediction_guidance = 2.0"), "{written}");
+        let mut along = |guidance: Option<f64>| {
+            trainer.config.training.own_prediction_guidance = guidance;
+            let mut draws = rng.clone();
+            trainer.along_own_prediction(&input, &timesteps, &mut draws).unwrap().unwrap().0
+        };
+        let one = along(Some(1.0));
+        let plain = along(None);
+        assert!(largest((&plain - &one).unwrap()) <= 1e-5 * scale);
+        assert!(!trainer.config.to_toml().unwrap().contains("own_prediction_guidance = "));
+        for (share, guidance, expected) in
+            [(0.0, 2.0, "own_prediction_share is 0"), (0.5, f64::NAN, "a finite scale")]
+        {
+            let mut config = TrainConfig::preset("tiny").unwrap();
+            config.training.own_prediction_share = share;
+            config.training.own_prediction_guidance = Some(guidance);
+            let error = config.validate("guided.toml").unwrap_err().to_string();
+            assert!(error.contains("training.own_prediction_guidance"), "{error}");
+            assert!(error.contains(expected), "{error}");
+        }
     }
 
     /// Batches drawn ahead on another thread are the ones each step would draw itself: three
