@@ -316,44 +316,10 @@ fn fine_tune_a_packed_model() {
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("none.st"));
 
-    // Windows drawn by action: said when training starts; a label the data lacks refused.
-    let weighted = |name: &str, label: &str| {
+    // One step from base.st with tiny.toml edited by `edit`, written to `{name}.toml`.
+    let one_step = |name: &str, edit: &dyn Fn(String) -> String| {
         let file = dir.join(format!("{name}.toml"));
-        let text = std::fs::read_to_string(config()).unwrap();
-        std::fs::write(&file, format!("{text}\n[training.action_weights]\n{label} = 3.0\n"))
-            .unwrap();
-        dex2hoi(&[
-            "train",
-            "--init-from",
-            &path("base.st"),
-            "--config",
-            file.to_str().unwrap(),
-            "--data",
-            &path("data"),
-            "--out",
-            &path(name),
-            "--steps",
-            "1",
-        ])
-    };
-    let pours = weighted("pours", "pour");
-    assert!(pours.status.success(), "{}", String::from_utf8_lossy(&pours.stderr));
-    let stdout = String::from_utf8_lossy(&pours.stdout);
-    assert!(stdout.contains("windows drawn by action: pour x3, every other action x1"), "{stdout}");
-    let misspelt = weighted("misspelt", "poor");
-    let stderr = String::from_utf8_lossy(&misspelt.stderr);
-    assert!(!misspelt.status.success());
-    assert!(stderr.contains("training.action_weights.poor") && stderr.contains("pour"), "{stderr}");
-
-    // Windows along the model's guided prediction: trained, and refused with none to guide.
-    let along = |name: &str, share: f64| {
-        let file = dir.join(format!("{name}.toml"));
-        let text = std::fs::read_to_string(config()).unwrap().replacen(
-            "[training]\n",
-            &format!("[training]\nown_prediction_share = {share}\nown_prediction_guidance = 2.0\n"),
-            1,
-        );
-        std::fs::write(&file, text).unwrap();
+        std::fs::write(&file, edit(std::fs::read_to_string(config()).unwrap())).unwrap();
         let trained = dex2hoi(&[
             "train",
             "--init-from",
@@ -368,6 +334,32 @@ fn fine_tune_a_packed_model() {
             "1",
         ]);
         (trained, file)
+    };
+
+    // Windows drawn by action: said when training starts; a label the data lacks refused.
+    let weighted = |name: &str, label: &str| {
+        one_step(name, &|text| format!("{text}\n[training.action_weights]\n{label} = 3.0\n")).0
+    };
+    let pours = weighted("pours", "pour");
+    assert!(pours.status.success(), "{}", String::from_utf8_lossy(&pours.stderr));
+    let stdout = String::from_utf8_lossy(&pours.stdout);
+    assert!(stdout.contains("windows drawn by action: pour x3, every other action x1"), "{stdout}");
+    let misspelt = weighted("misspelt", "poor");
+    let stderr = String::from_utf8_lossy(&misspelt.stderr);
+    assert!(!misspelt.status.success());
+    assert!(stderr.contains("training.action_weights.poor") && stderr.contains("pour"), "{stderr}");
+
+    // Windows along the model's guided prediction: trained, and refused with none to guide.
+    let along = |name: &str, share: f64| {
+        one_step(name, &|text| {
+            text.replacen(
+                "[training]\n",
+                &format!(
+                    "[training]\nown_prediction_share = {share}\nown_prediction_guidance = 2.0\n"
+                ),
+                1,
+            )
+        })
     };
     let (guided, _) = along("guided", 1.0);
     assert!(guided.status.success(), "{}", String::from_utf8_lossy(&guided.stderr));
